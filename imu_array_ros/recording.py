@@ -1,0 +1,515 @@
+"""Recording I/O: IMU-array recordings, ground truth and fused output as rosbag2 MCAP.
+
+Topics (``prefix`` defaults to ``/imu_array``):
+
+``<prefix>/<name>/data_raw``  sensor_msgs/msg/Imu, one per IMU
+    measurements in the IMU's own sensor frame, ``header.frame_id = <name>``,
+    the same ``header.stamp`` on every IMU's message of one array sample;
+    ``angular_velocity_covariance = diag(gyroscope_noise_std^2)``,
+    ``linear_acceleration_covariance = diag(accelerometer_noise_std^2)``,
+    orientation zero with ``orientation_covariance[0] = -1`` (REP-145).
+``<prefix>/truth/imu``, ``<prefix>/truth/accel``  ground truth (simulation only)
+    Imu: angular_velocity = omega, linear_acceleration = specific force at the
+    array origin, orientation = attitude [x y z w] (or zeros with
+    orientation_covariance[0] = -1); AccelWithCovarianceStamped: linear =
+    specific force, angular = omega_dot; covariances zero; frame = array frame.
+``<prefix>/fused/imu``, ``<prefix>/fused/accel``  fusion output
+    Imu: omega and specific force with their 3x3 covariances;
+    AccelWithCovarianceStamped: linear = specific force, angular = omega_dot,
+    6x6 covariance in ROS order [linear, angular].
+
+Reading decodes whole MCAP chunks column-wise (:mod:`.mcap_store`,
+:mod:`.cdr_columns`); there is no per-message Python in the hot path.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from .cdr_columns import (
+    ACCEL_LAYOUT,
+    IMU_LAYOUT,
+    MessageLayout,
+    decode_columns,
+    encode_accel_with_covariance_stamped,
+    encode_imu,
+)
+from .description import ArrayDescription
+from .errors import RecordingError
+from .mcap_store import ChannelData, ChannelInfo, McapRecording, write_recording
+from .samples import FusedSamples, ImuSamples, MotionTruth, ReadStats
+
+__all__ = [
+    "IMU_TYPE",
+    "ACCEL_TYPE",
+    "imu_topic",
+    "read_imu_recording",
+    "write_imu_recording",
+    "write_fused_recording",
+    "read_fused_recording",
+    "read_truth",
+]
+
+IMU_TYPE = IMU_LAYOUT.type_name
+ACCEL_TYPE = ACCEL_LAYOUT.type_name
+
+#: orientation_covariance of a message without orientation (REP-145).
+NO_ORIENTATION = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
+
+#: A topic's stamps "do not match" when more than this fraction of its samples
+#: has no other IMU's message at the same stamp.
+UNMATCHED_LIMIT = 0.5
+
+
+def _prefix(prefix: str) -> str:
+    prefix = prefix.rstrip("/")
+    return prefix if prefix.startswith("/") or not prefix else "/" + prefix
+
+
+def imu_topic(name: str, topic_prefix: str = "/imu_array") -> str:
+    """``<prefix>/<name>/data_raw``."""
+    return f"{_prefix(topic_prefix)}/{name}/data_raw"
+
+
+# --------------------------------------------------------------------------- reading helpers
+
+
+@dataclass
+class _Columns:
+    """Decoded messages of the topics sharing one message type, file order.
+
+    topic (M,) int32 index into the requested topics; stamps (M,) int64 ns;
+    valid (M,) bool (layout decodable); encap_ok (M,) bool; fields name -> (M, n).
+    """
+
+    topic: np.ndarray
+    stamps: np.ndarray
+    valid: np.ndarray
+    encap_ok: np.ndarray
+    fields: dict[str, np.ndarray]
+
+
+def _list_topics(available: Mapping[str, list[ChannelInfo]], limit: int = 12) -> str:
+    names = sorted(available)
+    if not names:
+        return "no topics"
+    more = f", ... ({len(names) - limit} more)" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more
+
+
+def _check_topic(rec: McapRecording, available, topic: str, type_name: str, what: str) -> bool:
+    """True if ``topic`` exists with ``type_name`` (cdr); raise on a wrong type; False if absent."""
+    chans = available.get(topic)
+    if not chans:
+        return False
+    if not any(c.schema_name == type_name and c.message_encoding == "cdr" for c in chans):
+        got = ", ".join(sorted({f"{c.schema_name or '<no schema>'} ({c.message_encoding})" for c in chans}))
+        raise RecordingError(f"{rec.path}: topic {topic} {what} has type {got}, expected {type_name} (cdr)")
+    return True
+
+
+def _collect(
+    rec: McapRecording,
+    topics: Sequence[tuple[str, MessageLayout]],
+    fields: Mapping[str, Sequence[str]],
+    progress: Callable[[float], None] | None = None,
+) -> dict[str, _Columns]:
+    """Decode every message of ``topics`` ((topic, layout) pairs), grouped by type name."""
+    select = {t: layout.type_name for t, layout in topics}
+    layouts = {layout.type_name: layout for _, layout in topics}
+    members = {
+        name: np.array([i for i, (_, lay) in enumerate(topics) if lay.type_name == name], dtype=np.int32)
+        for name in layouts
+    }
+    parts: dict[str, list] = {name: [] for name in layouts}
+    for batch in rec.iter_batches(select, progress=progress):
+        for name, layout in layouts.items():
+            if len(layouts) == 1:
+                sub = slice(None)
+                topic = batch.topic
+            else:
+                sub = np.isin(batch.topic, members[name])
+                if not sub.any():
+                    continue
+                topic = batch.topic[sub]
+            dec = decode_columns(layout, batch.buffer, batch.offset[sub], batch.length[sub], fields[name])
+            parts[name].append((topic, dec))
+    out: dict[str, _Columns] = {}
+    for name, layout in layouts.items():
+        got = parts[name]
+        names = list(fields[name])
+        if not got:
+            out[name] = _Columns(
+                np.zeros(0, np.int32),
+                np.zeros(0, np.int64),
+                np.zeros(0, bool),
+                np.zeros(0, bool),
+                {f: np.zeros((0, layout.fields[f][1])) for f in names},
+            )
+            continue
+        out[name] = _Columns(
+            topic=np.concatenate([t for t, _ in got]),
+            stamps=np.concatenate([d.stamps for _, d in got]),
+            valid=np.concatenate([d.valid for _, d in got]),
+            encap_ok=np.concatenate([d.encapsulation_ok for _, d in got]),
+            fields={f: np.concatenate([d.fields[f] for _, d in got]) for f in names},
+        )
+    return out
+
+
+def _first_per_stamp(stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique sorted stamps and, for each, the index of its first occurrence."""
+    return np.unique(stamps, return_index=True)
+
+
+# --------------------------------------------------------------------------- IMU recordings
+
+
+def read_imu_recording(
+    path,
+    description: ArrayDescription,
+    *,
+    topic_prefix: str = "/imu_array",
+    progress: Callable[[float], None] | None = None,
+) -> tuple[ImuSamples, ReadStats]:
+    """Read the IMU topics of ``description.names`` and align them by ``header.stamp``.
+
+    Returns (samples, stats).  samples.stamps (N,) int64 ns sorted; accel/gyro
+    (N, K, 3) in each IMU's sensor frame, NaN where the IMU's message is
+    missing or bad.  A message is bad when its payload is not little-endian
+    CDR of the Imu layout (dropped) or a value is non-finite (row left NaN).
+    A second message of one topic at the same stamp is a duplicate; the first
+    one (file order) is kept.  ``stats.incomplete_samples`` counts samples in
+    which at least one IMU has no usable data.
+
+    Raises :class:`RecordingError` for a missing/garbled recording, a missing
+    topic, a topic of the wrong type, or an IMU whose stamps mostly do not
+    coincide with the others'.
+    """
+    names = tuple(description.names)
+    topics = [imu_topic(n, topic_prefix) for n in names]
+    rec = McapRecording(path)
+    available = rec.topics()
+    for name, topic in zip(names, topics):
+        if not _check_topic(rec, available, topic, IMU_TYPE, f"for IMU {name!r}"):
+            raise RecordingError(f"{rec.path}: no topic {topic} for IMU {name!r} (recording has: {_list_topics(available)})")
+
+    cols = _collect(
+        rec,
+        [(t, IMU_LAYOUT) for t in topics],
+        {IMU_TYPE: ("angular_velocity", "linear_acceleration")},
+        progress,
+    )[IMU_TYPE]
+    k_count = len(names)
+    stats = ReadStats(messages=int(len(cols.topic)))
+
+    invalid = ~cols.valid
+    if invalid.any():
+        wrong_enc = invalid & ~cols.encap_ok
+        per_topic = np.bincount(cols.topic[invalid], minlength=k_count)
+        worst = int(np.argmax(per_topic))
+        reason = (
+            "unsupported CDR encapsulation (only little-endian CDR is read)"
+            if wrong_enc.any()
+            else "payload does not match the Imu layout"
+        )
+        stats.notes.append(
+            f"{int(invalid.sum())} undecodable messages ({reason}; most on {topics[worst]}: {int(per_topic[worst])})"
+        )
+    keep = slice(None) if not invalid.any() else cols.valid
+    topic = cols.topic[keep].astype(np.int64)
+    stamps = cols.stamps[keep]
+    gyro_m = cols.fields["angular_velocity"][keep]
+    acc_m = cols.fields["linear_acceleration"][keep]
+
+    uniq, inv = np.unique(stamps, return_inverse=True)
+    n = len(uniq)
+    key = inv.reshape(-1) * k_count + topic
+    counts = np.bincount(key, minlength=n * k_count)
+    if (counts > 1).any():
+        _, first = np.unique(key, return_index=True)  # first occurrence in file order
+        stats.duplicate_messages = int(len(key) - len(first))
+        key, topic, gyro_m, acc_m, inv = key[first], topic[first], gyro_m[first], acc_m[first], inv.reshape(-1)[first]
+    inv = inv.reshape(-1)
+
+    fg, fa = np.isfinite(gyro_m), np.isfinite(acc_m)
+    finite = fg[:, 0] & fg[:, 1] & fg[:, 2] & fa[:, 0] & fa[:, 1] & fa[:, 2]
+    n_nonfinite = int((~finite).sum())
+    stats.bad_messages = int(invalid.sum()) + n_nonfinite
+    if n_nonfinite:
+        per_topic = np.bincount(topic[~finite], minlength=k_count)
+        worst = int(np.argmax(per_topic))
+        stats.notes.append(f"{n_nonfinite} messages with non-finite values (most on {topics[worst]}: {int(per_topic[worst])})")
+
+    # stamps that do not coincide with the other IMUs'
+    per_imu = np.bincount(topic, minlength=k_count)
+    if k_count > 1 and len(key):
+        in_sample = np.bincount(inv, minlength=n)
+        alone = np.bincount(topic[in_sample[inv] == 1], minlength=k_count)
+        frac = np.divide(alone, per_imu, out=np.zeros(k_count), where=per_imu > 0)
+        worst = int(np.argmax(frac))
+        if frac[worst] > UNMATCHED_LIMIT:
+            raise RecordingError(
+                f"{rec.path}: stamps of {topics[worst]} do not match the other IMUs "
+                f"({100 * frac[worst]:.0f}% of its samples unmatched); every IMU's message of one array "
+                "sample must carry the same header.stamp"
+            )
+    for k in np.flatnonzero(per_imu == 0):
+        stats.notes.append(f"IMU {names[k]!r}: no messages on {topics[k]}")
+
+    if n_nonfinite:
+        key, inv, acc_m, gyro_m = key[finite], inv[finite], acc_m[finite], gyro_m[finite]
+    if len(key) == n * k_count and (key == np.arange(n * k_count)).all():
+        accel, gyro = acc_m, gyro_m  # complete and already in (stamp, IMU) order: no scatter
+    else:
+        accel = np.full((n * k_count, 3), np.nan)
+        gyro = np.full((n * k_count, 3), np.nan)
+        accel[key] = acc_m
+        gyro[key] = gyro_m
+    samples = ImuSamples(uniq, accel.reshape(n, k_count, 3), gyro.reshape(n, k_count, 3), names)
+    stats.samples = n
+    stats.incomplete_samples = int((np.bincount(inv, minlength=n) < k_count).sum())
+    return samples, stats
+
+
+def _stamp_error(path, err: ValueError) -> RecordingError:
+    return RecordingError(f"{path}: cannot write: {err}")
+
+
+def _imu_channels(samples: ImuSamples, description: ArrayDescription, topic_prefix: str) -> list[ChannelData]:
+    gyro_cov = np.diag(np.full(3, float(description.gyroscope_noise_std) ** 2)).reshape(9)
+    acc_cov = np.diag(np.full(3, float(description.accelerometer_noise_std) ** 2)).reshape(9)
+    present = samples.present
+    channels = []
+    for k, name in enumerate(samples.names):
+        rows = present[:, k]
+        stamps = samples.stamps[rows]
+        payload = encode_imu(
+            stamps,
+            name,
+            angular_velocity=samples.gyro[rows, k],
+            linear_acceleration=samples.accel[rows, k],
+            angular_velocity_covariance=gyro_cov,
+            linear_acceleration_covariance=acc_cov,
+            orientation_covariance=NO_ORIENTATION,
+        )
+        channels.append(ChannelData(imu_topic(name, topic_prefix), IMU_TYPE, stamps, payload))
+    return channels
+
+
+def _truth_channels(truth: MotionTruth, frame_id: str, prefix: str) -> list[ChannelData]:
+    stamps = np.asarray(truth.stamps, dtype=np.int64)
+    omega = np.asarray(truth.omega, dtype=float).reshape(-1, 3)
+    omega_dot = np.asarray(truth.omega_dot, dtype=float).reshape(-1, 3)
+    force = np.asarray(truth.specific_force, dtype=float).reshape(-1, 3)
+    if truth.attitude is not None:
+        q = np.asarray(truth.attitude, dtype=float).reshape(-1, 4)
+        orientation, orientation_cov = q[:, [1, 2, 3, 0]], None  # [w x y z] -> ROS [x y z w]
+    else:
+        orientation, orientation_cov = None, NO_ORIENTATION
+    imu = encode_imu(
+        stamps,
+        frame_id,
+        angular_velocity=omega,
+        linear_acceleration=force,
+        orientation=orientation,
+        orientation_covariance=orientation_cov,
+    )
+    accel = encode_accel_with_covariance_stamped(stamps, frame_id, linear=force, angular=omega_dot)
+    return [
+        ChannelData(f"{prefix}/truth/imu", IMU_TYPE, stamps, imu),
+        ChannelData(f"{prefix}/truth/accel", ACCEL_TYPE, stamps, accel),
+    ]
+
+
+def write_imu_recording(
+    path,
+    samples: ImuSamples,
+    description: ArrayDescription,
+    *,
+    truth: MotionTruth | None = None,
+    topic_prefix: str = "/imu_array",
+) -> None:
+    """Write raw IMU samples (and optionally ground truth) atomically.
+
+    ``path`` ending in ``.mcap`` -> bare MCAP file, else a rosbag2 directory.
+    IMUs absent in a sample (non-finite row) are not written for that stamp.
+    Message log time = header.stamp.
+    """
+    unknown = [n for n in samples.names if n not in description.names]
+    if unknown:
+        raise ValueError(f"IMU(s) {unknown} are not in the array description {description.source}")
+    prefix = _prefix(topic_prefix)
+    try:
+        channels = _imu_channels(samples, description, prefix)
+        if truth is not None:
+            channels += _truth_channels(truth, description.frame_id, prefix)
+    except ValueError as err:
+        raise _stamp_error(path, err) from None
+    write_recording(path, channels)
+
+
+def read_truth(path, *, prefix: str = "/imu_array/truth") -> MotionTruth:
+    """Ground truth from ``<prefix>/imu`` and ``<prefix>/accel``.
+
+    Rows are the union of both topics' stamps (sorted); a quantity whose topic
+    lacks a stamp is NaN.  attitude (N, 4) [w x y z] if the Imu messages carry
+    orientation (orientation_covariance[0] != -1), else None.
+    """
+    prefix = _prefix(prefix)
+    rec = McapRecording(path)
+    available = rec.topics()
+    t_imu, t_acc = f"{prefix}/imu", f"{prefix}/accel"
+    has_imu = _check_topic(rec, available, t_imu, IMU_TYPE, "(ground truth)")
+    has_acc = _check_topic(rec, available, t_acc, ACCEL_TYPE, "(ground truth)")
+    if not (has_imu or has_acc):
+        raise RecordingError(
+            f"{rec.path}: no ground truth: topics {t_imu} and {t_acc} are missing (recording has: {_list_topics(available)})"
+        )
+    topics = ([(t_imu, IMU_LAYOUT)] if has_imu else []) + ([(t_acc, ACCEL_LAYOUT)] if has_acc else [])
+    cols = _collect(
+        rec,
+        topics,
+        {
+            IMU_TYPE: ("orientation", "orientation_covariance", "angular_velocity", "linear_acceleration"),
+            ACCEL_TYPE: ("linear", "angular"),
+        },
+    )
+    imu = cols.get(IMU_TYPE)
+    acc = cols.get(ACCEL_TYPE)
+    parts = [c.stamps[c.valid] for c in (imu, acc) if c is not None]
+    stamps = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+    n = len(stamps)
+    omega = np.full((n, 3), np.nan)
+    omega_dot = np.full((n, 3), np.nan)
+    force = np.full((n, 3), np.nan)
+    attitude = None
+    if imu is not None:
+        s, first = _first_per_stamp(imu.stamps[imu.valid])
+        rows = np.searchsorted(stamps, s)
+        f = {k: v[imu.valid][first] for k, v in imu.fields.items()}
+        omega[rows] = f["angular_velocity"]
+        force[rows] = f["linear_acceleration"]
+        has_q = f["orientation_covariance"][:, 0] != -1.0
+        if has_q.any():
+            attitude = np.full((n, 4), np.nan)
+            q = f["orientation"][:, [3, 0, 1, 2]]
+            attitude[rows[has_q]] = q[has_q]
+    if acc is not None:
+        s, first = _first_per_stamp(acc.stamps[acc.valid])
+        rows = np.searchsorted(stamps, s)
+        omega_dot[rows] = acc.fields["angular"][acc.valid][first]
+        if imu is None:
+            force[rows] = acc.fields["linear"][acc.valid][first]
+    return MotionTruth(stamps=stamps, omega=omega, omega_dot=omega_dot, specific_force=force, attitude=attitude)
+
+
+# --------------------------------------------------------------------------- fused output
+
+
+def write_fused_recording(path, fused: FusedSamples, frame_id: str, *, topic_prefix: str = "/imu_array") -> None:
+    """Write fusion output to ``<prefix>/fused/imu`` and ``<prefix>/fused/accel`` atomically.
+
+    fused.covariance (N, 9, 9) in parameter order [omega, omega_dot,
+    specific_force]; the Imu message carries the omega and specific-force
+    3x3 blocks, the Accel message the 6x6 block of [specific_force,
+    omega_dot] (ROS order [linear, angular]).  Stamps as in ``fused``.
+    """
+    prefix = _prefix(topic_prefix)
+    stamps = np.asarray(fused.stamps, dtype=np.int64).reshape(-1)
+    n = len(stamps)
+    cov = np.asarray(fused.covariance, dtype=float).reshape(n, 9, 9)
+    w, wd, f = slice(0, 3), slice(3, 6), slice(6, 9)
+    accel_cov = np.empty((n, 6, 6))
+    accel_cov[:, :3, :3] = cov[:, f, f]
+    accel_cov[:, :3, 3:] = cov[:, f, wd]
+    accel_cov[:, 3:, :3] = cov[:, wd, f]
+    accel_cov[:, 3:, 3:] = cov[:, wd, wd]
+    try:
+        imu = encode_imu(
+            stamps,
+            frame_id,
+            angular_velocity=fused.omega,
+            angular_velocity_covariance=cov[:, w, w].reshape(n, 9),
+            linear_acceleration=fused.specific_force,
+            linear_acceleration_covariance=cov[:, f, f].reshape(n, 9),
+            orientation_covariance=NO_ORIENTATION,
+        )
+        acc = encode_accel_with_covariance_stamped(
+            stamps, frame_id, linear=fused.specific_force, angular=fused.omega_dot, covariance=accel_cov.reshape(n, 36)
+        )
+    except ValueError as err:
+        raise _stamp_error(path, err) from None
+    write_recording(
+        path,
+        [
+            ChannelData(f"{prefix}/fused/imu", IMU_TYPE, stamps, imu),
+            ChannelData(f"{prefix}/fused/accel", ACCEL_TYPE, stamps, acc),
+        ],
+    )
+
+
+def read_fused_recording(path, *, prefix: str = "/imu_array/fused") -> FusedSamples:
+    """Fusion output back from ``<prefix>/imu`` and ``<prefix>/accel``.
+
+    covariance (N, 9, 9) holds only the blocks the messages carry ([omega,
+    omega], [omega_dot, omega_dot], [specific_force, specific_force] and the
+    specific_force/omega_dot cross blocks); everything else is NaN.
+    """
+    prefix = _prefix(prefix)
+    rec = McapRecording(path)
+    available = rec.topics()
+    t_imu, t_acc = f"{prefix}/imu", f"{prefix}/accel"
+    has_imu = _check_topic(rec, available, t_imu, IMU_TYPE, "(fused)")
+    has_acc = _check_topic(rec, available, t_acc, ACCEL_TYPE, "(fused)")
+    if not (has_imu or has_acc):
+        raise RecordingError(
+            f"{rec.path}: no fused output: topics {t_imu} and {t_acc} are missing (recording has: {_list_topics(available)})"
+        )
+    topics = ([(t_imu, IMU_LAYOUT)] if has_imu else []) + ([(t_acc, ACCEL_LAYOUT)] if has_acc else [])
+    cols = _collect(
+        rec,
+        topics,
+        {
+            IMU_TYPE: (
+                "angular_velocity",
+                "angular_velocity_covariance",
+                "linear_acceleration",
+                "linear_acceleration_covariance",
+            ),
+            ACCEL_TYPE: ("linear", "angular", "covariance"),
+        },
+    )
+    imu = cols.get(IMU_TYPE)
+    acc = cols.get(ACCEL_TYPE)
+    parts = [c.stamps[c.valid] for c in (imu, acc) if c is not None]
+    stamps = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+    n = len(stamps)
+    omega = np.full((n, 3), np.nan)
+    omega_dot = np.full((n, 3), np.nan)
+    force = np.full((n, 3), np.nan)
+    cov = np.full((n, 9, 9), np.nan)
+    w, wd, f = slice(0, 3), slice(3, 6), slice(6, 9)
+    if imu is not None:
+        s, first = _first_per_stamp(imu.stamps[imu.valid])
+        rows = np.searchsorted(stamps, s)
+        col = {k: v[imu.valid][first] for k, v in imu.fields.items()}
+        omega[rows] = col["angular_velocity"]
+        force[rows] = col["linear_acceleration"]
+        cov[rows, w, w] = col["angular_velocity_covariance"].reshape(-1, 3, 3)
+        cov[rows, f, f] = col["linear_acceleration_covariance"].reshape(-1, 3, 3)
+    if acc is not None:
+        s, first = _first_per_stamp(acc.stamps[acc.valid])
+        rows = np.searchsorted(stamps, s)
+        c6 = acc.fields["covariance"][acc.valid][first].reshape(-1, 6, 6)
+        omega_dot[rows] = acc.fields["angular"][acc.valid][first]
+        if imu is None:
+            force[rows] = acc.fields["linear"][acc.valid][first]
+        cov[rows, f, f] = c6[:, :3, :3]
+        cov[rows, f, wd] = c6[:, :3, 3:]
+        cov[rows, wd, f] = c6[:, 3:, :3]
+        cov[rows, wd, wd] = c6[:, 3:, 3:]
+    return FusedSamples(stamps=stamps, omega=omega, omega_dot=omega_dot, specific_force=force, covariance=cov)

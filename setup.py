@@ -1,0 +1,40 @@
+"""ament_python package; also installs with plain pip (``pip install .``)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "imu_array_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "setuptools",
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "pyyaml>=6.0",
+        "mcap>=1.1",
+        "rosbags>=0.10",
+        "lz4>=4.0",
+        "zstandard>=0.21",
+    ],
+    zip_safe=True,
+    maintainer="imu_array_ros maintainers",
+    maintainer_email="imu-array-ros@example.com",
+    description="Inertial sensor arrays as one high-grade IMU (ROS 2 Jazzy).",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "imu-array = imu_array_ros.cli:main",
+        ],
+    },
+)
