@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _machine import machine_header  # noqa: E402
 
-from imu_array_ros import mcap_store  # noqa: E402
+from imu_array_ros import mcap_format, mcap_writer  # noqa: E402
 from imu_array_ros.array_layouts import grid_array32  # noqa: E402
 from imu_array_ros.recording import _imu_channels, read_imu_recording, write_imu_recording  # noqa: E402
 from imu_array_ros.simulator import simulate_twist  # noqa: E402
@@ -113,7 +113,7 @@ def main() -> None:
         comp_rows = []
         for comp in ("zstd", "lz4", "none"):
             path = work / f"imu_{comp}.mcap"
-            t_w, _, _, _ = best_of(lambda: mcap_store.write_recording(path, channels, compression=comp), 1)
+            t_w, _, _, _ = best_of(lambda: mcap_writer.write_recording(path, channels, compression=comp), 1)
             t_r, _, _, c_r = best_of(lambda: read_imu_recording(path, desc), args.repeat)
             comp_rows.append((comp, t_w, t_r, c_r, path.stat().st_size))
             print(f"  {comp:5s}: write {t_w:.2f} s, read {t_r:.2f} s wall / {c_r:.2f} s CPU, "
@@ -131,8 +131,8 @@ def main() -> None:
     text += (
         f"Recording: {len(desc.imus)} IMUs, {args.duration:g} s at 1 kHz = {n_samples} array samples, "
         f"{n_imu_msgs} sensor_msgs/Imu messages (+ {2 * len(truth.stamps)} truth messages), "
-        f"rosbag2 directory, MCAP chunk compression {mcap_store.DEFAULT_COMPRESSION}, "
-        f"{mcap_store.DEFAULT_CHUNK_SIZE >> 20} MiB chunks, {size / 1e6:.0f} MB.  "
+        f"rosbag2 directory, MCAP chunk compression {mcap_format.DEFAULT_COMPRESSION}, "
+        f"{mcap_format.DEFAULT_CHUNK_SIZE >> 20} MiB chunks, {size / 1e6:.0f} MB.  "
         f"Load average at the end: {load[0]:.2f} (other jobs may share the machine; ours: best of {args.repeat}).\n\n"
         "| step | time | throughput |\n|---|---:|---:|\n"
         f"| rosbags AnyReader + `deserialize_cdr` of every IMU message | {t_rb:.2f} s | "
@@ -144,7 +144,7 @@ def main() -> None:
         f"| `write_imu_recording` (encode + write, incl. truth) | {t_write:.2f} s | "
         f"{(n_imu_msgs + 2 * len(truth.stamps)) / t_write / 1e6:.2f} M msgs/s |\n\n"
         f"Runs: read {', '.join(f'{t:.2f}' for t in ours_runs)} s; write {', '.join(f'{t:.2f}' for t in write_runs)} s.\n\n"
-        f"Chunk compression (IMU topics only, bare .mcap, same messages; zstd level {mcap_store.ZSTD_LEVEL}; "
+        f"Chunk compression (IMU topics only, bare .mcap, same messages; zstd level {mcap_format.ZSTD_LEVEL}; "
         "decompression runs in a helper thread, so CPU shows its cost better than wall time):\n\n"
         "| compression | write | read_imu_recording wall | read CPU | size |\n|---|---:|---:|---:|---:|\n"
         + "".join(f"| {c} | {w:.2f} s | {r:.2f} s | {cr:.2f} s | {s / 1e6:.0f} MB |\n" for c, w, r, cr, s in comp_rows)

@@ -125,9 +125,8 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_fuse(args) -> int:
-    from .fusion import FusionStats, MLFusion
+    from .fusion import MLFusion
     from .recording import read_imu_recording, write_fused_recording
-    from .samples import FusedSamples
     from .sensor_model import LinearArrayModel
 
     desc = _load_array(args)
@@ -139,6 +138,8 @@ def cmd_fuse(args) -> int:
     fused, stats = _fuse_chunked(fusion, samples, Progress("fusing", args.quiet))
     _info(args, f"fused {stats.fused} of {stats.samples} samples; skipped (not identifiable) {stats.skipped_unidentifiable}, "
                 f"saturated-gyro samples {stats.saturated_gyro_samples}, not converged {stats.not_converged}")
+    if stats.skipped_stamps:
+        _info(args, "  first skipped stamps (ns): " + ", ".join(map(str, stats.skipped_stamps)))
     if stats.fused == 0:
         raise ImuArrayError(f"{args.recording}: no sample could be fused (see counts above)")
     write_fused_recording(out, fused, desc.frame_id)

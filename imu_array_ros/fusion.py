@@ -87,6 +87,7 @@ class FusionStats:
                      "saturated_accel_samples", "not_converged"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
         self.patterns = max(self.patterns, other.patterns)
+        self.skipped_stamps = (self.skipped_stamps + other.skipped_stamps)[:10]
 
 
 # --------------------------------------------------------------------------- small batched linear algebra
@@ -109,7 +110,8 @@ def inv_sym3(h: np.ndarray) -> np.ndarray:
     """Inverse of symmetric 3x3 matrices (..., 3, 3) by cofactors (no pivoting needed for SPD)."""
     (c00, c01, c02, c11, c12, c22), det = _cofactors_sym3(h)
     out = np.empty_like(h)
-    inv_det = 1.0 / det
+    with np.errstate(divide="ignore", invalid="ignore"):  # singular: inf/nan, flagged by the caller
+        inv_det = 1.0 / det
     out[..., 0, 0] = c00 * inv_det
     out[..., 0, 1] = out[..., 1, 0] = c01 * inv_det
     out[..., 0, 2] = out[..., 2, 0] = c02 * inv_det
@@ -309,8 +311,9 @@ class MLFusion:
             ok = np.isfinite(w_hat).all(1) & (det > 1e-12 * diag) & (diag > 0)
             c_ww = inv_sym3(h)
             ej = (w_hat @ geo.EC).reshape(-1, 6, 3)  # E Jq(omega): Jq is linear in omega
-            c_pw = -ej @ c_ww
-            c_pp = geo.Fpp_inv - c_pw @ np.swapaxes(ej, 1, 2)
+            with np.errstate(invalid="ignore", over="ignore"):  # rows with ok == False are dropped below
+                c_pw = -ej @ c_ww
+                c_pp = geo.Fpp_inv - c_pw @ np.swapaxes(ej, 1, 2)
             q = quadratic_monomials(w_hat)
             block = np.empty((len(w_hat), 9, 9))
             block[:, :3, :3] = c_ww

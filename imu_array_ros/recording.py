@@ -18,12 +18,14 @@ Topics (``prefix`` defaults to ``/imu_array``):
     AccelWithCovarianceStamped: linear = specific force, angular = omega_dot,
     6x6 covariance in ROS order [linear, angular].
 
-Reading decodes whole MCAP chunks column-wise (:mod:`.mcap_store`,
+Reading decodes whole MCAP chunks column-wise (:mod:`.mcap_reader`,
 :mod:`.cdr_columns`); there is no per-message Python in the hot path.
+Writing: :mod:`.mcap_writer`.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Callable, Mapping, Sequence
 
@@ -39,7 +41,8 @@ from .cdr_columns import (
 )
 from .description import ArrayDescription
 from .errors import RecordingError
-from .mcap_store import ChannelData, ChannelInfo, McapRecording, write_recording
+from .mcap_reader import ChannelInfo, McapRecording
+from .mcap_writer import ChannelData, write_recording
 from .samples import FusedSamples, ImuSamples, MotionTruth, ReadStats
 
 __all__ = [
@@ -169,7 +172,7 @@ def _first_per_stamp(stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_imu_recording(
-    path,
+    path: str | os.PathLike,
     description: ArrayDescription,
     *,
     topic_prefix: str = "/imu_array",
@@ -326,7 +329,7 @@ def _truth_channels(truth: MotionTruth, frame_id: str, prefix: str) -> list[Chan
 
 
 def write_imu_recording(
-    path,
+    path: str | os.PathLike,
     samples: ImuSamples,
     description: ArrayDescription,
     *,
@@ -352,7 +355,7 @@ def write_imu_recording(
     write_recording(path, channels)
 
 
-def read_truth(path, *, prefix: str = "/imu_array/truth") -> MotionTruth:
+def read_truth(path: str | os.PathLike, *, prefix: str = "/imu_array/truth") -> MotionTruth:
     """Ground truth from ``<prefix>/imu`` and ``<prefix>/accel``.
 
     Rows are the union of both topics' stamps (sorted); a quantity whose topic
@@ -410,7 +413,9 @@ def read_truth(path, *, prefix: str = "/imu_array/truth") -> MotionTruth:
 # --------------------------------------------------------------------------- fused output
 
 
-def write_fused_recording(path, fused: FusedSamples, frame_id: str, *, topic_prefix: str = "/imu_array") -> None:
+def write_fused_recording(
+    path: str | os.PathLike, fused: FusedSamples, frame_id: str, *, topic_prefix: str = "/imu_array"
+) -> None:
     """Write fusion output to ``<prefix>/fused/imu`` and ``<prefix>/fused/accel`` atomically.
 
     fused.covariance (N, 9, 9) in parameter order [omega, omega_dot,
@@ -452,7 +457,7 @@ def write_fused_recording(path, fused: FusedSamples, frame_id: str, *, topic_pre
     )
 
 
-def read_fused_recording(path, *, prefix: str = "/imu_array/fused") -> FusedSamples:
+def read_fused_recording(path: str | os.PathLike, *, prefix: str = "/imu_array/fused") -> FusedSamples:
     """Fusion output back from ``<prefix>/imu`` and ``<prefix>/accel``.
 
     covariance (N, 9, 9) holds only the blocks the messages carry ([omega,

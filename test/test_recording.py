@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from imu_array_ros import mcap_store
+from imu_array_ros import mcap_format, mcap_reader, mcap_writer
 from imu_array_ros.cdr_columns import encode_imu
 from imu_array_ros.description import description_from_dict
 from imu_array_ros.errors import RecordingError
-from imu_array_ros.mcap_store import ChannelData, McapRecording, write_recording
+from imu_array_ros.mcap_reader import McapRecording
+from imu_array_ros.mcap_writer import ChannelData, write_recording
 from imu_array_ros.recording import (
     imu_topic,
     read_fused_recording,
@@ -189,10 +190,10 @@ def test_rosbag2_directory_metadata_and_container(tmp_path, ts):
         assert summary.statistics.message_count == 160
         assert {sc.name for sc in summary.schemas.values()} == {IMU}
         schema = next(iter(summary.schemas.values()))
-        text, _ = mcap_store.message_definition(IMU)
+        text, _ = mcap_writer.message_definition(IMU)
         assert schema.encoding == "ros2msg" and schema.data.decode() == text and "MSG: std_msgs/Header" in text
         assert all(ch.message_encoding == "cdr" and "offered_qos_profiles" in ch.metadata for ch in summary.channels.values())
-        assert {ci.compression for ci in summary.chunk_indexes} == {mcap_store.DEFAULT_COMPRESSION}
+        assert {ci.compression for ci in summary.chunk_indexes} == {mcap_format.DEFAULT_COMPRESSION}
         assert sum(1 for _ in reader.iter_messages()) == 160
         assert [m.name for m in reader.iter_metadata()] == ["rosbag2"]
     data = (out / "rec_0.mcap").read_bytes()
@@ -294,7 +295,7 @@ def test_mcap_library_unindexed_unchunked_and_shuffled(tmp_path, ts):
     rng = np.random.default_rng(13)
     items = [(i, k) for i in range(len(s)) for k in range(len(NAMES))]
     order = rng.permutation(len(items))
-    text, rihs = mcap_store.message_definition(IMU)
+    text, rihs = mcap_writer.message_definition(IMU)
     for variant, kwargs in {
         "noindex": dict(compression=CompressionType.LZ4, index_types=IndexType.NONE, chunk_size=3000),
         "unchunked": dict(compression=CompressionType.NONE, use_chunking=False),
@@ -312,7 +313,7 @@ def test_mcap_library_unindexed_unchunked_and_shuffled(tmp_path, ts):
                 raw = bytes(ts.serialize_cdr(_ros_imu(ts, s.stamps[i], NAMES[k], s.gyro[i, k], s.accel[i, k]), IMU))
                 w.add_message(cids[k], int(s.stamps[i]), raw, int(s.stamps[i]))
             w.finish()
-        with mcap_store.McapFile(path) as mf:
+        with mcap_reader.McapFile(path) as mf:
             assert mf.has_summary == (variant != "nosummary")
         back, stats = read_imu_recording(path, desc)
         np.testing.assert_array_equal(back.stamps, s.stamps)
@@ -384,13 +385,13 @@ def test_partial_or_wrong_message_index_can_not_hide_messages(tmp_path):
     desc = make_desc()
     s = make_samples(desc, n=30, seed=23)
     write_imu_recording(tmp_path / "r.mcap", s, desc)
-    with mcap_store.McapFile(tmp_path / "r.mcap") as mf:
+    with mcap_reader.McapFile(tmp_path / "r.mcap") as mf:
         (chunk,) = mf.chunks
         data = mf._chunk_data(chunk)
         full = mf._index_offsets(chunk)
         arr = np.frombuffer(data, dtype=np.uint8)
     assert len(full) == 120
-    want, _ = mcap_store._walk(data, 0, len(data))
+    want, _ = mcap_reader._walk(data, 0, len(data))
     rng = np.random.default_rng(24)
     for index in (
         full,
@@ -401,7 +402,7 @@ def test_partial_or_wrong_message_index_can_not_hide_messages(tmp_path):
         np.array([len(data) + 5]),
         None,
     ):
-        off, others = mcap_store._locate(data, arr, index)
+        off, others = mcap_reader._locate(data, arr, index)
         assert off.tolist() == want and not others
 
 
@@ -468,12 +469,13 @@ def test_garbage_truncated_and_missing(tmp_path):
         "missing.mcap": None,
         "empty.mcap": b"",
         "garbage.mcap": rng.integers(0, 256, 5000, dtype=np.uint8).tobytes(),
+        "bag_0.db3": b"SQLite format 3\0" + bytes(2000),
         "truncated.mcap": data[: len(data) // 2],
         "magic_only.mcap": data[:8],
         "chopped_tail.mcap": data[:-1],
     }
     corrupt = bytearray(data)
-    with mcap_store.McapFile(good) as mf:
+    with mcap_reader.McapFile(good) as mf:
         c = mf.chunks[0]
         corrupt[c.data_offset + 100 : c.data_offset + 140] = bytes(40)  # zeroed compressed bytes
     cases["corrupt_chunk.mcap"] = bytes(corrupt)
@@ -522,7 +524,7 @@ def test_failed_write_keeps_previous_output(tmp_path, monkeypatch, target):
     write_imu_recording(out, s.select(slice(0, 10)), desc)
     before = {p.relative_to(tmp_path): p.read_bytes() for p in sorted(tmp_path.rglob("*")) if p.is_file()}
 
-    real = mcap_store._compressor
+    real = mcap_writer._compressor
 
     def failing(name):
         compress = real(name)
@@ -536,7 +538,7 @@ def test_failed_write_keeps_previous_output(tmp_path, monkeypatch, target):
 
         return f
 
-    monkeypatch.setattr(mcap_store, "_compressor", failing)
+    monkeypatch.setattr(mcap_writer, "_compressor", failing)
     with pytest.raises(_Boom):
         payload = encode_imu(s.stamps, "a", angular_velocity=s.gyro[:, 0], linear_acceleration=s.accel[:, 0])
         write_recording(out, [ChannelData(imu_topic("a"), IMU, s.stamps, payload)], chunk_size=100_000)
