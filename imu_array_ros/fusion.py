@@ -272,7 +272,7 @@ class MLFusion:
 
         omega = np.full((n, 3), np.nan)
         phi = np.full((n, 6), np.nan)
-        cov = np.full((n, 9, 9), np.nan)
+        cov = np.empty((n, 9, 9))  # every row is either written below or dropped
         iters = np.zeros(n, dtype=np.int32)
         conv = np.zeros(n, dtype=bool)
         good = np.zeros(n, dtype=bool)
@@ -313,22 +313,25 @@ class MLFusion:
             ej = (w_hat @ geo.EC).reshape(-1, 6, 3)  # E Jq(omega): Jq is linear in omega
             with np.errstate(invalid="ignore", over="ignore"):  # rows with ok == False are dropped below
                 c_pw = -ej @ c_ww
-                c_pp = geo.Fpp_inv - c_pw @ np.swapaxes(ej, 1, 2)
+                c_pp = geo.Fpp_inv - c_pw @ np.ascontiguousarray(np.swapaxes(ej, 1, 2))  # contiguous: 10x faster
             q = quadratic_monomials(w_hat)
-            block = np.empty((len(w_hat), 9, 9))
-            block[:, :3, :3] = c_ww
-            block[:, 3:, :3] = c_pw
-            block[:, :3, 3:] = np.swapaxes(c_pw, 1, 2)
-            block[:, 3:, 3:] = c_pp
             ph = phi_lin - q @ geo.E.T
-            if ok.all():
-                sel = idx
-                omega[sel], phi[sel], cov[sel], iters[sel], conv[sel] = w_hat, ph, block, it, cv
-                good[sel] = True
+            if not ok.all():
+                idx = np.arange(n)[idx][ok]
+                w_hat, ph, c_ww, c_pw, c_pp, it, cv = (a[ok] for a in (w_hat, ph, c_ww, c_pw, c_pp, it, cv))
+            omega[idx], phi[idx], iters[idx], conv[idx] = w_hat, ph, it, cv
+            good[idx] = True
+            # covariance blocks written in place (no (n, 9, 9) temporary: its first touch costs page faults)
+            if isinstance(idx, slice):
+                cov[:, :3, :3] = c_ww
+                cov[:, 3:, :3] = c_pw
+                cov[:, :3, 3:] = np.swapaxes(c_pw, 1, 2)
+                cov[:, 3:, 3:] = c_pp
             else:
-                sel = np.arange(n)[idx][ok]
-                omega[sel], phi[sel], cov[sel], iters[sel], conv[sel] = w_hat[ok], ph[ok], block[ok], it[ok], cv[ok]
-                good[sel] = True
+                cov[idx, :3, :3] = c_ww
+                cov[idx, 3:, :3] = c_pw
+                cov[idx, :3, 3:] = np.swapaxes(c_pw, 1, 2)
+                cov[idx, 3:, 3:] = c_pp
 
         stats.fused = int(np.count_nonzero(good))
         stats.skipped_unidentifiable = n - stats.fused
@@ -371,14 +374,15 @@ class MLFusion:
             quad = np.einsum("ni,nij,nj->n", w, wg, w) if not shared else np.einsum("ni,ni->n", w @ wg, w)
             return np.einsum("ni,ni->n", q, q @ Ft - 2.0 * bt) + quad - 2.0 * np.einsum("ni,ni->n", w, gg)
 
+        c_cur = cost(omega, quadratic_monomials(omega), beta_t, Wg, g)  # cost at the current iterate
         active = None  # None = all samples, else index array
         for it in range(cfg.max_iterations):
             if active is None:
-                w, bt, wg, gg = omega, beta_t, Wg, g
+                w, bt, wg, gg, c0 = omega, beta_t, Wg, g, c_cur
             else:
                 if len(active) == 0:
                     break
-                w, bt, gg = omega[active], beta_t[active], g[active]
+                w, bt, gg, c0 = omega[active], beta_t[active], g[active], c_cur[active]
                 wg = Wg if shared else Wg[active]
             q = quadratic_monomials(w)
             h = (q @ T).reshape(-1, 3, 3) + wg
@@ -386,7 +390,6 @@ class MLFusion:
             rhs = _jq_transpose_times(w, v) + gg - (w @ wg if shared else np.einsum("nij,nj->ni", wg, w))
             step, ok = solve_sym3(h, rhs)
             step[~ok] = 0.0
-            c0 = cost(w, q, bt, wg, gg)
             new = w + step
             c1 = cost(new, quadratic_monomials(new), bt, wg, gg)
             worse = c1 > c0 + 1e-12 * np.abs(c0)
@@ -400,18 +403,21 @@ class MLFusion:
                 cc = cost(cand, quadratic_monomials(cand), bt[wi], wg if shared else wg[wi], gg[wi])
                 better = cc <= c0[wi] + 1e-12 * np.abs(c0[wi])
                 new[wi[better]] = cand[better]
+                c1[wi[better]] = cc[better]
                 worse[wi[better]] = False
             if worse.any():
                 new[worse] = w[worse]
+                c1[worse] = c0[worse]
             size = np.abs(new - w).max(axis=1)
             done = (size <= cfg.tolerance * (1.0 + np.abs(new).max(axis=1))) | worse | ~ok
             if active is None:
-                omega = new
+                omega, c_cur = new, c1
                 iters[:] = it + 1
                 conv[done & ok] = True
                 active = np.flatnonzero(~done)
             else:
                 omega[active] = new
+                c_cur[active] = c1
                 iters[active] = it + 1
                 conv[active[done & ok]] = True
                 active = active[~done]
