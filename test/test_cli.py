@@ -156,3 +156,16 @@ def test_import_openshoe_and_residuals_on_real_capture(tmp_path):
         assert real[regime]["ratio_all"] > 10
     assert_user_error(run("import-openshoe", tmp_path / "none.bin", "--array", arr, "--out", tmp_path / "x", check_ok=False),
                       "none.bin")
+
+
+def test_shipped_sample_recording_fuses_consistently():
+    """bags/twist32_sample (README quickstart): readable, every sample fused, NEES ~ chi2(3)."""
+    desc = load_description(ARRAY32)
+    samples, stats = read_imu_recording(REPO / "bags" / "twist32_sample", desc)
+    assert len(samples) == 1000 and stats.bad_messages == 0 and stats.incomplete_samples == 0
+    fused, fstats = fuse(samples, LinearArrayModel.from_description(desc))
+    assert fstats.fused == 1000
+    truth = read_truth(REPO / "bags" / "twist32_sample")
+    err = fused.omega - truth.omega
+    nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(fused.covariance[:, :3, :3]), err)
+    assert abs(nees.mean() - 3) < 4 * np.sqrt(6 / 1000)
