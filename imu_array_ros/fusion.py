@@ -106,35 +106,44 @@ def _cofactors_sym3(h: np.ndarray):
     return (c00, c01, c02, c11, c12, c22), det
 
 
-def inv_sym3(h: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric 3x3 matrices (..., 3, 3) by cofactors (no pivoting needed for SPD)."""
+def _positive_definite(h: np.ndarray, det: np.ndarray) -> np.ndarray:
+    """True where symmetric 3x3 ``h`` is numerically positive definite: det > 1e-12 * diagonal product."""
+    diag = h[..., 0, 0] * h[..., 1, 1] * h[..., 2, 2]
+    return (det > 1e-12 * diag) & (diag > 0) & np.isfinite(det)
+
+
+def inv_sym3(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of symmetric 3x3 matrices (..., 3, 3) by cofactors.
+
+    Returns ``(inverse, ok)``; ``ok`` is False where ``h`` is not numerically
+    positive definite (the inverse there is inf/nan and must not be used).
+    """
     (c00, c01, c02, c11, c12, c22), det = _cofactors_sym3(h)
     out = np.empty_like(h)
-    with np.errstate(divide="ignore", invalid="ignore"):  # singular: inf/nan, flagged by the caller
+    with np.errstate(divide="ignore", invalid="ignore"):
         inv_det = 1.0 / det
-    out[..., 0, 0] = c00 * inv_det
-    out[..., 0, 1] = out[..., 1, 0] = c01 * inv_det
-    out[..., 0, 2] = out[..., 2, 0] = c02 * inv_det
-    out[..., 1, 1] = c11 * inv_det
-    out[..., 1, 2] = out[..., 2, 1] = c12 * inv_det
-    out[..., 2, 2] = c22 * inv_det
-    return out
+        out[..., 0, 0] = c00 * inv_det
+        out[..., 0, 1] = out[..., 1, 0] = c01 * inv_det
+        out[..., 0, 2] = out[..., 2, 0] = c02 * inv_det
+        out[..., 1, 1] = c11 * inv_det
+        out[..., 1, 2] = out[..., 2, 1] = c12 * inv_det
+        out[..., 2, 2] = c22 * inv_det
+    return out, _positive_definite(h, det)
 
 
 def solve_sym3(h: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solve ``h x = r`` for symmetric 3x3 ``h`` (..., 3, 3), ``r`` (..., 3).
 
-    Returns ``(x, ok)`` where ``ok`` is False where ``h`` is not (numerically)
-    positive definite: its determinant is below 1e-12 of its diagonal product.
+    Returns ``(x, ok)`` with ``ok`` as in :func:`inv_sym3` (x is 0 where not ok).
     """
     (c00, c01, c02, c11, c12, c22), det = _cofactors_sym3(h)
-    diag = h[..., 0, 0] * h[..., 1, 1] * h[..., 2, 2]
-    ok = (det > 1e-12 * diag) & (diag > 0) & np.isfinite(det)
+    ok = _positive_definite(h, det)
     safe = np.where(ok, det, 1.0)
     r0, r1, r2 = r[..., 0], r[..., 1], r[..., 2]
     x = np.stack(
         [c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2, c02 * r0 + c12 * r1 + c22 * r2], axis=-1
     ) / safe[..., None]
+    x[~ok] = 0.0
     return x, ok
 
 
@@ -306,10 +315,8 @@ class MLFusion:
             phi_lin = beta[:, 6:] @ geo.Fpp_inv
             wg = Wg if Wg.ndim == 2 else Wg[idx]
             w_hat, it, cv, h = self._gauss_newton(omega0[idx], geo, beta_t, wg, gvec[idx])
-            (c00, c01, c02, c11, c12, c22), det = _cofactors_sym3(h)
-            diag = h[:, 0, 0] * h[:, 1, 1] * h[:, 2, 2]
-            ok = np.isfinite(w_hat).all(1) & (det > 1e-12 * diag) & (diag > 0)
-            c_ww = inv_sym3(h)
+            c_ww, ok = inv_sym3(h)
+            ok &= np.isfinite(w_hat).all(1)
             ej = (w_hat @ geo.EC).reshape(-1, 6, 3)  # E Jq(omega): Jq is linear in omega
             with np.errstate(invalid="ignore", over="ignore"):  # rows with ok == False are dropped below
                 c_pw = -ej @ c_ww
@@ -389,7 +396,6 @@ class MLFusion:
             v = bt - q @ Ft
             rhs = _jq_transpose_times(w, v) + gg - (w @ wg if shared else np.einsum("nij,nj->ni", wg, w))
             step, ok = solve_sym3(h, rhs)
-            step[~ok] = 0.0
             new = w + step
             c1 = cost(new, quadratic_monomials(new), bt, wg, gg)
             worse = c1 > c0 + 1e-12 * np.abs(c0)

@@ -209,3 +209,19 @@ def test_shape_mismatch_is_an_error(array32, rng):
     bad = ImuSamples(np.zeros(2, np.int64), np.zeros((2, 4, 3)), np.zeros((2, 4, 3)), [f"x{i}" for i in range(4)])
     with pytest.raises(Exception, match="IMUs"):
         fuse(bad, model)
+
+
+def test_batched_3x3_helpers_match_numpy(rng):
+    from imu_array_ros.fusion import inv_sym3, solve_sym3
+
+    a = rng.normal(size=(100, 3, 3))
+    h = a @ np.swapaxes(a, 1, 2) + 1e-3 * np.eye(3)
+    h[7] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])  # singular (rank 1)
+    r = rng.normal(size=(100, 3))
+    inv, ok = inv_sym3(h)
+    x, ok2 = solve_sym3(h, r)
+    assert not ok[7] and not ok2[7] and ok.sum() == 99 and np.array_equal(ok, ok2)
+    good = np.flatnonzero(ok)
+    np.testing.assert_allclose(inv[good], np.linalg.inv(h[good]), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(x[good], np.linalg.solve(h[good], r[good][..., None])[..., 0], rtol=1e-8, atol=1e-10)
+    assert np.all(x[7] == 0)
