@@ -21,24 +21,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine_header  # noqa: E402
+from _common import machine_header, rosbags_plain_read  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def rosbags_plain_read(path: Path) -> tuple[float, int]:
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    t0 = time.perf_counter()
-    count = 0
-    with AnyReader([path], default_typestore=typestore) as reader:
-        conns = [c for c in reader.connections if c.topic.endswith("/data_raw")]
-        for conn, _, raw in reader.messages(connections=conns):
-            reader.deserialize(raw, conn.msgtype)
-            count += 1
-    return time.perf_counter() - t0, count
 
 
 def main() -> None:

@@ -23,7 +23,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine_header  # noqa: E402
+from _common import machine_header  # noqa: E402
 
 from imu_array_ros.array_layouts import grid_array32  # noqa: E402
 from imu_array_ros.fusion import MLFusion  # noqa: E402
@@ -51,7 +51,6 @@ def main() -> None:
     model = LinearArrayModel.from_description(desc)
     fusion = MLFusion(model)
     n = args.samples
-    lines = []
 
     cases = {
         "twisting, 600 deg/s RMS (no saturation)": simulate_twist(desc, n / 1000.0, 1000.0, rng)[0],

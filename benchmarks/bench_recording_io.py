@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from _machine import machine_header  # noqa: E402
+from _common import machine_header, rosbags_plain_read  # noqa: E402
 
 from imu_array_ros import mcap_format, mcap_writer  # noqa: E402
 from imu_array_ros.array_layouts import grid_array32  # noqa: E402
@@ -35,20 +35,6 @@ from imu_array_ros.simulator import simulate_twist  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results" / "recording_io.md"
 
 
-def rosbags_plain_read(path: Path) -> tuple[float, int]:
-    """Seconds and message count for AnyReader + deserialize of every IMU message."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    t0 = time.perf_counter()
-    count = 0
-    with AnyReader([path], default_typestore=typestore) as reader:
-        conns = [c for c in reader.connections if c.topic.endswith("/data_raw")]
-        for conn, _, raw in reader.messages(connections=conns):
-            reader.deserialize(raw, conn.msgtype)
-            count += 1
-    return time.perf_counter() - t0, count
 
 
 def best_of(fn, repeat: int) -> tuple[float, list[float], object, float]:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine_header  # noqa: E402
+from _common import machine_header  # noqa: E402
 
 from imu_array_ros.array_layouts import planar_square4, tetrahedron4  # noqa: E402
 from imu_array_ros.crb import crb  # noqa: E402

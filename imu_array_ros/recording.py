@@ -355,6 +355,26 @@ def write_imu_recording(
     write_recording(path, channels)
 
 
+def _open_motion_topics(path, prefix: str, what: str, label: str):
+    """Open a recording and find its ``<prefix>/imu`` (Imu) and ``<prefix>/accel`` topics.
+
+    Returns (recording, [(topic, layout), ...] of those present, (imu topic, present),
+    (accel topic, present)); RecordingError naming ``label`` when both are missing.
+    """
+    prefix = _prefix(prefix)
+    rec = McapRecording(path)
+    available = rec.topics()
+    t_imu, t_acc = f"{prefix}/imu", f"{prefix}/accel"
+    has_imu = _check_topic(rec, available, t_imu, IMU_TYPE, what)
+    has_acc = _check_topic(rec, available, t_acc, ACCEL_TYPE, what)
+    if not (has_imu or has_acc):
+        raise RecordingError(
+            f"{rec.path}: {label}: topics {t_imu} and {t_acc} are missing (recording has: {_list_topics(available)})"
+        )
+    topics = ([(t_imu, IMU_LAYOUT)] if has_imu else []) + ([(t_acc, ACCEL_LAYOUT)] if has_acc else [])
+    return rec, topics, (t_imu, has_imu), (t_acc, has_acc)
+
+
 def read_truth(path: str | os.PathLike, *, prefix: str = "/imu_array/truth") -> MotionTruth:
     """Ground truth from ``<prefix>/imu`` and ``<prefix>/accel``.
 
@@ -362,17 +382,7 @@ def read_truth(path: str | os.PathLike, *, prefix: str = "/imu_array/truth") -> 
     lacks a stamp is NaN.  attitude (N, 4) [w x y z] if the Imu messages carry
     orientation (orientation_covariance[0] != -1), else None.
     """
-    prefix = _prefix(prefix)
-    rec = McapRecording(path)
-    available = rec.topics()
-    t_imu, t_acc = f"{prefix}/imu", f"{prefix}/accel"
-    has_imu = _check_topic(rec, available, t_imu, IMU_TYPE, "(ground truth)")
-    has_acc = _check_topic(rec, available, t_acc, ACCEL_TYPE, "(ground truth)")
-    if not (has_imu or has_acc):
-        raise RecordingError(
-            f"{rec.path}: no ground truth: topics {t_imu} and {t_acc} are missing (recording has: {_list_topics(available)})"
-        )
-    topics = ([(t_imu, IMU_LAYOUT)] if has_imu else []) + ([(t_acc, ACCEL_LAYOUT)] if has_acc else [])
+    rec, topics, (t_imu, has_imu), (t_acc, has_acc) = _open_motion_topics(path, prefix, "(ground truth)", "no ground truth")
     cols = _collect(
         rec,
         topics,
@@ -464,17 +474,7 @@ def read_fused_recording(path: str | os.PathLike, *, prefix: str = "/imu_array/f
     omega], [omega_dot, omega_dot], [specific_force, specific_force] and the
     specific_force/omega_dot cross blocks); everything else is NaN.
     """
-    prefix = _prefix(prefix)
-    rec = McapRecording(path)
-    available = rec.topics()
-    t_imu, t_acc = f"{prefix}/imu", f"{prefix}/accel"
-    has_imu = _check_topic(rec, available, t_imu, IMU_TYPE, "(fused)")
-    has_acc = _check_topic(rec, available, t_acc, ACCEL_TYPE, "(fused)")
-    if not (has_imu or has_acc):
-        raise RecordingError(
-            f"{rec.path}: no fused output: topics {t_imu} and {t_acc} are missing (recording has: {_list_topics(available)})"
-        )
-    topics = ([(t_imu, IMU_LAYOUT)] if has_imu else []) + ([(t_acc, ACCEL_LAYOUT)] if has_acc else [])
+    rec, topics, (t_imu, has_imu), (t_acc, has_acc) = _open_motion_topics(path, prefix, "(fused)", "no fused output")
     cols = _collect(
         rec,
         topics,
