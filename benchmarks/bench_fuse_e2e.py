@@ -26,8 +26,6 @@ from _common import machine_header, rosbags_plain_read  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 
 
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--duration", type=float, default=60.0)

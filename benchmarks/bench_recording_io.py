@@ -35,8 +35,6 @@ from imu_array_ros.simulator import simulate_twist  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results" / "recording_io.md"
 
 
-
-
 def best_of(fn, repeat: int) -> tuple[float, list[float], object, float]:
     """(best wall s, all wall s, last result, best CPU s of this process incl. helper threads)."""
     times, cpu, result = [], [], None

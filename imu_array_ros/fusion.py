@@ -328,17 +328,12 @@ class MLFusion:
                 w_hat, ph, c_ww, c_pw, c_pp, it, cv = (a[ok] for a in (w_hat, ph, c_ww, c_pw, c_pp, it, cv))
             omega[idx], phi[idx], iters[idx], conv[idx] = w_hat, ph, it, cv
             good[idx] = True
-            # covariance blocks written in place (no (n, 9, 9) temporary: its first touch costs page faults)
-            if isinstance(idx, slice):
-                cov[:, :3, :3] = c_ww
-                cov[:, 3:, :3] = c_pw
-                cov[:, :3, 3:] = np.swapaxes(c_pw, 1, 2)
-                cov[:, 3:, 3:] = c_pp
-            else:
-                cov[idx, :3, :3] = c_ww
-                cov[idx, 3:, :3] = c_pw
-                cov[idx, :3, 3:] = np.swapaxes(c_pw, 1, 2)
-                cov[idx, 3:, 3:] = c_pp
+            # covariance blocks written in place (no (n, 9, 9) temporary: its first touch costs page faults);
+            # idx is slice(None) or an index array, both index cov the same way
+            cov[idx, :3, :3] = c_ww
+            cov[idx, 3:, :3] = c_pw
+            cov[idx, :3, 3:] = np.swapaxes(c_pw, 1, 2)
+            cov[idx, 3:, 3:] = c_pp
 
         stats.fused = int(np.count_nonzero(good))
         stats.skipped_unidentifiable = n - stats.fused
