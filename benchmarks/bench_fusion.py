@@ -25,11 +25,11 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_header  # noqa: E402
 
-from imu_array_ros.array_layouts import grid_array32  # noqa: E402
-from imu_array_ros.fusion import MLFusion  # noqa: E402
-from imu_array_ros.sensor_model import LinearArrayModel  # noqa: E402
-from imu_array_ros.simulator import simulate_random, simulate_twist  # noqa: E402
-from imu_array_ros.tensor_method import tensor_method  # noqa: E402
+from imu_array_ros.model.layouts import grid_array32  # noqa: E402
+from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
+from imu_array_ros.model.sensor_model import LinearArrayModel  # noqa: E402
+from imu_array_ros.simulation.simulator import simulate_random, simulate_twist  # noqa: E402
+from imu_array_ros.estimation.tensor_method import tensor_method  # noqa: E402
 
 
 def best_of(fn, repeat=3):

@@ -27,10 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _common import machine_header, rosbags_plain_read  # noqa: E402
 
-from imu_array_ros import mcap_format, mcap_writer  # noqa: E402
-from imu_array_ros.array_layouts import grid_array32  # noqa: E402
-from imu_array_ros.recording import _imu_channels, read_imu_recording, write_imu_recording  # noqa: E402
-from imu_array_ros.simulator import simulate_twist  # noqa: E402
+from imu_array_ros.io.rosbag import mcap_format, mcap_writer  # noqa: E402
+from imu_array_ros.model.layouts import grid_array32  # noqa: E402
+from imu_array_ros.io.rosbag.recording import _imu_channels, read_imu_recording, write_imu_recording  # noqa: E402
+from imu_array_ros.simulation.simulator import simulate_twist  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "recording_io.md"
 

@@ -2,7 +2,7 @@
 
 For every ../shared/data/openshoe_mimu4444bt/exp_*.bin: import, fuse with the
 nominal description config/mimu4444bt_corners.yaml, and compute the normalised
-residual ratio (observed / expected NIS, see imu_array_ros.residuals) by IMU
+residual ratio (observed / expected NIS, see imu_array_ros.discovery.residuals) by IMU
 and axis, still vs moving; next to it the same figure for a simulated
 recording of the same (fused) motion measured by the nominal model.
 Writes benchmarks/results/real_data_fit.md.
@@ -20,12 +20,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_header  # noqa: E402
 
-from imu_array_ros.description import load_description  # noqa: E402
-from imu_array_ros.fusion import MLFusion  # noqa: E402
-from imu_array_ros.openshoe_framing import si_saturation_level  # noqa: E402
-from imu_array_ros.openshoe_import import import_capture  # noqa: E402
-from imu_array_ros.residuals import normalized_residuals, simulate_same_motion  # noqa: E402
-from imu_array_ros.sensor_model import LinearArrayModel  # noqa: E402
+from imu_array_ros.model.description import load_description  # noqa: E402
+from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
+from imu_array_ros.io.openshoe.framing import si_saturation_level  # noqa: E402
+from imu_array_ros.io.openshoe.capture import import_capture  # noqa: E402
+from imu_array_ros.discovery.residuals import normalized_residuals, simulate_same_motion  # noqa: E402
+from imu_array_ros.model.sensor_model import LinearArrayModel  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"

@@ -20,13 +20,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_header  # noqa: E402
 
-from imu_array_ros.array_layouts import planar_square4, tetrahedron4  # noqa: E402
-from imu_array_ros.crb import crb  # noqa: E402
-from imu_array_ros.fusion import MLFusion  # noqa: E402
-from imu_array_ros.motion import random_motion  # noqa: E402
-from imu_array_ros.sensor_model import LinearArrayModel, unsaturated  # noqa: E402
-from imu_array_ros.simulator import simulate_measurements  # noqa: E402
-from imu_array_ros.tensor_method import tensor_method  # noqa: E402
+from imu_array_ros.model.layouts import planar_square4, tetrahedron4  # noqa: E402
+from imu_array_ros.estimation.crb import crb  # noqa: E402
+from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
+from imu_array_ros.simulation.motion import random_motion  # noqa: E402
+from imu_array_ros.model.sensor_model import LinearArrayModel, unsaturated  # noqa: E402
+from imu_array_ros.simulation.simulator import simulate_measurements  # noqa: E402
+from imu_array_ros.estimation.tensor_method import tensor_method  # noqa: E402
 
 NOISE = dict(accelerometer_noise_std=0.01, gyroscope_noise_std=float(np.deg2rad(1.0)))
 N = 20000

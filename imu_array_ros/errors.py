@@ -13,6 +13,9 @@ __all__ = [
     "RecordingError",
     "CaptureError",
     "IdentifiabilityError",
+    "FusionError",
+    "CalibrationError",
+    "OutputError",
 ]
 
 
@@ -36,3 +39,15 @@ class IdentifiabilityError(ImuArrayError):
     """The array geometry cannot determine angular velocity, angular acceleration
     and specific force (skog2016 Sec. II-D): fewer than one gyroscope triad or
     fewer than three non-collinear accelerometer triads."""
+
+
+class FusionError(ImuArrayError):
+    """Samples handed to the fusion cannot be fused (wrong shapes, nothing identifiable)."""
+
+
+class CalibrationError(ImuArrayError):
+    """A calibration cannot run on the data given (too little motion, too few poses, ...)."""
+
+
+class OutputError(ImuArrayError):
+    """An output path is unsafe to write: it exists, is an input, or holds other files."""

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imu_array_ros.array_layouts import grid_array32, planar_square4, tetrahedron4
+from imu_array_ros.model.layouts import grid_array32, planar_square4, tetrahedron4
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imu_array_ros.cdr_columns import (
+from imu_array_ros.io.rosbag.cdr_columns import (
     ACCEL_LAYOUT,
     IMU_LAYOUT,
     decode_accel_with_covariance_stamped,

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from imu_array_ros.description import load_description
-from imu_array_ros.fusion import fuse
-from imu_array_ros.recording import read_fused_recording, read_imu_recording, read_truth, write_imu_recording
-from imu_array_ros.sensor_model import LinearArrayModel
-from imu_array_ros.simulator import simulate_twist
+from imu_array_ros.model.description import load_description
+from imu_array_ros.estimation.ml_fusion import fuse
+from imu_array_ros.io.rosbag.recording import read_fused_recording, read_imu_recording, read_truth, write_imu_recording
+from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.simulation.simulator import simulate_twist
 
 from conftest import REPO, SHARED_DATA
 
@@ -22,7 +22,7 @@ ARRAY32 = REPO / "config" / "array32.yaml"
 
 
 def run(*args, check_ok=True):
-    proc = subprocess.run([sys.executable, "-m", "imu_array_ros.cli", *map(str, args)], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "imu_array_ros", *map(str, args)], capture_output=True, text=True,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"), timeout=300)
     if check_ok:
         assert proc.returncode == 0, proc.stderr

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 import yaml
 
-from imu_array_ros.array_layouts import ROT_180_ABOUT_Y_EQ_X
-from imu_array_ros.description import (
-    check_identifiable,
+from imu_array_ros.model.layouts import ROT_180_ABOUT_Y_EQ_X
+from imu_array_ros.model.identifiability import check_identifiable
+from imu_array_ros.model.description import (
     description_to_dict,
     load_description,
     save_description,
 )
 from imu_array_ros.errors import ConfigError, IdentifiabilityError
-from imu_array_ros.sensor_model import apply_terms, random_error_terms
+from imu_array_ros.model.sensor_model import apply_terms, random_error_terms
 
 from conftest import REPO
 
@@ -104,7 +104,7 @@ def test_save_is_atomic_and_keeps_previous_on_failure(tmp_path, array32, monkeyp
     path = tmp_path / "good.yaml"
     save_description(array32, path)
     before = path.read_bytes()
-    import imu_array_ros.atomic as atomic
+    import imu_array_ros.io.atomic as atomic
 
     def boom(*a, **k):
         raise OSError("disk full")

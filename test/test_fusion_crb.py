@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imu_array_ros.array_layouts import make_description
-from imu_array_ros.crb import crb, fisher_information, square_array_omega_information
+from imu_array_ros.model.layouts import make_description
+from imu_array_ros.estimation.crb import crb, fisher_information, square_array_omega_information
 from imu_array_ros.errors import IdentifiabilityError
-from imu_array_ros.fusion import MLFusion, fuse
-from imu_array_ros.motion import random_motion
-from imu_array_ros.samples import ImuSamples
-from imu_array_ros.sensor_model import SATURATION_MARGIN, LinearArrayModel, apply_terms, random_error_terms, unsaturated
-from imu_array_ros.simulator import simulate_measurements, simulate_twist
-from imu_array_ros.tensor_method import tensor_method
+from imu_array_ros.estimation.ml_fusion import MLFusion, fuse
+from imu_array_ros.simulation.motion import random_motion
+from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.model.sensor_model import SATURATION_MARGIN, LinearArrayModel, apply_terms, random_error_terms, unsaturated
+from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
+from imu_array_ros.estimation.tensor_method import tensor_method
 
 N_MC = 20000  # realizations per point; RMSE relative standard error ~ 1/sqrt(2 N) = 0.5 %
 
@@ -212,7 +212,7 @@ def test_shape_mismatch_is_an_error(array32, rng):
 
 
 def test_batched_3x3_helpers_match_numpy(rng):
-    from imu_array_ros.fusion import inv_sym3, solve_sym3
+    from imu_array_ros.estimation.ml_fusion import inv_sym3, solve_sym3
 
     a = rng.normal(size=(100, 3, 3))
     h = a @ np.swapaxes(a, 1, 2) + 1e-3 * np.eye(3)

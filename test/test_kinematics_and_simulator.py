@@ -7,15 +7,15 @@ from pathlib import Path
 
 import numpy as np
 
-from imu_array_ros.kinematics import (
+from imu_array_ros.model.kinematics import (
     centripetal_matrix,
     quadratic_monomials,
     quadratic_monomials_jacobian,
     specific_force_at,
 )
-from imu_array_ros.motion import TwistTrajectory, quat_to_matrix
-from imu_array_ros.sensor_model import LinearArrayModel
-from imu_array_ros.simulator import simulate_measurements, simulate_twist
+from imu_array_ros.simulation.motion import TwistTrajectory, quat_to_matrix
+from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
 
 
 def test_centripetal_term_is_linear_in_quadratic_monomials(rng):
@@ -69,7 +69,7 @@ def test_gravity_turns_in_body_frame(array32, rng):
 
 def test_simulator_saturates_and_adds_noise_of_the_right_size(array32, rng):
     model = LinearArrayModel.from_description(array32)
-    from imu_array_ros.motion import random_motion
+    from imu_array_ros.simulation.motion import random_motion
 
     truth = random_motion(4000, np.deg2rad(2500), 0.0, rng, omega_direction=[0, 0, 1])
     noisy = simulate_measurements(model, truth, rng)

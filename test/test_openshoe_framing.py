@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imu_array_ros.openshoe_framing import (
+from imu_array_ros.io.openshoe.framing import (
     ACC_SCALE,
     GYRO_SCALE,
     FramerStats,

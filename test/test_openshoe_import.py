@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imu_array_ros.description import description_from_dict, load_description
+from imu_array_ros.model.description import description_from_dict, load_description
 from imu_array_ros.errors import CaptureError
-from imu_array_ros.openshoe_framing import (
+from imu_array_ros.io.openshoe.framing import (
     GYRO_SCALE,
     counts_to_si,
     encode_packets,
@@ -38,7 +38,7 @@ from imu_array_ros.openshoe_framing import (
     saturation_mask,
     si_saturation_level,
 )
-from imu_array_ros.openshoe_import import CaptureStats, guess_imu_count, import_capture
+from imu_array_ros.io.openshoe.capture import CaptureStats, guess_imu_count, import_capture
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"

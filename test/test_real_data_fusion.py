@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imu_array_ros.description import load_description
-from imu_array_ros.fusion import MLFusion
-from imu_array_ros.openshoe_framing import si_saturation_level
-from imu_array_ros.openshoe_import import import_capture
-from imu_array_ros.sensor_model import LinearArrayModel
+from imu_array_ros.model.description import load_description
+from imu_array_ros.estimation.ml_fusion import MLFusion
+from imu_array_ros.io.openshoe.framing import si_saturation_level
+from imu_array_ros.io.openshoe.capture import import_capture
+from imu_array_ros.model.sensor_model import LinearArrayModel
 
 from conftest import REPO, SHARED_DATA
 

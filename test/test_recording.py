@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import yaml
 
-from imu_array_ros import mcap_format, mcap_reader, mcap_writer
-from imu_array_ros.cdr_columns import encode_imu
-from imu_array_ros.description import description_from_dict
+from imu_array_ros.io.rosbag import mcap_format, mcap_reader, mcap_writer
+from imu_array_ros.io.rosbag.cdr_columns import encode_imu
+from imu_array_ros.model.description import description_from_dict
 from imu_array_ros.errors import RecordingError
-from imu_array_ros.mcap_reader import McapRecording
-from imu_array_ros.mcap_writer import ChannelData, write_recording
-from imu_array_ros.recording import (
+from imu_array_ros.io.rosbag.mcap_reader import McapRecording
+from imu_array_ros.io.rosbag.mcap_writer import ChannelData, write_recording
+from imu_array_ros.io.rosbag.recording import (
     imu_topic,
     read_fused_recording,
     read_imu_recording,
@@ -24,7 +24,7 @@ from imu_array_ros.recording import (
     write_fused_recording,
     write_imu_recording,
 )
-from imu_array_ros.samples import FusedSamples, ImuSamples, MotionTruth
+from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
 
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
 from rosbags.highlevel import AnyReader  # noqa: E402

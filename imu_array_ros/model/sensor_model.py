@@ -13,7 +13,7 @@ sensor range are saturated (clipped by the simulator, dropped by the fusion).
 
 :class:`LinearArrayModel` holds these matrices as arrays; the fusion estimates
 with it, the simulator measures with it.  Error terms (:class:`ErrorTerm`)
-compose onto an :class:`~imu_array_ros.description.ArrayDescription`: each
+compose onto an :class:`~imu_array_ros.model.description.ArrayDescription`: each
 term perturbs the fields it owns (positions, gains, ...), so the same terms
 describe the truth in simulation and, later, what mismatch discovery adds to
 the nominal model and tests.
@@ -26,11 +26,12 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
-from .description import ArrayDescription, ImuSpec, TriadCalibration, nonorthogonality_matrix
-from .kinematics import skew
+from imu_array_ros.model.description import ArrayDescription, ImuSpec, TriadCalibration
+from imu_array_ros.model.kinematics import skew
 
 __all__ = [
     "LinearArrayModel",
+    "nonorthogonality_matrix",
     "ErrorTerm",
     "PositionOffset",
     "AccelerometerGain",
@@ -122,6 +123,20 @@ class LinearArrayModel:
             acc_std=self.acc_std[idx],
             gyro_std=self.gyro_std[idx],
         )
+
+
+def nonorthogonality_matrix(l: np.ndarray) -> np.ndarray:
+    """Unit lower-triangular L of nilsson2014 eq. 1 from ``[l_yz, l_zy, l_zx]``.
+
+    ``L = [[1, 0, 0], [l_yz, 1, 0], [l_zy, l_zx, 1]]``; works on (..., 3).
+    """
+    l = np.asarray(l, dtype=float)
+    out = np.zeros(l.shape[:-1] + (3, 3))
+    out[..., 0, 0] = out[..., 1, 1] = out[..., 2, 2] = 1.0
+    out[..., 1, 0] = l[..., 0]
+    out[..., 2, 0] = l[..., 1]
+    out[..., 2, 1] = l[..., 2]
+    return out
 
 
 # --------------------------------------------------------------------------- error terms

@@ -18,11 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .crb import jacobian_rows
-from .kinematics import specific_force_at
-from .samples import FusedSamples, ImuSamples, MotionTruth
-from .sensor_model import LinearArrayModel, unsaturated
-from .simulator import simulate_measurements
+from imu_array_ros.estimation.crb import jacobian_rows
+from imu_array_ros.model.kinematics import specific_force_at
+from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
+from imu_array_ros.model.sensor_model import LinearArrayModel, unsaturated
+from imu_array_ros.simulation.simulator import simulate_measurements
 
 __all__ = ["ResidualReport", "normalized_residuals", "simulate_same_motion", "AXES"]
 

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .description import ArrayDescription, load_description, save_description
-from .errors import ConfigError, ImuArrayError
+from imu_array_ros import __version__
+from imu_array_ros.model.description import ArrayDescription, load_description, save_description
+from imu_array_ros.errors import ConfigError, ImuArrayError
 
 __all__ = ["main", "build_parser"]
 
@@ -87,9 +87,9 @@ def _check_out(args, inputs) -> Path:
 
 
 def cmd_simulate(args) -> int:
-    from .recording import write_imu_recording
-    from .sensor_model import DEFAULT_ERROR_SCALES, apply_terms, random_error_terms
-    from .simulator import simulate_random, simulate_twist
+    from imu_array_ros.io.rosbag.recording import write_imu_recording
+    from imu_array_ros.model.sensor_model import DEFAULT_ERROR_SCALES, apply_terms, random_error_terms
+    from imu_array_ros.simulation.simulator import simulate_random, simulate_twist
 
     desc = load_description(args.array)
     out = _check_out(args, [])
@@ -125,9 +125,10 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_fuse(args) -> int:
-    from .fusion import MLFusion
-    from .recording import read_imu_recording, write_fused_recording
-    from .sensor_model import LinearArrayModel
+    from imu_array_ros.estimation.ml_fusion import MLFusion
+    from imu_array_ros.estimation.stream import fuse_chunked
+    from imu_array_ros.io.rosbag.recording import read_imu_recording, write_fused_recording
+    from imu_array_ros.model.sensor_model import LinearArrayModel
 
     desc = _load_array(args)
     out = _check_out(args, [args.recording])
@@ -135,7 +136,7 @@ def cmd_fuse(args) -> int:
     samples, rstats = read_imu_recording(args.recording, desc, progress=Progress("reading", args.quiet))
     _info(args, f"read {rstats.samples} array samples ({rstats.messages} messages); bad messages {rstats.bad_messages}, "
                 f"duplicates {rstats.duplicate_messages}, incomplete samples {rstats.incomplete_samples}")
-    fused, stats = _fuse_chunked(fusion, samples, Progress("fusing", args.quiet))
+    fused, stats = fuse_chunked(fusion, samples, Progress("fusing", args.quiet))
     _info(args, f"fused {stats.fused} of {stats.samples} samples; skipped (not identifiable) {stats.skipped_unidentifiable}, "
                 f"saturated-gyro samples {stats.saturated_gyro_samples}, not converged {stats.not_converged}")
     if stats.skipped_stamps:
@@ -147,31 +148,12 @@ def cmd_fuse(args) -> int:
     return 0
 
 
-def _fuse_chunked(fusion, samples, progress, chunk: int = 200_000):
-    """Fuse in chunks (bounded temporary memory, progress); same numbers as one batch."""
-    from .fusion import FusionStats
-    from .samples import FusedSamples
-
-    parts, total = [], FusionStats()
-    n = len(samples)
-    for lo in range(0, max(n, 1), chunk):
-        hi = min(lo + chunk, n)
-        f, st = fusion.fuse(samples.stamps[lo:hi], samples.accel[lo:hi], samples.gyro[lo:hi])
-        parts.append(f)
-        total.merge(st)
-        progress(hi, n)
-    cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
-    fused = FusedSamples(cat("stamps"), cat("omega"), cat("omega_dot"), cat("specific_force"), cat("covariance"),
-                         cat("iterations"), cat("converged"))
-    return fused, total
-
-
 # --------------------------------------------------------------------------- import-openshoe
 
 
 def cmd_import_openshoe(args) -> int:
-    from .openshoe_import import import_capture
-    from .recording import write_imu_recording
+    from imu_array_ros.io.openshoe.capture import import_capture
+    from imu_array_ros.io.rosbag.recording import write_imu_recording
 
     desc = load_description(args.array)
     out = _check_out(args, [args.capture])
@@ -186,22 +168,23 @@ def cmd_import_openshoe(args) -> int:
 
 
 def cmd_residuals(args) -> int:
-    from .fusion import MLFusion
-    from .recording import read_imu_recording
-    from .residuals import normalized_residuals, simulate_same_motion
-    from .sensor_model import LinearArrayModel
+    from imu_array_ros.estimation.ml_fusion import MLFusion
+    from imu_array_ros.estimation.stream import fuse_chunked
+    from imu_array_ros.io.rosbag.recording import read_imu_recording
+    from imu_array_ros.discovery.residuals import normalized_residuals, simulate_same_motion
+    from imu_array_ros.model.sensor_model import LinearArrayModel
 
     desc = _load_array(args)
     model = LinearArrayModel.from_description(desc)
     samples, _ = read_imu_recording(args.recording, desc, progress=Progress("reading", args.quiet))
     fusion = MLFusion(model)
-    fused, stats = _fuse_chunked(fusion, samples, Progress("fusing", args.quiet))
+    fused, stats = fuse_chunked(fusion, samples, Progress("fusing", args.quiet))
     if stats.fused == 0:
         raise ImuArrayError(f"{args.recording}: no sample could be fused")
     reports = {"recording": normalized_residuals(samples, model, fused, still_threshold=args.still_threshold)}
     if args.compare_simulated:
         sim = simulate_same_motion(fused, model, np.random.default_rng(args.seed), like=samples)
-        sim_fused, _ = _fuse_chunked(fusion, sim, Progress("fusing simulated", args.quiet))
+        sim_fused, _ = fuse_chunked(fusion, sim, Progress("fusing simulated", args.quiet))
         reports["simulated_same_motion"] = normalized_residuals(sim, model, sim_fused, still_threshold=args.still_threshold)
     result = {name: rep.summary() for name, rep in reports.items()}
     if args.json:
@@ -209,7 +192,7 @@ def cmd_residuals(args) -> int:
         if args.json == "-":
             print(text)
         else:
-            from .atomic import atomic_write_text
+            from imu_array_ros.io.atomic import atomic_write_text
 
             atomic_write_text(args.json, text + "\n")
     if not args.json or args.json != "-":

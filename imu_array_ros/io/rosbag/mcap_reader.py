@@ -3,7 +3,7 @@
 Knows nothing about message semantics: it hands out *where* the payloads of
 selected topics are (one :class:`MessageBatch` per decompressed chunk:
 buffer, offsets, lengths, log times).  The CDR layer
-(:mod:`imu_array_ros.cdr_columns`) does the rest.
+(:mod:`imu_array_ros.io.rosbag.cdr_columns`) does the rest.
 
 A recording is a rosbag2 directory (``metadata.yaml``; its
 ``relative_file_paths`` are read in order) or a bare ``.mcap`` file.
@@ -14,8 +14,8 @@ message is walked, so a partial index can not hide messages), falling back
 to a record walk when the index is absent or inconsistent.
 Chunk compression ``zstd``, ``lz4`` or none; chunk CRCs are verified.
 
-Format constants and decompressors: :mod:`imu_array_ros.mcap_format`;
-writing: :mod:`imu_array_ros.mcap_writer`.
+Format constants and decompressors: :mod:`imu_array_ros.io.rosbag.mcap_format`;
+writing: :mod:`imu_array_ros.io.rosbag.mcap_writer`.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ import numpy as np
 import yaml
 from numpy.lib.stride_tricks import sliding_window_view
 
-from .errors import RecordingError
-from .mcap_format import (
+from imu_array_ros.errors import RecordingError
+from imu_array_ros.io.rosbag.mcap_format import (
     _MSG_HEAD,
     _MSG_HEAD_SIZE,
     _REC,

@@ -1,7 +1,7 @@
 """Builders for the array geometries of the papers (descriptions in memory).
 
 ``config/array32.yaml`` and ``config/planar4.yaml`` are generated from these
-(``python -m imu_array_ros.array_layouts config/``), and the tests build the
+(``python -m imu_array_ros.model.layouts config/``), and the tests build the
 same arrays from them.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .description import ArrayDescription, ImuSpec, save_description
+from imu_array_ros.model.description import ArrayDescription, ImuSpec, save_description
 
 __all__ = ["grid_array32", "planar_square4", "tetrahedron4", "make_description", "ROT_180_ABOUT_Y_EQ_X"]
 

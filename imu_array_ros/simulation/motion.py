@@ -16,11 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .samples import MotionTruth
+from imu_array_ros.model.constants import STANDARD_GRAVITY as GRAVITY
+from imu_array_ros.model.samples import MotionTruth
 
 __all__ = ["random_motion", "TwistTrajectory", "quat_multiply", "quat_to_matrix", "quat_exp"]
 
-GRAVITY = 9.80665
 
 
 def _unit(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 Knows nothing about message semantics: it writes pre-serialized payload
 columns (one :class:`ChannelData` per topic); the CDR layer
-(:mod:`imu_array_ros.cdr_columns`) serializes them.
+(:mod:`imu_array_ros.io.rosbag.cdr_columns`) serializes them.
 
 Chunks are assembled with numpy from per-channel ``(M, L)`` payload arrays,
 so writing costs no per-message Python.  Output: MCAP with profile
@@ -10,10 +10,10 @@ so writing costs no per-message Python.  Output: MCAP with profile
 ``offered_qos_profiles`` / ``topic_type_hash`` metadata, message indexes,
 chunk indexes, statistics and a ``rosbag2`` metadata record; for a
 directory also a rosbag2 Jazzy (version 9) ``metadata.yaml``.  Files are
-written atomically (:func:`imu_array_ros.atomic.atomic_path`).
+written atomically (:func:`imu_array_ros.io.atomic.atomic_path`).
 
-Format constants and compressors: :mod:`imu_array_ros.mcap_format`;
-reading: :mod:`imu_array_ros.mcap_reader`.
+Format constants and compressors: :mod:`imu_array_ros.io.rosbag.mcap_format`;
+reading: :mod:`imu_array_ros.io.rosbag.mcap_reader`.
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ import numpy as np
 import yaml
 from numpy.lib.stride_tricks import sliding_window_view
 
-from .atomic import atomic_path
-from .errors import RecordingError
-from .mcap_format import (
+from imu_array_ros.io.atomic import atomic_path
+from imu_array_ros.errors import RecordingError
+from imu_array_ros.io.rosbag.mcap_format import (
     _MSG_HEAD,
     _MSG_HEAD_SIZE,
     _REC,

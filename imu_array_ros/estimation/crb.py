@@ -1,7 +1,7 @@
 """Cramér-Rao bound of the array fusion problem (skog2016 Sec. IV).
 
 Written directly from eq. 13-15, independently of the algebra inside
-:mod:`imu_array_ros.fusion`, so that each can check the other:
+:mod:`imu_array_ros.estimation.ml_fusion`, so that each can check the other:
 
     I(theta) = Phi^T Q^{-1} Phi,   Phi = [J_h  H],   theta = [omega, omega_dot, s]
 
@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kinematics import skew
-from .sensor_model import LinearArrayModel
+from imu_array_ros.model.kinematics import skew
+from imu_array_ros.model.sensor_model import LinearArrayModel
 
 __all__ = ["jacobian_rows", "fisher_information", "crb", "square_array_omega_information"]
 

@@ -3,7 +3,7 @@
 ``simulate_measurements`` evaluates the rigid-body specific force at every
 accelerometer position (skog2016 eq. 1), maps it and the angular velocity
 into each sensor frame with the (true) linear sensor model of
-:mod:`imu_array_ros.sensor_model`, adds white Gaussian noise and saturates at
+:mod:`imu_array_ros.model.sensor_model`, adds white Gaussian noise and saturates at
 the sensor ranges.
 """
 
@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .description import ArrayDescription
-from .kinematics import specific_force_at
-from .motion import TwistTrajectory, random_motion
-from .samples import ImuSamples, MotionTruth
-from .sensor_model import ErrorTerm, LinearArrayModel, apply_terms
+from imu_array_ros.model.description import ArrayDescription
+from imu_array_ros.model.kinematics import specific_force_at
+from imu_array_ros.simulation.motion import TwistTrajectory, random_motion
+from imu_array_ros.model.samples import ImuSamples, MotionTruth
+from imu_array_ros.model.sensor_model import ErrorTerm, LinearArrayModel, apply_terms
 
 __all__ = ["simulate_measurements", "simulate_twist", "simulate_random"]
 

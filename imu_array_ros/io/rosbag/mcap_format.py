@@ -6,8 +6,8 @@ as a numpy dtype, the chunk compression defaults of files we write
 (:data:`DEFAULT_COMPRESSION`, :data:`DEFAULT_CHUNK_SIZE`, :data:`ZSTD_LEVEL`)
 and the chunk compressor / decompressor lookups (``zstd``, ``lz4`` or none).
 
-Reading: :mod:`imu_array_ros.mcap_reader`; writing:
-:mod:`imu_array_ros.mcap_writer`.
+Reading: :mod:`imu_array_ros.io.rosbag.mcap_reader`; writing:
+:mod:`imu_array_ros.io.rosbag.mcap_writer`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Import a raw OpenShoe serial capture (``*.bin``) into :class:`ImuSamples`.
 
-The byte format is described in :mod:`imu_array_ros.openshoe_framing`.  The
+The byte format is described in :mod:`imu_array_ros.io.openshoe.framing`.  The
 number of IMUs per packet cannot be read from the stream (the size byte wraps),
 so it is taken from the array description and confirmed by the checksums.
 
@@ -13,8 +13,8 @@ Time: ``stamps`` come from the board's 64 MHz timestamp, unwrapped across its
 ``start_ns`` (0 by default: a fixed epoch, not wall-clock time).  Packets lost
 in transmission (counter gaps) are simply absent: no NaN rows are inserted.
 Saturated samples are kept as clipped values; see
-:func:`~imu_array_ros.openshoe_framing.saturation_mask` /
-:func:`~imu_array_ros.openshoe_framing.si_saturation_level`.
+:func:`~imu_array_ros.io.openshoe.framing.saturation_mask` /
+:func:`~imu_array_ros.io.openshoe.framing.si_saturation_level`.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from typing import Callable
 
 import numpy as np
 
-from .description import ArrayDescription
-from .errors import CaptureError
-from .openshoe_framing import (
+from imu_array_ros.model.description import ArrayDescription
+from imu_array_ros.errors import CaptureError
+from imu_array_ros.io.openshoe.framing import (
     OpenShoeFramer,
     ParsedPackets,
     TickUnwrapper,
@@ -36,7 +36,7 @@ from .openshoe_framing import (
     parse_buffer,
     saturation_mask,
 )
-from .samples import ImuSamples
+from imu_array_ros.model.samples import ImuSamples
 
 __all__ = ["CaptureStats", "import_capture", "guess_imu_count"]
 

@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .atomic import atomic_write_text
-from .errors import ConfigError, IdentifiabilityError
+from imu_array_ros.io.atomic import atomic_write_text
+from imu_array_ros.errors import ConfigError
 
 __all__ = [
     "TriadCalibration",
@@ -37,8 +37,6 @@ __all__ = [
     "save_description",
     "description_from_dict",
     "description_to_dict",
-    "check_identifiable",
-    "nonorthogonality_matrix",
 ]
 
 _TOP_KEYS = {"imu_array", "calibration"}
@@ -53,20 +51,6 @@ _ARRAY_KEYS = {
 _IMU_KEYS = {"name", "position", "orientation", "position_std", "accelerometer", "gyroscope"}
 _ACC_KEYS = {"gain", "nonorthogonality", "misalignment", "bias"}
 _GYR_KEYS = {"gain", "misalignment", "bias"}
-
-
-def nonorthogonality_matrix(l: np.ndarray) -> np.ndarray:
-    """Unit lower-triangular L of nilsson2014 eq. 1 from ``[l_yz, l_zy, l_zx]``.
-
-    ``L = [[1, 0, 0], [l_yz, 1, 0], [l_zy, l_zx, 1]]``; works on (..., 3).
-    """
-    l = np.asarray(l, dtype=float)
-    out = np.zeros(l.shape[:-1] + (3, 3))
-    out[..., 0, 0] = out[..., 1, 1] = out[..., 2, 2] = 1.0
-    out[..., 1, 0] = l[..., 0]
-    out[..., 2, 0] = l[..., 1]
-    out[..., 2, 1] = l[..., 2]
-    return out
 
 
 @dataclass(frozen=True)
@@ -343,28 +327,3 @@ def save_description(desc: ArrayDescription, path: str | Path) -> None:
     text = dump_description(desc)
     description_from_dict(yaml.safe_load(text), source=str(path))  # never write what we can't read
     atomic_write_text(path, text)
-
-
-# --------------------------------------------------------------------------- identifiability
-
-
-def check_identifiable(positions: np.ndarray, n_gyro_triads: int, *, where: str = "array") -> None:
-    """Raise :class:`IdentifiabilityError` unless skog2016 Sec. II-D holds.
-
-    Needs at least one gyroscope triad and at least three accelerometer triads
-    whose positions are not collinear (span a plane after removing their mean).
-    """
-    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
-    if n_gyro_triads < 1:
-        raise IdentifiabilityError(f"{where}: no gyroscope triad, angular velocity is not identifiable (skog2016 Sec. II-D)")
-    if len(positions) < 3:
-        raise IdentifiabilityError(
-            f"{where}: {len(positions)} accelerometer triad(s), at least 3 non-collinear are needed (skog2016 Sec. II-D)"
-        )
-    centred = positions - positions.mean(axis=0)
-    sv = np.linalg.svd(centred, compute_uv=False)
-    scale = max(float(np.abs(positions).max()), 1e-3)
-    if sv[1] <= 1e-9 * scale * math.sqrt(len(positions)):
-        raise IdentifiabilityError(
-            f"{where}: accelerometer triads are collinear, at least 3 non-collinear are needed (skog2016 Sec. II-D)"
-        )

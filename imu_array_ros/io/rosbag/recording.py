@@ -31,7 +31,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from .cdr_columns import (
+from imu_array_ros.io.rosbag.cdr_columns import (
     ACCEL_LAYOUT,
     IMU_LAYOUT,
     MessageLayout,
@@ -39,11 +39,11 @@ from .cdr_columns import (
     encode_accel_with_covariance_stamped,
     encode_imu,
 )
-from .description import ArrayDescription
-from .errors import RecordingError
-from .mcap_reader import ChannelInfo, McapRecording
-from .mcap_writer import ChannelData, write_recording
-from .samples import FusedSamples, ImuSamples, MotionTruth, ReadStats
+from imu_array_ros.model.description import ArrayDescription
+from imu_array_ros.errors import RecordingError
+from imu_array_ros.io.rosbag.mcap_reader import ChannelInfo, McapRecording
+from imu_array_ros.io.rosbag.mcap_writer import ChannelData, write_recording
+from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth, ReadStats
 
 __all__ = [
     "IMU_TYPE",

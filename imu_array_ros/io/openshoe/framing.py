@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from imu_array_ros.model.constants import STANDARD_GRAVITY
+
 __all__ = [
     "ACK_HEADER",
     "PACKET_HEADER",
@@ -65,7 +67,6 @@ __all__ = [
 PACKET_HEADER = 0xAA
 ACK_HEADER = 0xA0
 TICK_HZ = 64_000_000
-STANDARD_GRAVITY = 9.80665
 ACC_LSB_PER_G = 2048.0
 GYRO_LSB_PER_DPS = 16.4
 ACC_SCALE = STANDARD_GRAVITY / ACC_LSB_PER_G

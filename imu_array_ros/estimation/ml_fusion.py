@@ -1,14 +1,14 @@
 """Maximum-likelihood fusion of an inertial sensor array (skog2016 Sec. II-III).
 
 Model (skog2016 eq. 3-5, with the calibrated sensor frames of
-:mod:`imu_array_ros.sensor_model`): for accelerometer triad ``i``
+:mod:`imu_array_ros.model.sensor_model`): for accelerometer triad ``i``
 
     y_i - b_i = A_i ( s + Omega_w^2 r_i - Omega_{r_i} omega_dot ) + n_i
 
 and for gyroscope triad ``j``: ``y_j - c_j = B_j omega + n_j``.
 
 Reformulation used here.  ``Omega_w^2 r = M(r) q(omega)`` with ``q`` the six
-quadratic monomials of omega (:func:`~imu_array_ros.kinematics.quadratic_monomials`),
+quadratic monomials of omega (:func:`~imu_array_ros.model.kinematics.quadratic_monomials`),
 so all accelerometer readings are *linear* in ``z = [q, omega_dot, s]`` (12):
 ``y_a - b = D z + n`` with a constant (3K x 12) matrix ``D`` fixed by geometry and
 calibration.  With weights ``W = Q_a^{-1}`` (masked for missing/saturated axes)
@@ -38,20 +38,22 @@ precomputed geometry; there is no per-sample Python loop.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from .description import check_identifiable
-from .errors import ImuArrayError
-from .kinematics import centripetal_matrix, euler_matrix, quadratic_monomials, quadratic_monomials_jacobian
-from .samples import FusedSamples, ImuSamples
-from .sensor_model import SATURATION_MARGIN, LinearArrayModel, unsaturated
+from imu_array_ros.model.identifiability import check_identifiable
+from imu_array_ros.errors import FusionError
+from imu_array_ros.model.kinematics import centripetal_matrix, euler_matrix, quadratic_monomials, quadratic_monomials_jacobian
+from imu_array_ros.model.samples import FusedSamples, ImuSamples
+from imu_array_ros.model.sensor_model import SATURATION_MARGIN, LinearArrayModel, unsaturated
 
 __all__ = ["FusionConfig", "FusionStats", "MLFusion", "fuse", "inv_sym3", "solve_sym3"]
 
 log = logging.getLogger(__name__)
+
+_MAX_SKIPPED_STAMPS = 10  # stamps of skipped samples kept for the user
 
 
 @dataclass(frozen=True)
@@ -83,11 +85,15 @@ class FusionStats:
     skipped_stamps: list = field(default_factory=list, repr=False)
 
     def merge(self, other: "FusionStats") -> None:
-        for name in ("samples", "fused", "skipped_unidentifiable", "incomplete_samples", "saturated_gyro_samples",
-                     "saturated_accel_samples", "not_converged"):
-            setattr(self, name, getattr(self, name) + getattr(other, name))
-        self.patterns = max(self.patterns, other.patterns)
-        self.skipped_stamps = (self.skipped_stamps + other.skipped_stamps)[:10]
+        """Add ``other``'s counts to these (``patterns``: the larger; ``skipped_stamps``: the first 10)."""
+        for f in fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if f.name == "patterns":
+                setattr(self, f.name, max(a, b))
+            elif isinstance(a, list):
+                setattr(self, f.name, (a + b)[:_MAX_SKIPPED_STAMPS])
+            else:
+                setattr(self, f.name, a + b)
 
 
 # --------------------------------------------------------------------------- small batched linear algebra
@@ -244,7 +250,7 @@ class MLFusion:
         gyro = np.asarray(gyro, dtype=float)
         n, k = accel.shape[0], m.n_imus
         if accel.shape != (n, k, 3) or gyro.shape != (n, k, 3):
-            raise ImuArrayError(f"fusion: expected accel/gyro of shape (N, {k}, 3), got {accel.shape} / {gyro.shape}")
+            raise FusionError(f"fusion: expected accel/gyro of shape (N, {k}, 3), got {accel.shape} / {gyro.shape}")
         stats = FusionStats(samples=n)
         ya = accel.reshape(n, 3 * k)
         yg = gyro.reshape(n, 3 * k)
@@ -339,7 +345,7 @@ class MLFusion:
         stats.skipped_unidentifiable = n - stats.fused
         stats.not_converged = int(np.count_nonzero(good & ~conv))
         if stats.skipped_unidentifiable:
-            stats.skipped_stamps = np.asarray(stamps)[~good][:10].tolist()
+            stats.skipped_stamps = np.asarray(stamps)[~good][:_MAX_SKIPPED_STAMPS].tolist()
         if stats.fused == n:
             fused = FusedSamples(np.asarray(stamps, dtype=np.int64), omega, phi[:, :3], phi[:, 3:], cov, iters, conv)
         else:
@@ -443,7 +449,7 @@ def _jq_transpose_times(w: np.ndarray, v: np.ndarray) -> np.ndarray:
 def fuse(samples: ImuSamples, model: LinearArrayModel, config: FusionConfig | None = None) -> tuple[FusedSamples, FusionStats]:
     """Fuse a whole :class:`ImuSamples` batch with the ML estimator (see module docstring)."""
     if tuple(samples.names) != tuple(model.names):
-        raise ImuArrayError(
+        raise FusionError(
             f"fusion: samples are for IMUs {list(samples.names)[:4]}..., model for {list(model.names)[:4]}..."
         )
     return MLFusion(model, config).fuse(samples.stamps, samples.accel, samples.gyro)

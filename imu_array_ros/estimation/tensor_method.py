@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import IdentifiabilityError
-from .samples import ImuSamples
-from .sensor_model import LinearArrayModel
+from imu_array_ros.errors import IdentifiabilityError
+from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.model.sensor_model import LinearArrayModel
 
 __all__ = ["tensor_method"]
 

@@ -1,0 +1,1 @@
+"""Input and output: rosbag2/MCAP recordings, OpenShoe serial captures, atomic writes."""

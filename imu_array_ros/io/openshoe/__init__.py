@@ -1,0 +1,1 @@
+"""OpenShoe serial protocol: streaming packet framing and capture import."""

@@ -1,0 +1,1 @@
+"""Motion generators (random samples, hand twisting) and simulated measurements."""
