@@ -24,7 +24,7 @@ from imu_array_ros.model.layouts import planar_square4, tetrahedron4  # noqa: E4
 from imu_array_ros.estimation.crb import crb  # noqa: E402
 from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
 from imu_array_ros.simulation.motion import random_motion  # noqa: E402
-from imu_array_ros.model.sensor_model import LinearArrayModel, unsaturated  # noqa: E402
+from imu_array_ros.model.sensor_model import LinearArrayModel  # noqa: E402
 from imu_array_ros.simulation.simulator import simulate_measurements  # noqa: E402
 from imu_array_ros.estimation.tensor_method import tensor_method  # noqa: E402
 
@@ -41,7 +41,7 @@ def curve(desc, direction, speeds, rng, tensor=False):
         s = simulate_measurements(model, truth, rng)
         f, _ = fusion.fuse(s.stamps, s.accel, s.gyro)
         rmse = np.rad2deg(np.sqrt(np.mean((f.omega - truth.omega) ** 2, axis=0)))
-        bound = np.rad2deg(np.sqrt(np.diag(crb(truth.omega[:1], model, gyro_valid=unsaturated(s.gyro[:1], model.gyro_range))[0])[:3]))
+        bound = np.rad2deg(np.sqrt(np.diag(crb(truth.omega[:1], model, gyro_valid=model.gyro_unsaturated(s.gyro[:1]))[0])[:3]))
         row = [speed, *rmse, *bound]
         if tensor:
             wt, _, _ = tensor_method(s, model)

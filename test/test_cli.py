@@ -1,54 +1,87 @@
-"""The `imu-array` command line, run as a real process: outputs, exit codes, one-line errors."""
+"""The `imu-array` command line: outputs, exit codes, one-line errors.
+
+Most tests call ``imu_array_ros.cli.main`` in-process (fast; stderr through
+capsys); a few run the real programs (console script ``imu-array`` and
+``python -m imu_array_ros``) as processes.  Outputs, options and start times
+are tested in ``test_cli_outputs.py`` and ``test_cli_options.py``.
+"""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from imu_array_ros.model.description import load_description
+from imu_array_ros.cli import main
 from imu_array_ros.estimation.ml_fusion import fuse
 from imu_array_ros.io.rosbag.recording import read_fused_recording, read_imu_recording, read_truth, write_imu_recording
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.sensor_model import DEFAULT_ERROR_SCALES, LinearArrayModel, apply_terms, random_error_terms
 from imu_array_ros.simulation.simulator import simulate_twist
 
 from conftest import REPO, SHARED_DATA
 
 ARRAY32 = REPO / "config" / "array32.yaml"
+#: a fixed, realistic start time keeps simulated recordings reproducible
+START = "2026-11-21T10:00:00Z"
 
 
-def run(*args, check_ok=True):
-    proc = subprocess.run([sys.executable, "-m", "imu_array_ros", *map(str, args)], capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONUNBUFFERED="1"), timeout=300)
-    if check_ok:
-        assert proc.returncode == 0, proc.stderr
-    return proc
+def cli(capsys, *args):
+    """Run ``imu-array ARGS`` in-process; (exit status, stdout, stderr)."""
+    capsys.readouterr()
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
 
 
-def assert_user_error(proc, *fragments):
-    assert proc.returncode == 2, (proc.returncode, proc.stderr)
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("imu-array: error:")]
-    assert len(errors) == 1, proc.stderr
-    assert "Traceback" not in proc.stderr
+def ok(capsys, *args):
+    code, out, err = cli(capsys, *args)
+    assert code == 0, err
+    return out, err
+
+
+def assert_user_error(result, *fragments):
+    """Exit status 2, exactly one line on stderr, ``imu-array: error: ...`` holding every fragment."""
+    code, _, err = result
+    assert code == 2, (code, err)
+    assert "Traceback" not in err
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("imu-array: error: "), err
     for frag in fragments:
-        assert frag in errors[0], (frag, errors[0])
+        assert frag in lines[0], (frag, lines[0])
+    return lines[0]
+
+
+def run(*args, program=None):
+    """Run the real program as a process (default ``python -m imu_array_ros``)."""
+    cmd = [*(program or [sys.executable, "-m", "imu_array_ros"]), *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"), timeout=300)
+
+
+def nees_omega(fused, truth):
+    err = fused.omega - truth.omega
+    return np.einsum("ni,nij,nj->n", err, np.linalg.inv(fused.covariance[:, :3, :3]), err)
 
 
 @pytest.fixture(scope="module")
 def sim_recording(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "twist"
-    run("simulate", "--array", ARRAY32, "--out", out, "--duration", 0.5, "--rate", 400, "--rms-rate", 1500, "--seed", 3)
+    assert main(["simulate", "--array", str(ARRAY32), "--out", str(out), "--duration", "0.5", "--rate", "400",
+                 "--rms-rate", "1500", "--seed", "3", "--start-time", START, "-q"]) == 0
     return out
 
 
-def test_simulate_then_fuse_matches_the_core_bit_for_bit(sim_recording, tmp_path):
+def test_simulate_then_fuse_matches_the_core_bit_for_bit(sim_recording, tmp_path, capsys):
     out = tmp_path / "fused.mcap"
-    proc = run("fuse", sim_recording, "--array", ARRAY32, "--out", out)
-    assert "fused 200 of 200 samples" in proc.stderr
+    _, err = ok(capsys, "fuse", sim_recording, "--array", ARRAY32, "--out", out)
+    assert "fused 200 of 200 samples" in err
     fused = read_fused_recording(out)
     desc = load_description(ARRAY32)
     samples, _ = read_imu_recording(sim_recording, desc)
@@ -57,73 +90,98 @@ def test_simulate_then_fuse_matches_the_core_bit_for_bit(sim_recording, tmp_path
     np.testing.assert_array_equal(fused.omega, ref.omega)
     np.testing.assert_array_equal(fused.specific_force, ref.specific_force)
     np.testing.assert_array_equal(fused.covariance[:, :3, :3], ref.covariance[:, :3, :3])
-    truth = read_truth(sim_recording)
-    err = fused.omega - truth.omega
-    nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(fused.covariance[:, :3, :3]), err)
-    assert nees.mean() < 3 + 4 * np.sqrt(6 / len(nees))
+    nees = nees_omega(fused, read_truth(sim_recording))
+    # NEES of omega ~ chi2(3) per sample (variance 6); the mean of n independent samples is within
+    # 4 standard errors of 3 -- on both sides: too small means covariances too large, too large means too small
+    assert abs(nees.mean() - 3) < 4 * np.sqrt(6 / len(nees)), nees.mean()
 
 
-def test_simulate_with_errors_writes_truth_description(tmp_path):
-    truth_yaml = tmp_path / "truth.yaml"
-    run("simulate", "--array", ARRAY32, "--out", tmp_path / "r.mcap", "--duration", 0.1, "--error-seed", 5,
-        "--truth-array-out", truth_yaml)
-    true_desc = load_description(truth_yaml)
+def test_simulate_with_errors_writes_truth_description(tmp_path, capsys):
+    """The truth YAML holds exactly the seeded errors, and the recording was simulated with them."""
+    truth_yaml, rec = tmp_path / "truth.yaml", tmp_path / "r.mcap"
+    ok(capsys, "simulate", "--array", ARRAY32, "--out", rec, "--duration", 0.5, "--rate", 400, "--rms-rate", 900,
+       "--seed", 2, "--error-seed", 5, "--truth-array-out", truth_yaml, "--start-time", START)
     nominal = load_description(ARRAY32)
+    true_desc = load_description(truth_yaml)
+    assert true_desc.calibration == {"method": "simulation ground truth", "seed": 2, "error_seed": 5}
+    # the same errors, drawn independently here from the documented recipe
+    expected = LinearArrayModel.from_description(
+        apply_terms(nominal, random_error_terms(len(nominal.imus), np.random.default_rng(5), dict(DEFAULT_ERROR_SCALES))))
+    written = LinearArrayModel.from_description(true_desc)
+    for field in ("positions", "acc_matrix", "gyro_matrix", "acc_bias", "gyro_bias"):
+        np.testing.assert_allclose(getattr(written, field), getattr(expected, field), rtol=1e-12, atol=1e-15,
+                                   err_msg=field)
     assert np.abs(true_desc.positions - nominal.positions).max() > 1e-5
-    assert true_desc.calibration["method"] == "simulation ground truth"
+    # the recording's measurements come from the true sensors: consistent with the truth file, not the nominal one
+    samples, _ = read_imu_recording(rec, nominal)
+    truth = read_truth(rec)
+    with_truth = nees_omega(fuse(samples, written)[0], truth)
+    with_nominal = nees_omega(fuse(samples, LinearArrayModel.from_description(nominal))[0], truth)
+    assert abs(with_truth.mean() - 3) < 4 * np.sqrt(6 / len(with_truth)), with_truth.mean()
+    assert with_nominal.mean() > 30
 
 
-def test_calibration_file_is_used(sim_recording, tmp_path):
-    desc = load_description(ARRAY32)
+def test_calibration_file_is_used(sim_recording, tmp_path, capsys):
     cal = yaml.safe_load(ARRAY32.read_text())
     cal["imu_array"]["imus"][0]["accelerometer"] = {"bias": [0.5, 0.0, 0.0]}
     cal_path = tmp_path / "cal.yaml"
     cal_path.write_text(yaml.safe_dump(cal))
-    run("fuse", sim_recording, "--array", ARRAY32, "--calibration", cal_path, "--out", tmp_path / "a.mcap")
-    run("fuse", sim_recording, "--array", ARRAY32, "--out", tmp_path / "b.mcap")
+    ok(capsys, "fuse", sim_recording, "--array", ARRAY32, "--calibration", cal_path, "--out", tmp_path / "a.mcap")
+    ok(capsys, "fuse", sim_recording, "--array", ARRAY32, "--out", tmp_path / "b.mcap")
     a, b = read_fused_recording(tmp_path / "a.mcap"), read_fused_recording(tmp_path / "b.mcap")
     assert not np.allclose(a.specific_force, b.specific_force)
     del cal["imu_array"]["imus"][5]
     cal_path.write_text(yaml.safe_dump(cal))
-    assert_user_error(run("fuse", sim_recording, "--array", ARRAY32, "--calibration", cal_path, "--out", tmp_path / "c.mcap",
-                          check_ok=False), "IMU names differ")
-    del desc
+    assert_user_error(cli(capsys, "fuse", sim_recording, "--array", ARRAY32, "--calibration", cal_path,
+                          "--out", tmp_path / "c.mcap"), "IMU names differ")
+    assert not (tmp_path / "c.mcap").exists()
 
 
-def test_bad_inputs_give_one_line_errors(sim_recording, tmp_path):
+def test_bad_inputs_give_one_line_errors(sim_recording, tmp_path, capsys):
     out = tmp_path / "out.mcap"
-    assert_user_error(run("fuse", tmp_path / "missing", "--array", ARRAY32, "--out", out, check_ok=False), "missing")
-    assert_user_error(run("fuse", sim_recording, "--array", tmp_path / "nope.yaml", "--out", out, check_ok=False),
+    assert_user_error(cli(capsys, "fuse", tmp_path / "missing", "--array", ARRAY32, "--out", out), "missing")
+    assert_user_error(cli(capsys, "fuse", sim_recording, "--array", tmp_path / "nope.yaml", "--out", out),
                       "nope.yaml", "not found")
     bad_yaml = tmp_path / "bad.yaml"
     bad_yaml.write_text("imu_array: [1, 2\n")
-    assert_user_error(run("fuse", sim_recording, "--array", bad_yaml, "--out", out, check_ok=False), "malformed YAML")
+    assert_user_error(cli(capsys, "fuse", sim_recording, "--array", bad_yaml, "--out", out), "malformed YAML")
     # an IMU the recording does not have
     data = yaml.safe_load(ARRAY32.read_text())
     data["imu_array"]["imus"][7]["name"] = "imu_99"
     other = tmp_path / "other.yaml"
     other.write_text(yaml.safe_dump(data))
-    assert_user_error(run("fuse", sim_recording, "--array", other, "--out", out, check_ok=False), "imu_99")
-    # collinear array: not identifiable
+    assert_user_error(cli(capsys, "fuse", sim_recording, "--array", other, "--out", out), "imu_99")
+    # collinear array: not identifiable, and the message names the description file
     data = yaml.safe_load(ARRAY32.read_text())
     for i, imu in enumerate(data["imu_array"]["imus"]):
         imu["position"] = [0.001 * i, 0.0, 0.0]
     line = tmp_path / "line.yaml"
     line.write_text(yaml.safe_dump(data))
-    assert_user_error(run("fuse", sim_recording, "--array", line, "--out", out, check_ok=False), "collinear")
+    msg = assert_user_error(cli(capsys, "fuse", sim_recording, "--array", line, "--out", out), "collinear")
+    assert msg.startswith(f"imu-array: error: {line}: accelerometer triads are collinear"), msg
     # not a recording
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"this is not an mcap file at all" * 10)
-    assert_user_error(run("fuse", junk, "--array", ARRAY32, "--out", out, check_ok=False), "junk.mcap")
-    # output would overwrite the input; existing output without --force
-    assert_user_error(run("fuse", junk, "--array", ARRAY32, "--out", junk, check_ok=False), "overwrite the input")
-    out.write_bytes(b"keep me")
-    assert_user_error(run("fuse", sim_recording, "--array", ARRAY32, "--out", out, check_ok=False), "already exists")
-    assert out.read_bytes() == b"keep me"
-    assert not list(tmp_path.glob(".*tmp"))  # no temporary leftovers
+    assert_user_error(cli(capsys, "fuse", junk, "--array", ARRAY32, "--out", out), "junk.mcap")
+    assert not out.exists()
+    # output would overwrite the input
+    assert_user_error(cli(capsys, "fuse", junk, "--array", ARRAY32, "--out", junk, "--force"), "overwrite the input")
+    assert junk.read_bytes() == b"this is not an mcap file at all" * 10
+    # an existing output (a real recording) is kept without --force
+    ok(capsys, "fuse", sim_recording, "--array", ARRAY32, "--out", out)
+    before = out.read_bytes()
+    assert_user_error(cli(capsys, "fuse", sim_recording, "--array", ARRAY32, "--out", out), "already exists", "--force")
+    assert out.read_bytes() == before
+    # and an existing file that is not one is kept even with --force
+    keep = tmp_path / "keep.mcap"
+    keep.write_bytes(b"keep me")
+    assert_user_error(cli(capsys, "fuse", sim_recording, "--array", ARRAY32, "--out", keep, "--force"),
+                      "not an MCAP file")
+    assert keep.read_bytes() == b"keep me"
+    assert not list(tmp_path.glob(".*"))  # no temporary leftovers
 
 
-def test_nan_and_missing_messages_are_skipped_and_counted(tmp_path, rng):
+def test_nan_and_missing_messages_are_skipped_and_counted(tmp_path, rng, capsys):
     desc = load_description(ARRAY32)
     samples, _ = simulate_twist(desc, 0.05, 1000.0, rng)
     samples.accel[3, 4, 1] = np.nan  # one bad message
@@ -132,29 +190,28 @@ def test_nan_and_missing_messages_are_skipped_and_counted(tmp_path, rng):
     samples.gyro[10, :30] = np.nan
     rec = tmp_path / "rec"
     write_imu_recording(rec, samples, desc)
-    proc = run("fuse", rec, "--array", ARRAY32, "--out", tmp_path / "f.mcap")
-    assert "fused 49 of 50 samples; skipped (not identifiable) 1" in proc.stderr
+    _, err = ok(capsys, "fuse", rec, "--array", ARRAY32, "--out", tmp_path / "f.mcap")
+    assert "fused 49 of 50 samples; skipped (not identifiable) 1" in err
     fused = read_fused_recording(tmp_path / "f.mcap")
     assert samples.stamps[10] not in fused.stamps and len(fused) == 49
     assert np.all(np.isfinite(fused.omega))
 
 
 @pytest.mark.skipif(not SHARED_DATA.exists(), reason="shared real data not present")
-def test_import_openshoe_and_residuals_on_real_capture(tmp_path):
+def test_import_openshoe_and_residuals_on_real_capture(tmp_path, capsys):
     arr = REPO / "config" / "mimu4444bt_corners.yaml"
     rec = tmp_path / "exp1.mcap"
-    proc = run("import-openshoe", SHARED_DATA / "exp_1.bin", "--array", arr, "--out", rec)
-    assert "37439 packets" in proc.stderr and "bad checksums 0" in proc.stderr
-    proc = run("residuals", rec, "--array", arr, "--compare-simulated", "--json", "-", "-q")
-    import json
-
-    result = json.loads(proc.stdout)
+    _, err = ok(capsys, "import-openshoe", SHARED_DATA / "exp_1.bin", "--array", arr, "--out", rec)
+    assert "37439 packets" in err and "bad checksums 0" in err
+    out, err = ok(capsys, "residuals", rec, "--array", arr, "--compare-simulated", "--json", "-", "-q")
+    assert err == ""
+    result = json.loads(out)
     real, sim = result["recording"], result["simulated_same_motion"]
     # the nominal model explains the simulation and not the real array
     for regime in ("still", "moving"):
         assert abs(sim[regime]["ratio_all"] - 1) < 0.05
         assert real[regime]["ratio_all"] > 10
-    assert_user_error(run("import-openshoe", tmp_path / "none.bin", "--array", arr, "--out", tmp_path / "x", check_ok=False),
+    assert_user_error(cli(capsys, "import-openshoe", tmp_path / "none.bin", "--array", arr, "--out", tmp_path / "x"),
                       "none.bin")
 
 
@@ -165,7 +222,84 @@ def test_shipped_sample_recording_fuses_consistently():
     assert len(samples) == 1000 and stats.bad_messages == 0 and stats.incomplete_samples == 0
     fused, fstats = fuse(samples, LinearArrayModel.from_description(desc))
     assert fstats.fused == 1000
-    truth = read_truth(REPO / "bags" / "twist32_sample")
-    err = fused.omega - truth.omega
-    nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(fused.covariance[:, :3, :3]), err)
+    nees = nees_omega(fused, read_truth(REPO / "bags" / "twist32_sample"))
     assert abs(nees.mean() - 3) < 4 * np.sqrt(6 / 1000)
+
+
+# --------------------------------------------------------------------------- the real programs, as processes
+
+
+def _console_script() -> Path:
+    script = Path(sys.executable).parent / "imu-array"
+    if not script.exists():
+        pytest.skip(f"console script not installed next to {sys.executable}")
+    return script
+
+
+def test_python_m_and_console_script_run_the_same_cli(tmp_path):
+    script = _console_script()
+    for program in ([sys.executable, "-m", "imu_array_ros"], [str(script)]):
+        proc = run("--version", program=program)
+        assert proc.returncode == 0 and proc.stdout.startswith("imu-array "), (program, proc.stdout, proc.stderr)
+    # a real simulate (python -m) then fuse (console script), as in the README
+    rec, fused = tmp_path / "rec", tmp_path / "fused.mcap"
+    proc = run("simulate", "--array", ARRAY32, "--out", rec, "--duration", 0.1, "--rate", 200, "--start-time", START)
+    assert proc.returncode == 0, proc.stderr
+    assert f"wrote {rec}" in proc.stderr
+    proc = run("fuse", rec, "--array", ARRAY32, "--out", fused, program=[str(script)])
+    assert proc.returncode == 0, proc.stderr
+    assert "fused 20 of 20 samples" in proc.stderr
+    assert len(read_fused_recording(fused)) == 20
+
+
+@pytest.mark.parametrize("how", ["python -m", "console script"])
+def test_user_errors_from_the_real_programs_are_one_line(tmp_path, how):
+    program = [sys.executable, "-m", "imu_array_ros"] if how == "python -m" else [str(_console_script())]
+    for args, fragment in [
+        (["fuse", tmp_path / "missing", "--array", ARRAY32, "--out", tmp_path / "o.mcap"], "missing"),
+        (["simulate", "--array", ARRAY32, "--out", tmp_path / "r", "--duration", "0"], "--duration"),
+        (["fuse", "--array", ARRAY32], "required"),
+    ]:
+        proc = run(*args, program=program)
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert "Traceback" not in proc.stderr
+        assert len(proc.stderr.splitlines()) == 1 and proc.stderr.startswith("imu-array: error: "), proc.stderr
+        assert fragment in proc.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_recover_command_salvages_a_recording_cut_mid_write(capsys, tmp_path):
+    """A recorder killed mid-write: reading names `imu-array recover`; the command keeps
+    every complete chunk, says how many messages were kept and lost, and the result
+    fuses; the damaged input is left as it was."""
+    import re
+
+    rec = tmp_path / "rec"
+    ok(capsys, "simulate", "--array", ARRAY32, "--out", rec, "--duration", 2, "--rate", 500, "--seed", 3,
+       "--start-time", START, "-q")
+    desc = load_description(ARRAY32)
+    full, _ = read_imu_recording(rec, desc)
+    data_file = rec / "rec_0.mcap"
+    data = data_file.read_bytes()
+    data_file.write_bytes(data[: len(data) * 2 // 3])  # cut inside the data section
+    damaged = data_file.read_bytes()
+    assert_user_error(cli(capsys, "fuse", rec, "--array", ARRAY32, "--out", tmp_path / "f.mcap"),
+                      str(data_file), "imu-array recover")
+    _, err = ok(capsys, "recover", rec, "--out", tmp_path / "saved.mcap")
+    assert data_file.read_bytes() == damaged and sorted(p.name for p in rec.iterdir()) == ["metadata.yaml", "rec_0.mcap"]
+    m = re.search(r"kept (\d+) messages.*lost (\d+)", err)
+    assert m, err
+    kept, lost = int(m.group(1)), int(m.group(2))
+    assert kept + lost == 1000 * (32 + 2)  # 32 IMU topics + 2 truth topics, 1000 samples
+    saved, _ = read_imu_recording(tmp_path / "saved.mcap", desc)
+    truth = read_truth(tmp_path / "saved.mcap")
+    n_truth = int(np.isfinite(truth.omega[:, 0]).sum() + np.isfinite(truth.omega_dot[:, 0]).sum())
+    assert kept == int(saved.present.sum()) + n_truth and 0 < len(saved) < len(full)
+    # what was kept is the beginning of the original, value for value
+    np.testing.assert_array_equal(saved.stamps, full.stamps[: len(saved)])
+    present = saved.present
+    np.testing.assert_array_equal(saved.accel[present], full.accel[: len(saved)][present])
+    np.testing.assert_array_equal(saved.gyro[present], full.gyro[: len(saved)][present])
+    assert present[:-1].all()  # only the last sample can miss IMUs (cut between their messages)
+    ok(capsys, "fuse", tmp_path / "saved.mcap", "--array", ARRAY32, "--out", tmp_path / "f.mcap", "-q")
+    assert_user_error(cli(capsys, "recover", rec, "--out", rec / "x.mcap"), "input")

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from imu_array_ros.model.description import description_from_dict, description_to_dict, load_description, save_description
 from imu_array_ros.model.layouts import make_description
 from imu_array_ros.estimation.crb import crb, fisher_information, square_array_omega_information
-from imu_array_ros.errors import IdentifiabilityError
+from imu_array_ros.errors import ConfigError, FusionError, IdentifiabilityError
 from imu_array_ros.estimation.ml_fusion import MLFusion, fuse
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.model.samples import ImuSamples
-from imu_array_ros.model.sensor_model import SATURATION_MARGIN, LinearArrayModel, apply_terms, random_error_terms, unsaturated
+from imu_array_ros.model.sensor_model import LinearArrayModel, apply_terms, random_error_terms
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
 from imu_array_ros.estimation.tensor_method import tensor_method
 
@@ -25,7 +28,7 @@ def _monte_carlo(desc, speed_dps, direction, rng, n=N_MC):
     fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
     assert stats.fused == n
     rmse = np.sqrt(np.mean((fused.omega - truth.omega) ** 2, axis=0))
-    gyro_valid = unsaturated(samples.gyro[:1], model.gyro_range)
+    gyro_valid = model.gyro_unsaturated(samples.gyro[:1])
     bound = np.sqrt(np.diag(crb(truth.omega[:1], model, gyro_valid=gyro_valid)[0])[:3])
     return model, samples, truth, fused, rmse, bound
 
@@ -40,7 +43,7 @@ def test_fig5_planar_array_attains_crb(planar4, rng, direction):
         np.testing.assert_allclose(rmse, bound, rtol=0.03, err_msg=f"{speed} deg/s")
         if speed >= 2100:  # gyros saturated along the rotation axis
             axis = int(np.argmax(np.abs(direction)))
-            assert np.all(np.abs(samples.gyro[:, :, axis]) >= SATURATION_MARGIN * model.gyro_range)
+            assert not np.any(model.gyro_unsaturated(samples.gyro[:, :, axis]))
             assert rmse[axis] < 0.8 * gyro_average
     # at 3000 deg/s the accelerometers beat plain gyro averaging on the rotation axis
     assert rmse[int(np.argmax(np.abs(direction)))] < 0.7 * gyro_average
@@ -58,7 +61,7 @@ def test_fig6_tensor_method_worse_than_ml(tetra4, rng):
     for speed, min_ratio in [(2500, 1.25), (4000, 1.012), (5000, 1.012)]:
         model, samples, truth, fused, rmse, bound = _monte_carlo(tetra4, speed, [1, 1, 1], rng)
         if speed > 3464:
-            assert np.all(np.abs(samples.gyro) >= SATURATION_MARGIN * model.gyro_range)
+            assert not np.any(model.gyro_unsaturated(samples.gyro))
         np.testing.assert_allclose(rmse, bound, rtol=0.03)
         w_tensor, _, _ = tensor_method(samples, model)
         rmse_tensor = np.sqrt(np.mean((w_tensor - truth.omega) ** 2, axis=0))
@@ -81,8 +84,8 @@ def test_covariance_is_inverse_fisher_information(array32, rng):
     samples = simulate_measurements(model, truth, rng)
     samples.accel[5, 3] = np.nan  # an IMU missing in one sample
     fused, _ = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
-    acc_valid = unsaturated(samples.accel, model.acc_range)
-    gyro_valid = unsaturated(samples.gyro, model.gyro_range)
+    acc_valid = model.acc_unsaturated(samples.accel)
+    gyro_valid = model.gyro_unsaturated(samples.gyro)
     info = fisher_information(fused.omega, model, acc_valid, gyro_valid)
     np.testing.assert_allclose(np.einsum("nij,njk->nik", info, fused.covariance), np.broadcast_to(np.eye(9), info.shape),
                                atol=1e-7)
@@ -207,7 +210,7 @@ def test_single_sample_path_matches_batch(array32, rng):
 def test_shape_mismatch_is_an_error(array32, rng):
     model = LinearArrayModel.from_description(array32)
     bad = ImuSamples(np.zeros(2, np.int64), np.zeros((2, 4, 3)), np.zeros((2, 4, 3)), [f"x{i}" for i in range(4)])
-    with pytest.raises(Exception, match="IMUs"):
+    with pytest.raises(FusionError, match=r"samples are for IMUs \[.x0., .x1., .x2., .x3.\].*model for \[.imu_00."):
         fuse(bad, model)
 
 
@@ -225,3 +228,102 @@ def test_batched_3x3_helpers_match_numpy(rng):
     np.testing.assert_allclose(inv[good], np.linalg.inv(h[good]), rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(x[good], np.linalg.solve(h[good], r[good][..., None])[..., 0], rtol=1e-8, atol=1e-10)
     assert np.all(x[7] == 0)
+
+
+# --------------------------------------------------------------------------- saturation at the clip level (issue 6 §4)
+
+
+def test_readings_just_below_the_clip_level_keep_their_information(array32, rng):
+    """Regression: 32 IMUs at 2600 deg/s with omega_x = 1998 deg/s, inside [0.998 range, range).
+
+    All 32 IMUs measure omega_x on one of their gyro axes, so a rule that flags
+    readings >= 0.998 range as saturated drops every gyro reading of omega_x.
+    At the real clip level (here the range, simulated floats) none is flagged
+    and the RMSE of omega attains the CRB with those readings in.
+    """
+    model = LinearArrayModel.from_description(array32)
+    wx, speed = 1998.0, 2600.0
+    direction = np.array([wx, np.sqrt((speed**2 - wx**2) / 2), -np.sqrt((speed**2 - wx**2) / 2)])
+    truth = random_motion(N_MC, np.deg2rad(speed), np.deg2rad(1000.0), rng, omega_direction=direction)
+    samples = simulate_measurements(model, truth, rng)
+    on_x = np.abs(model.gyro_matrix[:, :, 0]) > 0.99  # (K, 3): the sensor axis along array x
+    assert np.all(on_x.sum(axis=1) == 1)
+    gx = np.abs(samples.gyro[:, on_x])  # (N, 32)
+    assert np.all((gx >= 0.998 * model.gyro_range) & (gx < model.gyro_range))  # the band of the old rule
+    assert np.all(model.gyro_unsaturated(samples.gyro))  # none of them flagged now
+    fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    assert stats.fused == N_MC and stats.saturated_gyro_samples == 0
+    rmse = np.sqrt(np.mean((fused.omega - truth.omega) ** 2, axis=0))
+    bound = np.sqrt(np.diag(crb(truth.omega[:1], model)[0])[:3])
+    np.testing.assert_allclose(rmse / bound, 1.0, atol=0.03)
+    # what the old margin cost: without the omega_x gyro readings the bound on omega_x is 10x-100x larger
+    old_valid = np.abs(samples.gyro[:1]) < 0.998 * model.gyro_range
+    old_bound = np.sqrt(np.diag(crb(truth.omega[:1], model, gyro_valid=old_valid)[0])[:3])
+    assert old_bound[0] > 10 * bound[0], (old_bound, bound)
+
+
+def test_readings_at_the_clip_level_are_saturated(array32, rng):
+    """Simulated floats: |y| >= clip (1 - 1e-9) is saturated; the simulator clips at the model's clip level."""
+    lowered = replace(array32, gyroscope_clip=0.99 * array32.gyroscope_range)
+    for desc in (array32, lowered):
+        model = LinearArrayModel.from_description(desc)
+        clip = model.gyro_clip
+        assert clip == (desc.gyroscope_clip or desc.gyroscope_range)
+        y = np.array([clip, -clip, clip * (1 - 0.5e-9), clip * (1 - 2e-9), 0.998 * clip, np.nan, np.inf, 0.0])
+        assert model.gyro_unsaturated(y).tolist() == [False, False, False, True, True, False, False, True]
+        truth = random_motion(200, np.deg2rad(2100), np.deg2rad(1000), rng, omega_direction=[0, 0, 1])
+        samples = simulate_measurements(model, truth, rng)
+        assert np.abs(samples.gyro).max() == clip  # clipped at the clip level, not at the range
+        fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+        assert stats.saturated_gyro_samples == 200 and stats.fused == 200
+        # one reading exactly at the clip in an otherwise slow sample: flagged and counted
+        slow = simulate_measurements(model, random_motion(3, 1.0, 1.0, rng), rng)
+        slow.gyro[1, 4, 2] = -clip
+        assert MLFusion(model).fuse(slow.stamps, slow.accel, slow.gyro)[1].saturated_gyro_samples == 1
+
+
+def test_quantised_clip_level_of_the_openshoe_config(rng):
+    """MIMU4444BT: clip at 32767 counts, half an LSB tolerance; -32768 counts clip too."""
+    from imu_array_ros.io.openshoe.framing import ACC_SCALE, GYRO_SCALE, si_saturation_level
+
+    from conftest import REPO
+
+    desc = load_description(REPO / "config" / "mimu4444bt_corners.yaml")
+    assert (desc.accelerometer_clip, desc.gyroscope_clip) == pytest.approx(si_saturation_level(), rel=1e-12)
+    assert (desc.accelerometer_lsb, desc.gyroscope_lsb) == pytest.approx((ACC_SCALE, GYRO_SCALE), rel=1e-12)
+    model = LinearArrayModel.from_description(desc)
+    for scale, ok in ((GYRO_SCALE, model.gyro_unsaturated), (ACC_SCALE, model.acc_unsaturated)):
+        # the rule is on |y|: -32767 counts reads as saturated too (one count short of the negative clip)
+        counts = np.array([32767, -32768, -32767, 32766, -32766, 0, 12345])
+        assert ok(counts * scale).tolist() == [False, False, False, True, True, True, True]
+    # the gyro reading of the old rule's band (1996-1997.99 deg/s) is information now
+    assert model.gyro_unsaturated(np.deg2rad([1996.5, 1997.9]) * np.array([1, -1])).all()
+
+
+def test_clip_fields_round_trip_and_strict_errors(tmp_path, array32):
+    base = description_to_dict(array32)
+    assert not set(base["imu_array"]) & {"gyroscope_clip", "accelerometer_clip", "gyroscope_lsb", "accelerometer_lsb"}
+    desc = replace(array32, gyroscope_clip=34.87, accelerometer_clip=156.9, gyroscope_lsb=1e-3, accelerometer_lsb=5e-3)
+    path = tmp_path / "clip.yaml"
+    save_description(desc, path)
+    back = load_description(path)
+    assert (back.gyroscope_clip, back.accelerometer_clip, back.gyroscope_lsb, back.accelerometer_lsb) == (
+        34.87, 156.9, 1e-3, 5e-3)
+    model = LinearArrayModel.from_description(back)
+    assert (model.gyro_clip, model.gyro_clip_tolerance) == (34.87, 0.5e-3)
+    assert (model.acc_clip, model.acc_clip_tolerance) == (156.9, 2.5e-3)
+    only_clip = description_from_dict({"imu_array": {**base["imu_array"], "gyroscope_clip": 30.0}})
+    assert only_clip.accelerometer_clip is None and only_clip.gyroscope_lsb is None
+    m = LinearArrayModel.from_description(only_clip)
+    assert m.acc_clip == array32.accelerometer_range and m.gyro_clip_tolerance == pytest.approx(30.0 * 1e-9)
+    for key, value, message in [
+        ("gyroscope_clip", -1.0, "> 0"), ("accelerometer_clip", 0, "> 0"), ("gyroscope_clip", float("inf"), "finite"),
+        ("gyroscope_clip", "2000 dps", "number"), ("accelerometer_clip", True, "number"), ("gyroscope_clip", None, "number"),
+        ("gyroscope_lsb", -1e-3, "> 0"), ("gyroscope_lsb", 40.0, "below the clip"), ("accelerometer_lsb", float("nan"), "finite"),
+        ("gyroscope_clips", 30.0, "unknown key"),
+    ]:
+        with pytest.raises(ConfigError, match=message) as err:
+            description_from_dict({"imu_array": {**base["imu_array"], key: value}}, source="x.yaml")
+        assert key in str(err.value) and "x.yaml" in str(err.value)
+    with pytest.raises(ConfigError, match="below the clip"):
+        description_from_dict({"imu_array": {**base["imu_array"], "gyroscope_clip": 1.0, "gyroscope_lsb": 1.0}})

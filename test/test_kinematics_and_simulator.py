@@ -64,7 +64,12 @@ def test_gravity_turns_in_body_frame(array32, rng):
     samples, truth = simulate_twist(array32, duration=3.0, rate_hz=200.0, rng=rng)
     g_dir = truth.specific_force / np.linalg.norm(truth.specific_force, axis=1, keepdims=True)
     assert np.ptp(g_dir, axis=0).min() > 0.5  # gravity direction sweeps in every body axis
-    assert np.all(np.abs(samples.accel) <= array32.accelerometer_range)
+    # default hand twisting stays inside the sensor ranges: the simulated readings are
+    # the model's, not clipped ones (checked on the unclipped, noise-free readings)
+    clean = simulate_measurements(LinearArrayModel.from_description(array32), truth, rng, noise=False, saturate=False)
+    assert np.abs(clean.accel).max() < 0.5 * array32.accelerometer_range
+    assert np.abs(clean.gyro).max() < 0.5 * array32.gyroscope_range
+    assert np.abs(clean.gyro).max() > 0.1 * array32.gyroscope_range  # ... while really twisting
 
 
 def test_simulator_saturates_and_adds_noise_of_the_right_size(array32, rng):
@@ -74,10 +79,55 @@ def test_simulator_saturates_and_adds_noise_of_the_right_size(array32, rng):
     truth = random_motion(4000, np.deg2rad(2500), 0.0, rng, omega_direction=[0, 0, 1])
     noisy = simulate_measurements(model, truth, rng)
     clean = simulate_measurements(model, truth, rng, noise=False)
-    assert np.all(np.abs(noisy.gyro[:, :, 2]) == model.gyro_range)  # saturated, sign kept
-    assert np.all(np.sign(noisy.gyro[:16, :, 2]) == np.sign(clean.gyro[:16, :, 2]))
-    res = (noisy.accel - clean.accel).reshape(-1)
-    assert abs(res.std() / array32.accelerometer_noise_std - 1) < 0.02
+    assert np.all(np.abs(noisy.gyro[:, :, 2]) == model.gyro_range)  # every z gyro saturated ...
+    assert np.all(np.sign(noisy.gyro[:, :, 2]) == np.sign(clean.gyro[:, :, 2]))  # ... with its sign kept
+    # top (identity) and underside (180 deg about y = x) IMUs see z with opposite signs
+    assert np.all(np.sign(noisy.gyro[:, :16, 2]) == -np.sign(noisy.gyro[:, 16:, 2]))
+    assert np.all(np.abs(clean.accel) < model.acc_range)  # nothing clipped in the accelerometers
+    unclipped = np.abs(clean.gyro[:, :, :2]) < model.gyro_range
+    for res, std in (((noisy.accel - clean.accel).reshape(-1), array32.accelerometer_noise_std),
+                     ((noisy.gyro - clean.gyro)[:, :, :2][unclipped], array32.gyroscope_noise_std)):
+        # sample std of n Gaussian values: relative standard error 1 / sqrt(2 n); allow 4 of them
+        assert abs(res.std() / std - 1) < 4 / np.sqrt(2 * res.size)
+        assert abs(res.mean()) < 4 * std / np.sqrt(res.size)
+    # independent across IMUs: correlation of two IMUs' noise within 4 / sqrt(n)
+    a, b = (noisy.accel - clean.accel)[:, 0, 0], (noisy.accel - clean.accel)[:, 1, 0]
+    assert abs(np.corrcoef(a, b)[0, 1]) < 4 / np.sqrt(len(a))
+
+
+def test_measurement_model_against_a_hand_computed_case():
+    """One IMU, every calibration field set, numbers worked out by hand (not through
+    the code under test): y = K L (I + [xi]x) R^T s(r) + b and y_g = K (I + [xi]x) R^T w + b.
+
+    Array frame: r = [0.1, 0, 0] m; sensor x = array y (90 deg about z); s = [0, 0, 9.81]
+    m/s^2 at the origin, w = [0, 0, 2] rad/s, w_dot = [0, 0, 3] rad/s^2.
+      w x (w x r) = [-0.4, 0, 0], w_dot x r = [0, 0.3, 0]   -> s(r) = [-0.4, 0.3, 9.81]
+      R^T s(r) = [0.3, 0.4, 9.81]
+      xi = [0, 0, 0.01]: + xi x u = [-0.004, 0.003, 0]      -> [0.296, 0.403, 9.81]
+      L: l_yz = 0.02 (row y gets 0.02 * x)                  -> [0.296, 0.40892, 9.81]
+      K = diag(1.1, 0.9, 1.0)                               -> [0.3256, 0.368028, 9.81]
+      b = [0.1, -0.2, 0.05]                                 -> [0.4256, 0.168028, 9.86]
+    Gyro: R^T w = [0, 0, 2]; xi = [0.01, 0, 0]: + [0, -0.02, 0]; K = diag(1, 1, 1.05);
+      b = [0.001, 0, 0]                                     -> [0.001, -0.02, 2.1]
+    """
+    from imu_array_ros.model.description import ArrayDescription, ImuSpec, TriadCalibration
+    from imu_array_ros.model.samples import MotionTruth
+
+    imu = ImuSpec(
+        name="imu_a",
+        position=np.array([0.1, 0.0, 0.0]),
+        orientation=np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # columns: sensor axes in array
+        accelerometer=TriadCalibration(gain=np.array([1.1, 0.9, 1.0]), nonorthogonality=np.array([0.02, 0.0, 0.0]),
+                                       misalignment=np.array([0.0, 0.0, 0.01]), bias=np.array([0.1, -0.2, 0.05])),
+        gyroscope=TriadCalibration(gain=np.array([1.0, 1.0, 1.05]), misalignment=np.array([0.01, 0.0, 0.0]),
+                                   bias=np.array([0.001, 0.0, 0.0])),
+    )
+    desc = ArrayDescription("a", 0.01, 0.001, 35.0, 160.0, (imu,))
+    truth = MotionTruth(stamps=np.array([0]), omega=np.array([[0.0, 0.0, 2.0]]), omega_dot=np.array([[0.0, 0.0, 3.0]]),
+                        specific_force=np.array([[0.0, 0.0, 9.81]]))
+    y = simulate_measurements(LinearArrayModel.from_description(desc), truth, np.random.default_rng(0), noise=False)
+    np.testing.assert_allclose(y.accel[0, 0], [0.4256, 0.168028, 9.86], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(y.gyro[0, 0], [0.001, -0.02, 2.1], rtol=0, atol=1e-12)
 
 
 def test_core_does_not_import_ros():

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from imu_array_ros.io.rosbag import mcap_format, mcap_reader, mcap_writer
+from imu_array_ros.io.rosbag import mcap_format, mcap_locate, mcap_reader, mcap_writer
 from imu_array_ros.io.rosbag.cdr_columns import encode_imu
 from imu_array_ros.model.description import description_from_dict
 from imu_array_ros.errors import RecordingError
-from imu_array_ros.io.rosbag.mcap_reader import McapRecording
+from imu_array_ros.io.rosbag.mcap_recording import McapRecording
 from imu_array_ros.io.rosbag.mcap_writer import ChannelData, write_recording
 from imu_array_ros.io.rosbag.recording import (
     imu_topic,
@@ -386,12 +386,12 @@ def test_partial_or_wrong_message_index_can_not_hide_messages(tmp_path):
     s = make_samples(desc, n=30, seed=23)
     write_imu_recording(tmp_path / "r.mcap", s, desc)
     with mcap_reader.McapFile(tmp_path / "r.mcap") as mf:
-        (chunk,) = mf.chunks
-        data = mf._chunk_data(chunk)
-        full = mf._index_offsets(chunk)
+        assert len(mf.chunks) == 1
+        got = mf.read_chunk(0)
+        data, full = got.data, got.index
         arr = np.frombuffer(data, dtype=np.uint8)
     assert len(full) == 120
-    want, _ = mcap_reader._walk(data, 0, len(data))
+    want, _ = mcap_locate.walk_records(data, 0, len(data))
     rng = np.random.default_rng(24)
     for index in (
         full,
@@ -402,7 +402,7 @@ def test_partial_or_wrong_message_index_can_not_hide_messages(tmp_path):
         np.array([len(data) + 5]),
         None,
     ):
-        off, others = mcap_reader._locate(data, arr, index)
+        off, others = mcap_locate.locate_messages(data, arr, index)
         assert off.tolist() == want and not others
 
 
@@ -477,7 +477,9 @@ def test_garbage_truncated_and_missing(tmp_path):
     corrupt = bytearray(data)
     with mcap_reader.McapFile(good) as mf:
         c = mf.chunks[0]
-        corrupt[c.data_offset + 100 : c.data_offset + 140] = bytes(40)  # zeroed compressed bytes
+        # chunk record: opcode, length, 3 times/sizes, CRC, compression string, data length, data
+        data_offset = c.chunk_start_offset + 9 + 8 + 8 + 8 + 4 + 4 + len(c.compression) + 8
+        corrupt[data_offset + 100 : data_offset + 140] = bytes(40)  # zeroed compressed bytes
     cases["corrupt_chunk.mcap"] = bytes(corrupt)
     for name, content in cases.items():
         if content is not None:
@@ -485,6 +487,10 @@ def test_garbage_truncated_and_missing(tmp_path):
         with pytest.raises(RecordingError) as err:
             read_imu_recording(tmp_path / name, desc)
         assert str(tmp_path / name) in one_line(err), name
+        if name in ("truncated.mcap", "magic_only.mcap", "chopped_tail.mcap"):
+            assert "truncated MCAP file" in str(err.value) and f"imu-array recover {tmp_path / name} --out" in str(err.value)
+        if name == "corrupt_chunk.mcap":
+            assert "corrupt chunk at byte" in str(err.value) and "imu-array recover" in str(err.value)
 
     # rosbag2 directory problems
     d = tmp_path / "dir"
@@ -524,7 +530,7 @@ def test_failed_write_keeps_previous_output(tmp_path, monkeypatch, target):
     write_imu_recording(out, s.select(slice(0, 10)), desc)
     before = {p.relative_to(tmp_path): p.read_bytes() for p in sorted(tmp_path.rglob("*")) if p.is_file()}
 
-    real = mcap_writer._compressor
+    real = mcap_writer.compressor
 
     def failing(name):
         compress = real(name)
@@ -538,7 +544,7 @@ def test_failed_write_keeps_previous_output(tmp_path, monkeypatch, target):
 
         return f
 
-    monkeypatch.setattr(mcap_writer, "_compressor", failing)
+    monkeypatch.setattr(mcap_writer, "compressor", failing)
     with pytest.raises(_Boom):
         payload = encode_imu(s.stamps, "a", angular_velocity=s.gyro[:, 0], linear_acceleration=s.accel[:, 0])
         write_recording(out, [ChannelData(imu_topic("a"), IMU, s.stamps, payload)], chunk_size=100_000)
@@ -620,3 +626,215 @@ def test_fused_roundtrip_and_ros_layout(tmp_path, ts):
         np.testing.assert_array_equal(c6[3:, 3:], cov[r, 3:6, 3:6])
         np.testing.assert_array_equal(c6[:3, 3:], cov[r, 6:, 3:6])
         np.testing.assert_array_equal(c6[3:, :3], cov[r, 3:6, 6:])
+
+
+# --------------------------------------------------------------------------- container checks (mcap library)
+
+
+def _footer(data: bytes) -> tuple[int, int, int]:
+    op, ln, start, offsets, crc = struct.unpack_from("<BQQQI", data, len(data) - 8 - 29)
+    assert op == 0x02 and ln == 20
+    return start, offsets, crc
+
+
+def _flip(data: bytes, pos: int) -> bytes:
+    out = bytearray(data)
+    out[pos] ^= 0x20  # a letter changes case: the record still parses
+    return bytes(out)
+
+
+def test_summary_and_data_section_crcs_are_verified(tmp_path):
+    desc = make_desc()
+    s = make_samples(desc, n=300, seed=31)
+    good = tmp_path / "good.mcap"
+    write_imu_recording(good, s, desc)
+    data = good.read_bytes()
+    summary_start, _, summary_crc = _footer(data)
+    assert summary_crc != 0
+    # the schema text is in the data section (before the chunks) and repeated in the summary
+    first = data.index(b"MSG: std_msgs/Header")
+    last = data.rindex(b"MSG: std_msgs/Header")
+    assert first < summary_start <= last
+    cases = {
+        "summary.mcap": (_flip(data, last + 5), "summary CRC mismatch"),
+        "data.mcap": (_flip(data, first + 5), "data section CRC mismatch"),
+        # the rosbag2 metadata record, between the last chunk and DataEnd
+        "metadata.mcap": (_flip(data, data.rindex(b"ros_distro", 0, summary_start) + 1), "data section CRC mismatch"),
+    }
+    for name, (content, expect) in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(RecordingError) as err:
+            read_imu_recording(tmp_path / name, desc)
+        msg = one_line(err)
+        assert str(tmp_path / name) in msg and expect in msg and "imu-array recover" in msg, msg
+    back, _ = read_imu_recording(good, desc)  # the undamaged file reads
+    np.testing.assert_array_equal(back.gyro, s.gyro)
+
+
+@pytest.mark.parametrize("data_crcs", [True, False])
+@pytest.mark.parametrize("variant", ["indexed", "streamed"])
+def test_data_section_crc_of_zero_is_not_checked(tmp_path, ts, data_crcs, variant):
+    """mcap library writer: with enable_data_crcs the flip is caught (seeking and streaming path);
+    without, DataEnd holds 0 = "not computed" (MCAP spec) and the file reads."""
+    from mcap.writer import CompressionType, IndexType
+    from mcap.writer import Writer as McapWriter
+
+    desc = make_desc()
+    s = make_samples(desc, n=80, seed=32)
+    text, _ = mcap_writer.message_definition(IMU)
+    path = tmp_path / f"{variant}.mcap"
+    index = IndexType.ALL if variant == "indexed" else IndexType.NONE
+    with open(path, "wb") as fh:
+        w = McapWriter(fh, chunk_size=4000, compression=CompressionType.LZ4, index_types=index, enable_data_crcs=data_crcs)
+        w.start(profile="ros2", library="crc-test-library")
+        sid = w.register_schema(IMU, "ros2msg", text.encode())
+        cids = [w.register_channel(imu_topic(n), "cdr", sid) for n in NAMES]
+        for i in range(len(s)):
+            for k, name in enumerate(NAMES):
+                raw = bytes(ts.serialize_cdr(_ros_imu(ts, s.stamps[i], name, s.gyro[i, k], s.accel[i, k]), IMU))
+                w.add_message(cids[k], int(s.stamps[i]), raw, int(s.stamps[i]))
+        w.finish()
+    data = path.read_bytes()
+    with mcap_reader.McapFile(path) as mf:
+        assert mf.indexed == (variant == "indexed")
+    path.write_bytes(_flip(data, data.index(b"crc-test-library")))  # the Header record (the schema is in a chunk)
+    if data_crcs:
+        with pytest.raises(RecordingError, match="data section CRC mismatch") as err:
+            read_imu_recording(path, desc)
+        one_line(err)
+    else:
+        back, _ = read_imu_recording(path, desc)
+        np.testing.assert_array_equal(back.accel, s.accel)
+
+
+def _count_decompressions(monkeypatch) -> list[int]:
+    calls: list[int] = []
+    real = mcap_reader.get_chunk_data_stream
+
+    def counting(chunk, validate_crc=False):
+        calls.append(chunk.uncompressed_size)
+        return real(chunk, validate_crc=validate_crc)
+
+    monkeypatch.setattr(mcap_reader, "get_chunk_data_stream", counting)
+    return calls
+
+
+def _n_chunks(path) -> int:
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    with open(path, "rb") as fh:
+        return sum(isinstance(r, Chunk) for r in StreamReader(fh, emit_chunks=True).records)
+
+
+@pytest.mark.parametrize("variant", ["ours", "summary_stripped", "mcap_nosummary"])
+def test_every_chunk_is_decompressed_once(tmp_path, ts, monkeypatch, variant):
+    """With a chunk index (seeking) and without (StreamReader fallback): one decompression per chunk,
+    also when the topics must be found in the chunks themselves."""
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Footer
+    from mcap.writer import CompressionType, IndexType
+    from mcap.writer import Writer as McapWriter
+
+    desc = make_desc()
+    s = make_samples(desc, n=200, seed=33)
+    truth = make_truth(s)
+    path = tmp_path / "r.mcap"
+    if variant == "mcap_nosummary":  # channels only inside chunks, no summary, no indexes
+        text, _ = mcap_writer.message_definition(IMU)
+        with open(path, "wb") as fh:
+            w = McapWriter(fh, chunk_size=6000, compression=CompressionType.ZSTD, index_types=IndexType.NONE,
+                           repeat_channels=False, repeat_schemas=False, use_statistics=False, use_summary_offsets=False)
+            w.start(profile="ros2", library="test")
+            sid = w.register_schema(IMU, "ros2msg", text.encode())
+            cids = [w.register_channel(imu_topic(n), "cdr", sid) for n in NAMES]
+            for i in range(len(s)):
+                for k, name in enumerate(NAMES):
+                    raw = bytes(ts.serialize_cdr(_ros_imu(ts, s.stamps[i], name, s.gyro[i, k], s.accel[i, k]), IMU))
+                    w.add_message(cids[k], int(s.stamps[i]), raw, int(s.stamps[i]))
+            w.finish()
+        has_truth = False
+    else:
+        chans = []
+        for k, name in enumerate(NAMES):
+            p = encode_imu(s.stamps, name, angular_velocity=s.gyro[:, k], linear_acceleration=s.accel[:, k])
+            chans.append(ChannelData(imu_topic(name), IMU, s.stamps, p))
+        write_recording(path, chans, chunk_size=20_000)
+        write_imu_recording(tmp_path / "t.mcap", s, desc, truth=truth)
+        has_truth = True
+        if variant == "summary_stripped":  # data section + a footer without summary
+            for f in (path, tmp_path / "t.mcap"):
+                data = f.read_bytes()
+                start, _, _ = _footer(data)
+                rb = RecordBuilder()
+                Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(rb)
+                f.write_bytes(data[:start] + rb.end() + data[:8])
+    with mcap_reader.McapFile(path) as mf:
+        assert mf.indexed == (variant == "ours")
+        assert mf.has_summary == (variant == "ours")
+    chunks = _n_chunks(path)
+    assert chunks > 5
+    calls = _count_decompressions(monkeypatch)
+    back, stats = read_imu_recording(path, desc)
+    assert len(calls) == chunks  # once each, not once for the topics and once for the messages
+    np.testing.assert_array_equal(back.accel, s.accel)
+    np.testing.assert_array_equal(back.gyro, s.gyro)
+    assert stats.messages == 4 * len(s)
+    if has_truth:
+        calls.clear()
+        got = read_truth(tmp_path / "t.mcap")
+        assert len(calls) == _n_chunks(tmp_path / "t.mcap")
+        np.testing.assert_array_equal(got.omega, truth.omega)
+    # a missing topic is still a one-line error, after the single pass when the channels are not summarized
+    calls.clear()
+    with pytest.raises(RecordingError, match="no topic /imu_array/zz/data_raw") as err:
+        read_imu_recording(path, make_desc(names=NAMES + ("zz",)))
+    one_line(err)
+    assert len(calls) == (0 if variant == "ours" else chunks)
+
+
+def test_chunks_missing_from_the_chunk_index_are_read(tmp_path):
+    """A summary listing only some chunks (seeking path): the others are found between them."""
+    from mcap.data_stream import RecordBuilder
+    from mcap.reader import make_reader
+    from mcap.records import Footer
+
+    desc = make_desc()
+    s = make_samples(desc, n=200, seed=34)
+    chans = []
+    for k, name in enumerate(NAMES):
+        p = encode_imu(s.stamps, name, angular_velocity=s.gyro[:, k], linear_acceleration=s.accel[:, k])
+        chans.append(ChannelData(imu_topic(name), IMU, s.stamps, p))
+    path = tmp_path / "r.mcap"
+    write_recording(path, chans, chunk_size=20_000)
+    data = path.read_bytes()
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    start, _, _ = _footer(data)
+    rb = RecordBuilder()
+    for rec in list(summary.schemas.values()) + list(summary.channels.values()):
+        rec.write(rb)
+    listed = summary.chunk_indexes[::3]  # two of three chunks unlisted
+    for ci in listed:
+        ci.write(rb)
+    Footer(summary_start=start, summary_offset_start=0, summary_crc=0).write(rb)
+    path.write_bytes(data[:start] + rb.end() + data[:8])
+    with mcap_reader.McapFile(path) as mf:
+        assert mf.indexed and len(mf.chunks) == len(listed) < len(summary.chunk_indexes)
+    back, stats = read_imu_recording(path, desc)
+    assert stats.messages == 4 * len(s)
+    np.testing.assert_array_equal(back.gyro, s.gyro)
+    np.testing.assert_array_equal(back.stamps, s.stamps)
+
+
+def test_metadata_yaml_errors_are_one_line(tmp_path):
+    d = tmp_path / "bag"
+    d.mkdir()
+    (d / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 9\n  files: [unclosed\n")
+    with pytest.raises(RecordingError) as err:
+        McapRecording(d)
+    assert f"{d / 'metadata.yaml'}: line " in one_line(err) and "malformed YAML" in str(err.value)
+    (d / "metadata.yaml").write_bytes(b"\xff\xfe not utf-8")
+    with pytest.raises(RecordingError) as err:
+        McapRecording(d)
+    assert "cannot read rosbag2 metadata" in one_line(err)

@@ -21,7 +21,7 @@ import numpy as np
 from imu_array_ros.estimation.crb import jacobian_rows
 from imu_array_ros.model.kinematics import specific_force_at
 from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
-from imu_array_ros.model.sensor_model import LinearArrayModel, unsaturated
+from imu_array_ros.model.sensor_model import LinearArrayModel
 from imu_array_ros.simulation.simulator import simulate_measurements
 
 __all__ = ["ResidualReport", "normalized_residuals", "simulate_same_motion", "AXES"]
@@ -113,7 +113,7 @@ def normalized_residuals(samples: ImuSamples, model: LinearArrayModel, fused: Fu
         pred_a = np.einsum("kij,nkj->nki", model.acc_matrix, f) + model.acc_bias
         pred_g = np.einsum("kij,nj->nki", model.gyro_matrix, w) + model.gyro_bias
         ya, yg = samples.accel[sel], samples.gyro[sel]
-        valid = np.concatenate([unsaturated(ya, model.acc_range), unsaturated(yg, model.gyro_range)], axis=2)
+        valid = np.concatenate([model.acc_unsaturated(ya), model.gyro_unsaturated(yg)], axis=2)
         res = np.concatenate([ya - pred_a, yg - pred_g], axis=2)
         z2 = np.where(valid, np.nan_to_num(res) ** 2 / sig2, 0.0)
         acc_rows, gyr_rows = jacobian_rows(w, model)

@@ -1,19 +1,85 @@
-"""Atomic output: write to a temporary sibling, then rename over the target.
+"""Safe outputs: atomic writes, and the one rule that decides what may be replaced.
 
-A reader never sees a half-written file or directory, and a failed write leaves
-the previous content untouched.
+* :func:`atomic_path` / :func:`atomic_write_bytes` / :func:`atomic_write_text`:
+  write to a temporary sibling, then rename over the target.  A reader never
+  sees a half-written file or directory, a failed write leaves the previous
+  content untouched, and no temporary (``.*.tmp``) or backup (``.*.old``) path
+  is left behind, whether the write succeeds or fails.
+* :func:`check_output`: whether an output path may be written at all.  An
+  output is never an input, never contains one and never lies inside one; an
+  existing output is replaced only with ``force`` and only when it is itself a
+  file of the kind being written (an MCAP file, a rosbag2 directory holding
+  nothing but its own files, a YAML or JSON file).  Every command that writes
+  calls it before doing any work.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path"]
+from imu_array_ros.errors import OutputError
+from imu_array_ros.io.rosbag.mcap_format import MAGIC as MCAP_MAGIC
+
+__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "check_output", "OUTPUT_KINDS"]
+
+#: What :func:`check_output` knows how to recognise (and therefore may replace).
+OUTPUT_KINDS = ("recording", "yaml", "json")
+
+_MAX_TEXT_BYTES = 64 << 20  # a YAML/JSON output larger than this is not one of ours
+
+
+def _bad_name(target: Path) -> bool:
+    return target.name in ("", ".", "..")
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make a rename in ``path`` durable (best effort: not every platform allows it)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _remove(path: Path) -> None:
+    """Remove a temporary path of ours, file or directory; never raises."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(OSError):
+            path.unlink()
+
+
+def _replace_directory(tmp: Path, target: Path, parent: Path) -> None:
+    """Put the complete directory ``tmp`` in place of the existing directory ``target``.
+
+    The old directory is moved aside into a fresh holder directory, the new one
+    renamed in, then the old one deleted.  If the second rename fails the old
+    directory is moved back, so ``target`` is never lost and nothing is left over.
+    """
+    holder = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=parent))
+    aside = holder / "previous"
+    try:
+        os.rename(target, aside)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            holder.rmdir()
+        raise
+    try:
+        os.rename(tmp, target)
+    except BaseException:
+        os.rename(aside, target)  # put the previous content back
+        with contextlib.suppress(OSError):
+            holder.rmdir()
+        raise
+    shutil.rmtree(holder, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -21,10 +87,15 @@ def atomic_path(target: str | os.PathLike, *, directory: bool = False) -> Iterat
     """Yield a temporary path beside ``target``; on success rename it onto ``target``.
 
     With ``directory=True`` the temporary path is an (empty) directory and an
-    existing target directory is replaced as a whole.  On any exception the
-    temporary path is removed and the target is left as it was.
+    existing target directory is replaced as a whole, only once the new one is
+    complete.  On any exception the temporary path is removed and the target is
+    left as it was; no ``.tmp``/``.old`` path stays behind.  ``target`` must
+    have a name (not ``.``, ``..`` or a root); whether it may be replaced at all
+    is :func:`check_output`'s business, not this function's.
     """
     target = Path(target)
+    if _bad_name(target):
+        raise OutputError(f"{target}: not a name an output can be written to; give a file or directory name")
     parent = target.parent if str(target.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
     if directory:
@@ -36,22 +107,17 @@ def atomic_path(target: str | os.PathLike, *, directory: bool = False) -> Iterat
     try:
         yield tmp
         if directory:
+            os.chmod(tmp, 0o755)
             if target.is_dir() and not target.is_symlink():
-                old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=parent))
-                os.rename(target, old / "x")
-                os.rename(tmp, target)
-                shutil.rmtree(old, ignore_errors=True)
+                _replace_directory(tmp, target, parent)
             else:
                 os.rename(tmp, target)
         else:
             os.chmod(tmp, 0o644)
             os.replace(tmp, target)
+        _fsync_dir(parent)
     except BaseException:
-        if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
+        _remove(tmp)
         raise
 
 
@@ -67,3 +133,171 @@ def atomic_write_bytes(target: str | os.PathLike, data: bytes) -> None:
 def atomic_write_text(target: str | os.PathLike, text: str) -> None:
     """Write ``text`` (UTF-8) to ``target`` atomically."""
     atomic_write_bytes(target, text.encode("utf-8"))
+
+
+# --------------------------------------------------------------------------- what may be replaced
+
+
+def _real(path: Path) -> Path:
+    return Path(os.path.realpath(path))
+
+
+def _same(a: Path, b: Path) -> bool:
+    if _real(a) == _real(b):
+        return True
+    try:
+        return os.path.samefile(a, b)  # hard links, bind mounts
+    except OSError:
+        return False
+
+
+def _read_head(path: Path, n: int) -> bytes | None:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(n)
+    except OSError:
+        return None
+
+
+def _rosbag_problem(directory: Path) -> str | None:
+    """None if ``directory`` is a rosbag2 recording holding only its own files, else why not."""
+    import yaml
+
+    meta = directory / "metadata.yaml"
+    if meta.is_symlink() or not meta.is_file():
+        return "is a directory but not a rosbag2 recording (no metadata.yaml)"
+    try:
+        if meta.stat().st_size > _MAX_TEXT_BYTES:
+            raise ValueError
+        info = yaml.safe_load(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        files = info["relative_file_paths"]
+        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+            raise ValueError
+    except Exception:  # any way of not being rosbag2 metadata: unreadable, not YAML, missing keys
+        return "is a directory whose metadata.yaml is not rosbag2 metadata (no relative_file_paths)"
+    own = {"metadata.yaml", *files}
+    try:
+        entries = sorted(os.listdir(directory))
+    except OSError as err:
+        return f"is a directory that cannot be listed ({err.strerror or err})"
+    others = [e for e in entries if e not in own]
+    if others:
+        return (f"is a directory holding files that are not part of its recording "
+                f"(e.g. {others[0]!r}, {len(others)} in all)")
+    for entry in entries:
+        p = directory / entry
+        if p.is_symlink() or not p.is_file():
+            return f"is a directory holding {entry!r}, which is not a regular file"
+    return None
+
+
+def _kind_problem(out: Path, kind: str) -> str | None:
+    """None if the existing ``out`` is itself an output of ``kind``, else why it is not."""
+    if kind == "recording" and out.suffix != ".mcap":
+        if not out.is_dir():
+            return "exists and is not a directory, so not a rosbag2 recording"
+        return _rosbag_problem(out)
+    if out.is_dir():
+        return "is a directory"
+    if not out.is_file():
+        return "exists and is not a regular file"
+    if kind == "recording":
+        if _read_head(out, len(MCAP_MAGIC)) != MCAP_MAGIC:
+            return "exists and is not an MCAP file (no MCAP magic)"
+        return None
+    if out.stat().st_size > _MAX_TEXT_BYTES:
+        return f"exists and is too large to be a {kind.upper()} output of this tool"
+    raw = _read_head(out, _MAX_TEXT_BYTES)
+    try:
+        text = (raw or b"").decode("utf-8")
+        if kind == "yaml":
+            import yaml
+
+            if not isinstance(yaml.safe_load(text), dict):
+                raise ValueError
+        else:
+            json.loads(text)
+    except Exception:  # not UTF-8, not YAML/JSON, or not a YAML mapping
+        return f"exists and is not a {kind.upper()} file"
+    return None
+
+
+def check_output(
+    out: str | os.PathLike,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    kind: str = "recording",
+    force: bool = False,
+    *,
+    option: str = "--out",
+    other_outputs: Iterable[tuple[str, str | os.PathLike | None]] = (),
+) -> Path:
+    """Refuse an unsafe output; return it as a :class:`~pathlib.Path` if it may be written.
+
+    Parameters
+    ----------
+    out : path
+        The output about to be written.
+    inputs : paths
+        Every file the command reads (``None`` entries are ignored).  ``out``
+        must not be one of them, contain one, or lie inside one (symbolic
+        links and hard links are followed).
+    kind : ``"recording"``, ``"yaml"`` or ``"json"``
+        What is written: a recording (a bare MCAP file when ``out`` ends in
+        ``.mcap``, else a rosbag2 directory), or a YAML / JSON file.
+    force : bool
+        Replace an existing ``out`` -- only if it is itself of ``kind``: a file
+        starting with the MCAP magic; a directory with a rosbag2
+        ``metadata.yaml`` holding nothing but that file and the files its
+        ``relative_file_paths`` lists; a YAML file holding a mapping; a JSON file.
+    option : str
+        The command line option that named ``out`` (for messages).
+    other_outputs : (option, path) pairs
+        Other outputs of the same command; ``out`` must not overlap them.
+
+    Raises
+    ------
+    OutputError
+        One line naming ``out`` and the reason; nothing has been touched.
+    """
+    if kind not in OUTPUT_KINDS:
+        raise ValueError(f"unknown output kind {kind!r} (known: {', '.join(OUTPUT_KINDS)})")
+    out = Path(out)
+    if _bad_name(out):
+        raise OutputError(f"{out}: {option} must name a file or directory, not {str(out)!r}")
+    real = _real(out)
+    cwd = _real(Path.cwd())
+    if real == cwd or real in cwd.parents:
+        what = "is" if real == cwd else "contains"
+        raise OutputError(f"{out}: {option} {what} the current directory; choose another {option}")
+    for inp in inputs:
+        if inp is None:
+            continue
+        inp = Path(inp)
+        inp_real = _real(inp)
+        if _same(out, inp):
+            raise OutputError(f"{out}: output would overwrite the input {inp}; choose another {option}")
+        if real in inp_real.parents:
+            raise OutputError(f"{out}: output contains the input {inp}; choose another {option}")
+        if inp_real in real.parents:
+            raise OutputError(f"{out}: output lies inside the input {inp}; choose another {option}")
+    for other_option, other in other_outputs:
+        if other is None:
+            continue
+        other_real = _real(Path(other))
+        if other_real == real or other_real in real.parents or real in other_real.parents:
+            raise OutputError(f"{out}: {option} overlaps {other_option} {other}; give them separate paths")
+    if out.is_symlink():
+        raise OutputError(f"{out}: is a symbolic link (to {os.readlink(out)}); give the real path as {option}")
+    for parent in out.parents:
+        if parent.exists() or parent.is_symlink():
+            if not parent.is_dir():
+                raise OutputError(f"{out}: {parent} is not a directory")
+            break
+    if not out.exists():
+        return out
+    problem = _kind_problem(out, kind)
+    if problem is not None:
+        raise OutputError(f"{out}: {problem}; not replaced, even with --force")
+    if not force:
+        raise OutputError(f"{out}: already exists (use --force to replace it)")
+    return out

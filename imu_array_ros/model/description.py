@@ -48,6 +48,10 @@ _ARRAY_KEYS = {
     "accelerometer_range",
     "imus",
 }
+#: Optional in ``imu_array:`` (SI units, > 0): the magnitude a raw reading clips
+#: at (default: the range) and the quantisation step; a reading with
+#: |y| >= clip - lsb/2 (no lsb: clip * (1 - 1e-9)) counts as saturated.
+_OPTIONAL_ARRAY_KEYS = ("accelerometer_clip", "gyroscope_clip", "accelerometer_lsb", "gyroscope_lsb")
 _IMU_KEYS = {"name", "position", "orientation", "position_std", "accelerometer", "gyroscope"}
 _ACC_KEYS = {"gain", "nonorthogonality", "misalignment", "bias"}
 _GYR_KEYS = {"gain", "misalignment", "bias"}
@@ -96,7 +100,13 @@ class ImuSpec:
 
 @dataclass(frozen=True)
 class ArrayDescription:
-    """The whole array: frame, noise figures, ranges, IMUs, calibration record."""
+    """The whole array: frame, noise figures, ranges, IMUs, calibration record.
+
+    Ranges and clip levels are magnitudes of the raw readings: m/s^2 for the
+    accelerometers, rad/s for the gyroscopes.  ``*_clip`` (None: the range) is
+    where a reading clips, ``*_lsb`` (None: unquantised floats) its
+    quantisation step; see :func:`imu_array_ros.model.sensor_model.unsaturated`.
+    """
 
     frame_id: str
     accelerometer_noise_std: float
@@ -106,6 +116,10 @@ class ArrayDescription:
     imus: tuple[ImuSpec, ...]
     calibration: dict | None = None
     source: str = "<memory>"
+    accelerometer_clip: float | None = None
+    gyroscope_clip: float | None = None
+    accelerometer_lsb: float | None = None
+    gyroscope_lsb: float | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -192,7 +206,7 @@ def _rotation(source: str, where: str, value: Any) -> np.ndarray:
 def description_from_dict(data: Any, source: str = "<memory>") -> ArrayDescription:
     """Validate a parsed YAML document and build an :class:`ArrayDescription`."""
     top = _check_keys(source, "top level", data, _TOP_KEYS, {"imu_array"})
-    arr = _check_keys(source, "imu_array", top["imu_array"], _ARRAY_KEYS, _ARRAY_KEYS)
+    arr = _check_keys(source, "imu_array", top["imu_array"], _ARRAY_KEYS | set(_OPTIONAL_ARRAY_KEYS), _ARRAY_KEYS)
     frame_id = arr["frame_id"]
     if not isinstance(frame_id, str) or not frame_id:
         raise _fail(source, "imu_array.frame_id", "expected a non-empty string")
@@ -228,7 +242,14 @@ def description_from_dict(data: Any, source: str = "<memory>") -> ArrayDescripti
     calibration = top.get("calibration")
     if calibration is not None and not isinstance(calibration, dict):
         raise _fail(source, "calibration", "expected a mapping")
+    clip = {key: _number(source, f"imu_array.{key}", arr[key], positive=True) for key in _OPTIONAL_ARRAY_KEYS
+            if key in arr}
+    for sensor in ("accelerometer", "gyroscope"):
+        level = clip.get(f"{sensor}_clip") or _number(source, f"imu_array.{sensor}_range", arr[f"{sensor}_range"], positive=True)
+        if clip.get(f"{sensor}_lsb", 0.0) >= level:
+            raise _fail(source, f"imu_array.{sensor}_lsb", f"must be below the clip level {level!r}, got {arr[f'{sensor}_lsb']!r}")
     return ArrayDescription(
+        **clip,
         frame_id=frame_id,
         accelerometer_noise_std=_number(source, "imu_array.accelerometer_noise_std", arr["accelerometer_noise_std"], positive=True),
         gyroscope_noise_std=_number(source, "imu_array.gyroscope_noise_std", arr["gyroscope_noise_std"], positive=True),
@@ -242,20 +263,10 @@ def description_from_dict(data: Any, source: str = "<memory>") -> ArrayDescripti
 
 def load_description(path: str | Path) -> ArrayDescription:
     """Read and validate an array description YAML file."""
+    from imu_array_ros.io.yamlfile import load_yaml_file  # YAML read errors are worded in one place
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: array description not found") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{path}: cannot read array description: {err}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark is not None else "YAML"
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise ConfigError(f"{path}: {where}: malformed YAML: {problem}") from None
+    data = load_yaml_file(path, ConfigError, "array description")
     return description_from_dict(data, source=str(path))
 
 
@@ -298,6 +309,7 @@ def description_to_dict(desc: ArrayDescription) -> dict:
             "gyroscope_noise_std": float(desc.gyroscope_noise_std),
             "gyroscope_range": float(desc.gyroscope_range),
             "accelerometer_range": float(desc.accelerometer_range),
+            **{key: float(getattr(desc, key)) for key in _OPTIONAL_ARRAY_KEYS if getattr(desc, key) is not None},
             "imus": imus,
         }
     }

@@ -8,8 +8,9 @@ IMU's own sensor frame:
 
 ``R_k`` rotates sensor -> array frame, ``s(r_k)`` is the array-frame specific
 force at the accelerometer position (skog2016 eq. 1), ``n`` white Gaussian noise
-with the description's standard deviations, and readings at or beyond the
-sensor range are saturated (clipped by the simulator, dropped by the fusion).
+with the description's standard deviations, and readings at the sensor's clip
+level are saturated (clipped by the simulator, dropped by the fusion; see
+:func:`unsaturated`).
 
 :class:`LinearArrayModel` holds these matrices as arrays; the fusion estimates
 with it, the simulator measures with it.  Error terms (:class:`ErrorTerm`)
@@ -43,19 +44,30 @@ __all__ = [
     "GyroscopeBias",
     "apply_terms",
     "random_error_terms",
-    "SATURATION_MARGIN",
+    "CLIP_RELATIVE_TOLERANCE",
     "unsaturated",
 ]
 
-#: A raw reading with |y| >= SATURATION_MARGIN * range is treated as saturated.
-#: Real ADCs clip one LSB below the nominal range (MPU-9150 gyro: 32767 / 16.4
-#: = 1997.99 deg/s for a 2000 deg/s range), so the margin must exceed that.
-SATURATION_MARGIN = 0.998
+#: Quantisation tolerance of a clip level, relative to it, when the description
+#: gives no LSB (simulated floats: a clipped reading equals the clip level up to
+#: rounding).
+CLIP_RELATIVE_TOLERANCE = 1e-9
 
 
-def unsaturated(values: np.ndarray, limit: float, margin: float = SATURATION_MARGIN) -> np.ndarray:
-    """True where a reading is finite and below the saturation threshold (NaN -> False)."""
-    return np.abs(values) < margin * limit
+def unsaturated(values: np.ndarray, clip: float, tolerance: float | None = None) -> np.ndarray:
+    """True where a reading is finite and not saturated (NaN and +-inf -> False).
+
+    The one saturation rule of the package: a raw reading is saturated when
+    ``|y| >= clip - tolerance``, with ``clip`` the magnitude the sensor clips at
+    (same unit as ``values``) and ``tolerance`` half an LSB for quantised
+    readings, or ``CLIP_RELATIVE_TOLERANCE * clip`` when None.  Use
+    :meth:`LinearArrayModel.acc_unsaturated` / :meth:`~LinearArrayModel.gyro_unsaturated`,
+    which pass the description's clip levels.  ``values`` any shape -> bool, same shape.
+    """
+    if tolerance is None:
+        tolerance = CLIP_RELATIVE_TOLERANCE * clip
+    level = clip - tolerance
+    return (values < level) & (values > -level)  # no float temporary, unlike abs(values) < level
 
 
 @dataclass(frozen=True)
@@ -65,7 +77,11 @@ class LinearArrayModel:
     positions (K, 3) m, array frame; acc_matrix (K, 3, 3) sensor <- array incl.
     calibration; acc_bias (K, 3) m/s^2; gyro_matrix (K, 3, 3); gyro_bias (K, 3)
     rad/s; acc_std, gyro_std (K, 3) noise standard deviations per sensor axis;
-    acc_range, gyro_range: saturation limits of the raw readings.
+    acc_range, gyro_range: nominal full-scale ranges (m/s^2, rad/s);
+    acc_clip, gyro_clip: magnitude at which the raw readings clip (default: the
+    range); acc_clip_tolerance, gyro_clip_tolerance: a reading with
+    ``|y| >= clip - tolerance`` is saturated (default
+    ``CLIP_RELATIVE_TOLERANCE * clip``; half an LSB for quantised sensors).
     """
 
     names: tuple[str, ...]
@@ -79,10 +95,33 @@ class LinearArrayModel:
     gyro_std: np.ndarray
     acc_range: float
     gyro_range: float
+    acc_clip: float | None = None
+    gyro_clip: float | None = None
+    acc_clip_tolerance: float | None = None
+    gyro_clip_tolerance: float | None = None
+
+    def __post_init__(self) -> None:
+        for sensor in ("acc", "gyro"):
+            clip = getattr(self, f"{sensor}_clip")
+            clip = float(getattr(self, f"{sensor}_range") if clip is None else clip)
+            tol = getattr(self, f"{sensor}_clip_tolerance")
+            tol = CLIP_RELATIVE_TOLERANCE * clip if tol is None else float(tol)
+            if not (np.isfinite(clip) and clip > 0 and 0 <= tol < clip):
+                raise ValueError(f"{sensor}: need clip > 0 and 0 <= tolerance < clip, got {clip!r}, {tol!r}")
+            object.__setattr__(self, f"{sensor}_clip", clip)
+            object.__setattr__(self, f"{sensor}_clip_tolerance", tol)
 
     @property
     def n_imus(self) -> int:
         return len(self.names)
+
+    def acc_unsaturated(self, values: np.ndarray) -> np.ndarray:
+        """Raw accelerometer readings (any shape, m/s^2) that are finite and not clipped (:func:`unsaturated`)."""
+        return unsaturated(values, self.acc_clip, self.acc_clip_tolerance)
+
+    def gyro_unsaturated(self, values: np.ndarray) -> np.ndarray:
+        """Raw gyroscope readings (any shape, rad/s) that are finite and not clipped (:func:`unsaturated`)."""
+        return unsaturated(values, self.gyro_clip, self.gyro_clip_tolerance)
 
     @classmethod
     def from_description(cls, desc: ArrayDescription) -> "LinearArrayModel":
@@ -107,6 +146,10 @@ class LinearArrayModel:
             gyro_std=np.full((k, 3), desc.gyroscope_noise_std),
             acc_range=float(desc.accelerometer_range),
             gyro_range=float(desc.gyroscope_range),
+            acc_clip=desc.accelerometer_clip,
+            gyro_clip=desc.gyroscope_clip,
+            acc_clip_tolerance=None if desc.accelerometer_lsb is None else 0.5 * desc.accelerometer_lsb,
+            gyro_clip_tolerance=None if desc.gyroscope_lsb is None else 0.5 * desc.gyroscope_lsb,
         )
 
     def select(self, index: Sequence[int]) -> "LinearArrayModel":

@@ -37,19 +37,21 @@ def random_motion(
     specific_force_norm: float = GRAVITY,
     omega_direction: np.ndarray | None = None,
     rate_hz: float = 1000.0,
+    start_ns: int = 0,
 ) -> MotionTruth:
     """``n`` independent motion samples (carlsson2017 Sec. IV).
 
     Directions of omega, omega_dot and the specific force are uniform on the
     sphere unless ``omega_direction`` fixes omega's (skog2016 Fig. 5: rotation
-    about x or z).  Stamps are spaced 1/rate_hz apart (no time continuity).
+    about x or z).  Stamps are spaced 1/rate_hz apart from ``start_ns`` (ns
+    since the epoch; no time continuity).
     """
     if omega_direction is None:
         omega = omega_norm * _unit(rng, n)
     else:
         d = np.asarray(omega_direction, dtype=float)
         omega = np.broadcast_to(omega_norm * d / np.linalg.norm(d), (n, 3)).copy()
-    stamps = (np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
+    stamps = int(start_ns) + (np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
     return MotionTruth(
         stamps=stamps,
         omega=omega,

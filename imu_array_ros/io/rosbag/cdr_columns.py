@@ -66,6 +66,7 @@ __all__ = [
     "decode_accel_with_covariance_stamped",
     "split_stamps",
     "join_stamps",
+    "gather_bytes",
 ]
 
 #: Encapsulation header of little-endian plain CDR (XCDR1).
@@ -266,8 +267,12 @@ class DecodedColumns:
         return self.fields[name]
 
 
-def _gather(buf: np.ndarray, start: np.ndarray, nbytes: int) -> np.ndarray:
-    """(M, nbytes) uint8 copy of ``buf[start[i] : start[i] + nbytes]`` for all i."""
+def gather_bytes(buf: np.ndarray, start: np.ndarray, nbytes: int) -> np.ndarray:
+    """(M, nbytes) uint8 rows ``buf[start[i] : start[i] + nbytes]`` for all i, in one indexing operation.
+
+    buf (S,) uint8; start (M,) int, every ``start[i] + nbytes <= S`` (not checked).
+    Also locates MCAP record heads in :mod:`imu_array_ros.io.rosbag.mcap_locate`.
+    """
     if len(start) == 0:
         return np.empty((0, nbytes), dtype=np.uint8)
     return sliding_window_view(buf, nbytes)[start]
@@ -307,7 +312,7 @@ def decode_columns(
         valid[:] = False
         buf = np.zeros(4 + 12 + 1 + layout.body_size, dtype=np.uint8)
         safe = np.zeros(m, dtype=np.int64)
-    head = _gather(buf, safe, 16)
+    head = gather_bytes(buf, safe, 16)
     encap_ok = (head[:, 0] == 0x00) & (head[:, 1] == 0x01)
     hdr = np.ascontiguousarray(head[:, 4:16]).view(np.dtype([("sec", "<i4"), ("nanosec", "<u4"), ("n", "<u4")]))
     hdr = hdr.reshape(m)
@@ -330,7 +335,7 @@ def decode_columns(
         if m and not valid.any():
             out[name] = np.full((m, count), np.nan)
             continue
-        raw = _gather(buf, np.where(valid, field_start + off, 0), 8 * count)
+        raw = gather_bytes(buf, np.where(valid, field_start + off, 0), 8 * count)
         vals = np.ascontiguousarray(raw).view("<f8").reshape(m, count).astype(np.float64, copy=False)
         if not valid.all():
             vals = np.where(valid[:, None], vals, np.nan)

@@ -1,22 +1,27 @@
-"""MCAP container format pieces shared by the reader and the writer.
+"""MCAP container format pieces shared by our writer and the reader's message location.
 
-Magic, record opcodes, the ``struct`` formats of little-endian integers and of
-a record's (opcode, length) head, the fixed 31-byte head of a Message record
-as a numpy dtype, the chunk compression defaults of files we write
-(:data:`DEFAULT_COMPRESSION`, :data:`DEFAULT_CHUNK_SIZE`, :data:`ZSTD_LEVEL`)
-and the chunk compressor / decompressor lookups (``zstd``, ``lz4`` or none).
+Magic and record opcodes (the values of :class:`mcap.opcode.Opcode`), the
+``struct`` formats of little-endian integers (:data:`U16`, :data:`U32`,
+:data:`U64`) and of a record's (opcode, length) head (:data:`RECORD_HEAD`),
+the fixed 31-byte head of a Message record as a numpy dtype
+(:data:`MESSAGE_HEAD`, :data:`MESSAGE_HEAD_SIZE`), the chunk compression
+defaults of files we write (:data:`DEFAULT_COMPRESSION`,
+:data:`DEFAULT_CHUNK_SIZE`, :data:`ZSTD_LEVEL`) and the chunk compressor
+lookup (:func:`compressor`).  Decompression and the parsing of the container
+itself are the ``mcap`` library's (see :mod:`imu_array_ros.io.rosbag.mcap_reader`).
 
-Reading: :mod:`imu_array_ros.io.rosbag.mcap_reader`; writing:
+Reading: :mod:`imu_array_ros.io.rosbag.mcap_reader` (container) and
+:mod:`imu_array_ros.io.rosbag.mcap_locate` (message location); writing:
 :mod:`imu_array_ros.io.rosbag.mcap_writer`.
 """
 
 from __future__ import annotations
 
 import struct
-from functools import lru_cache
 from typing import Callable
 
 import numpy as np
+from mcap.opcode import Opcode
 
 __all__ = [
     "MAGIC",
@@ -33,26 +38,33 @@ __all__ = [
     "OP_METADATA_INDEX",
     "OP_SUMMARY_OFFSET",
     "OP_DATA_END",
+    "U16",
+    "U32",
+    "U64",
+    "RECORD_HEAD",
+    "MESSAGE_HEAD",
+    "MESSAGE_HEAD_SIZE",
     "DEFAULT_COMPRESSION",
     "DEFAULT_CHUNK_SIZE",
     "ZSTD_LEVEL",
+    "compressor",
 ]
 
 MAGIC = b"\x89MCAP0\r\n"
 
-OP_HEADER = 0x01
-OP_FOOTER = 0x02
-OP_SCHEMA = 0x03
-OP_CHANNEL = 0x04
-OP_MESSAGE = 0x05
-OP_CHUNK = 0x06
-OP_MESSAGE_INDEX = 0x07
-OP_CHUNK_INDEX = 0x08
-OP_STATISTICS = 0x0B
-OP_METADATA = 0x0C
-OP_METADATA_INDEX = 0x0D
-OP_SUMMARY_OFFSET = 0x0E
-OP_DATA_END = 0x0F
+OP_HEADER = int(Opcode.HEADER)
+OP_FOOTER = int(Opcode.FOOTER)
+OP_SCHEMA = int(Opcode.SCHEMA)
+OP_CHANNEL = int(Opcode.CHANNEL)
+OP_MESSAGE = int(Opcode.MESSAGE)
+OP_CHUNK = int(Opcode.CHUNK)
+OP_MESSAGE_INDEX = int(Opcode.MESSAGE_INDEX)
+OP_CHUNK_INDEX = int(Opcode.CHUNK_INDEX)
+OP_STATISTICS = int(Opcode.STATISTICS)
+OP_METADATA = int(Opcode.METADATA)
+OP_METADATA_INDEX = int(Opcode.METADATA_INDEX)
+OP_SUMMARY_OFFSET = int(Opcode.SUMMARY_OFFSET)
+OP_DATA_END = int(Opcode.DATA_END)
 
 #: Chunk compression of files we write.  Measured (benchmarks/results/recording_io.md,
 #: 1.92 M Imu messages): lz4 costs the least CPU to read among the compressed options and
@@ -62,13 +74,14 @@ DEFAULT_COMPRESSION = "lz4"
 DEFAULT_CHUNK_SIZE = 4 * 1024 * 1024
 ZSTD_LEVEL = 1
 
-_U16 = struct.Struct("<H")
-_U32 = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
-_REC = struct.Struct("<BQ")
+U16 = struct.Struct("<H")
+U32 = struct.Struct("<I")
+U64 = struct.Struct("<Q")
+#: Head of every record: opcode (uint8), length of the record body in bytes (uint64).
+RECORD_HEAD = struct.Struct("<BQ")
 
-#: Message record: opcode, record length, channel id, sequence, log time, publish time.
-_MSG_HEAD = np.dtype(
+#: Message record head: opcode, record length, channel id, sequence, log time (ns), publish time (ns).
+MESSAGE_HEAD = np.dtype(
     {
         "names": ["op", "len", "channel", "sequence", "log_time", "publish_time"],
         "formats": ["u1", "<u8", "<u2", "<u4", "<u8", "<u8"],
@@ -76,51 +89,13 @@ _MSG_HEAD = np.dtype(
         "itemsize": 31,
     }
 )
-_MSG_HEAD_SIZE = 31  # payload starts 31 bytes after the record's opcode byte
+#: The payload starts this many bytes after a Message record's opcode byte; the record
+#: length counts 22 of them (channel id, sequence, log and publish time) plus the payload.
+MESSAGE_HEAD_SIZE = 31
 
 
-# --------------------------------------------------------------------------- compression
-
-
-def _zstd_decompress() -> Callable[[bytes, int], bytes]:
-    try:  # Python >= 3.14
-        from compression import zstd as _z  # type: ignore[import-not-found]
-    except ImportError:
-        try:
-            from backports import zstd as _z  # type: ignore[import-not-found,no-redef]
-        except ImportError:
-            _z = None
-    if _z is not None:
-        return lambda data, size: _z.decompress(data)
-    import io
-
-    import zstandard  # a decompression context per call: contexts are not thread-safe
-
-    def decompress(data: bytes, size: int) -> bytes:  # stream API: handles multi-frame chunks
-        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data), read_across_frames=True) as r:
-            return r.read(size + 1)
-
-    return decompress
-
-
-def _lz4_decompress() -> Callable[[bytes, int], bytes]:
-    import lz4.frame
-
-    return lambda data, size: lz4.frame.decompress(data)
-
-
-@lru_cache(maxsize=None)
-def _decompressor(name: str) -> Callable[[bytes, int], bytes] | None:
-    if name == "":
-        return lambda data, size: bytes(data)
-    if name == "zstd":
-        return _zstd_decompress()
-    if name == "lz4":
-        return _lz4_decompress()
-    return None
-
-
-def _compressor(name: str) -> Callable[[bytes], bytes]:
+def compressor(name: str) -> Callable[[bytes], bytes]:
+    """Chunk compressor ``bytes -> bytes`` for ``name`` in (``zstd``, ``lz4``, ``none``)."""
     if name == "none":
         return lambda data: data
     if name == "zstd":

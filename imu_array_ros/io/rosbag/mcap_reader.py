@@ -1,71 +1,103 @@
-"""MCAP / rosbag2 container reading: find and walk MCAP files in bulk.
+"""One MCAP file read through the ``mcap`` library: summary, chunks, CRCs, batches of messages.
 
-Knows nothing about message semantics: it hands out *where* the payloads of
-selected topics are (one :class:`MessageBatch` per decompressed chunk:
-buffer, offsets, lengths, log times).  The CDR layer
+Knows nothing about message semantics: :meth:`McapFile.iter_batches` hands
+out *where* the payloads of selected channels are (one
+:class:`~imu_array_ros.io.rosbag.mcap_locate.MessageBatch` per decompressed
+chunk: buffer, offsets, lengths, log times).  The CDR layer
 (:mod:`imu_array_ros.io.rosbag.cdr_columns`) does the rest.
 
-A recording is a rosbag2 directory (``metadata.yaml``; its
-``relative_file_paths`` are read in order) or a bare ``.mcap`` file.
-Top-level records are walked with a small loop (a few per chunk); inside a
-chunk the message records are located from the chunk's Message Index
-records (vectorized, then every byte of the chunk not covered by an indexed
-message is walked, so a partial index can not hide messages), falling back
-to a record walk when the index is absent or inconsistent.
-Chunk compression ``zstd``, ``lz4`` or none; chunk CRCs are verified.
+Container (the ``mcap`` library): the footer and summary
+(``SeekingReader.get_summary``), chunk records (``Chunk.read``),
+decompression and chunk CRCs (``get_chunk_data_stream(validate_crc=True)``;
+``zstd``, ``lz4`` or none; :func:`decompress_chunk`) and every other
+record's fields.  Files whose summary has no chunk index (no summary,
+unchunked, or chunk indexes not written) are streamed once with
+``StreamReader``.  The summary CRC (footer) and the data-section CRC
+(DataEnd) are verified as well; a CRC of 0 means "not computed" (MCAP spec)
+and is not checked.  Indexed chunks are read and decompressed ahead by a
+worker thread.
 
-Format constants and decompressors: :mod:`imu_array_ros.io.rosbag.mcap_format`;
-writing: :mod:`imu_array_ros.io.rosbag.mcap_writer`.
+Messages are located inside each decompressed chunk with numpy
+(:mod:`imu_array_ros.io.rosbag.mcap_locate`: the chunk's Message Index, then
+a walk of every byte it does not cover).  The top-level records between
+indexed chunks are walked the same way, so messages or chunks the chunk
+index does not list are read too, and the DataEnd record's position is
+known for the data-section CRC.
+
+A file without footer (a recorder killed mid-write) is refused with a one-line
+error naming ``imu-array recover`` (:func:`recover_command`;
+:func:`imu_array_ros.io.rosbag.recover.recover_recording`).
+
+A recording (rosbag2 directory or bare ``.mcap`` file, several files):
+:mod:`imu_array_ros.io.rosbag.mcap_recording`.  Format constants:
+:mod:`imu_array_ros.io.rosbag.mcap_format`; writing:
+:mod:`imu_array_ros.io.rosbag.mcap_writer`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import mmap
+import io
 import os
+import shlex
 import struct
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Callable, Iterator, Mapping
+from typing import BinaryIO, Callable, Iterator
 
 import numpy as np
-import yaml
-from numpy.lib.stride_tricks import sliding_window_view
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import EndOfFile, InvalidMagic, McapError
+from mcap.reader import FOOTER_SIZE, SeekingReader
+from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, Message, MessageIndex, Schema
+from mcap.stream_reader import MAGIC_SIZE, CRCValidationError, StreamReader, get_chunk_data_stream, read_magic
 
 from imu_array_ros.errors import RecordingError
 from imu_array_ros.io.rosbag.mcap_format import (
-    _MSG_HEAD,
-    _MSG_HEAD_SIZE,
-    _REC,
-    _U16,
-    _U32,
-    _U64,
-    MAGIC,
     OP_CHANNEL,
     OP_CHUNK,
     OP_DATA_END,
-    OP_FOOTER,
     OP_HEADER,
     OP_MESSAGE,
     OP_MESSAGE_INDEX,
     OP_SCHEMA,
-    _decompressor,
+    RECORD_HEAD,
+)
+from imu_array_ros.io.rosbag.mcap_locate import (
+    MessageBatch,
+    locate_messages,
+    message_batch,
+    message_index_offsets,
+    ordered_records,
 )
 
 __all__ = [
     "ChannelInfo",
-    "MessageBatch",
+    "LoadedChunk",
     "McapFile",
-    "McapRecording",
+    "decompress_chunk",
+    "recover_command",
+    "SUPPORTED_COMPRESSIONS",
 ]
 
-_PREFETCH = 2  # chunks decompressed ahead by a worker thread
+_PREFETCH = 2  # chunks read + decompressed ahead by a worker thread
+_LOOSE_BATCH = 1 << 16  # messages outside chunks handed out per batch when streaming
+
+#: Chunk compressions the reader decompresses ("" = none).
+SUPPORTED_COMPRESSIONS = ("", "lz4", "zstd")
+
+#: Errors the mcap library and struct raise on malformed bytes.
+_PARSE_ERRORS = (McapError, struct.error, ValueError, IndexError, OverflowError, KeyError)
 
 
 class _Corrupt(Exception):
     """Internal: a structural problem; translated into RecordingError with file context."""
+
+
+def recover_command(source: str | os.PathLike) -> str:
+    """The command that salvages a damaged recording (for error messages)."""
+    return f"`imu-array recover {shlex.quote(str(source))} --out OUT`"
 
 
 @dataclass(frozen=True)
@@ -81,131 +113,86 @@ class ChannelInfo:
 
 
 @dataclass
-class MessageBatch:
-    """Messages of the selected topics found in one chunk, in file order.
+class LoadedChunk:
+    """One indexed chunk as read by the worker thread, with the top-level records after it.
 
-    buffer (S,) uint8: the decompressed chunk; topic (M,) int32: index into the
-    selection given to ``iter_batches``; log_time (M,) int64 ns; offset,
-    length (M,) int64: payload location within ``buffer``.
+    data: the decompressed chunk records; index (K,) int64 message record
+    offsets in ``data`` from the Message Index records that follow the chunk
+    (None: no index); raw: the file bytes from the chunk record (file offset
+    ``offset``) up to the next indexed chunk (or the end of the data section);
+    records: (opcode, position in ``raw``, body length) of the top-level
+    records after the chunk's Message Index records, in file order;
+    data_crc: CRC-32 of the data section up to the DataEnd record when
+    ``raw`` holds it, else None.
     """
 
-    buffer: np.ndarray
-    topic: np.ndarray
-    log_time: np.ndarray
-    offset: np.ndarray
-    length: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.topic)
+    offset: int
+    raw: bytes
+    data: bytes
+    index: np.ndarray | None
+    records: list[tuple[int, int, int]]
+    data_crc: int | None = None
 
 
-@dataclass
-class _ChunkRef:
-    start: int  # file offset of the chunk record's opcode
-    data_offset: int  # file offset of the compressed records
-    compressed_size: int
-    uncompressed_size: int
-    crc: int
-    compression: str
-    indexes: list[tuple[int, int]] = field(default_factory=list)  # (file offset of entries, count)
+# --------------------------------------------------------------------------- chunks (mcap library)
 
 
-def _string(data, pos: int) -> tuple[str, int]:
-    (n,) = _U32.unpack_from(data, pos)
-    end = pos + 4 + n
-    if end > len(data):
-        raise _Corrupt("string runs past its record")
-    return bytes(data[pos + 4 : end]).decode("utf-8", errors="replace"), end
+def decompress_chunk(chunk: Chunk) -> bytes:
+    """The records of a library ``Chunk`` record, decompressed (``mcap`` library) and checked.
+
+    Raises ValueError naming the problem: unsupported compression, a
+    decompressor error, a size other than the chunk's ``uncompressed_size``,
+    or a CRC mismatch (a CRC of 0 is not checked).
+    """
+    if chunk.compression not in SUPPORTED_COMPRESSIONS:
+        raise ValueError(f"unsupported chunk compression {chunk.compression!r} (zstd, lz4, none)")
+    try:
+        stream, size = get_chunk_data_stream(chunk, validate_crc=True)
+        data = stream.read(size)
+    except CRCValidationError:
+        raise ValueError("CRC mismatch") from None
+    except Exception as err:  # decompressor errors vary by library
+        raise ValueError(f"{chunk.compression}: {str(err).splitlines()[0] if str(err) else type(err).__name__}") from None
+    if len(data) != chunk.uncompressed_size:
+        raise ValueError(f"{len(data)} bytes after decompression, expected {chunk.uncompressed_size}")
+    return data
 
 
-def _string_map(data, pos: int) -> tuple[dict[str, str], int]:
-    (n,) = _U32.unpack_from(data, pos)
-    pos += 4
-    end = pos + n
-    if end > len(data):
-        raise _Corrupt("map runs past its record")
-    out: dict[str, str] = {}
-    while pos < end:
-        key, pos = _string(data, pos)
-        value, pos = _string(data, pos)
-        out[key] = value
-    return out, end
+def _body_stream(buf, pos: int, ln: int) -> ReadDataStream:
+    """Library record reader over the body of the record at ``buf[pos]`` (opcode offset)."""
+    return ReadDataStream(io.BytesIO(bytes(memoryview(buf)[pos + 9 : pos + 9 + ln])))
 
 
-def _walk(buf, start: int, end: int) -> tuple[list[int], list[tuple[int, int, int]]]:
-    """Walk records in ``buf[start:end]``: (message record offsets, other (op, pos, len))."""
-    messages: list[int] = []
-    others: list[tuple[int, int, int]] = []
-    unpack = _REC.unpack_from
-    pos = start
-    while pos < end:
-        if pos + 9 > end:
-            raise _Corrupt(f"record header at byte {pos} runs past the end")
-        op, ln = unpack(buf, pos)
-        nxt = pos + 9 + ln
-        if nxt > end:
-            raise _Corrupt(f"record (opcode 0x{op:02x}) at byte {pos} runs past the end")
-        if op == OP_MESSAGE:
-            messages.append(pos)
-        else:
-            others.append((op, pos, ln))
-        pos = nxt
-    return messages, others
-
-
-def _gather(arr: np.ndarray, start: np.ndarray, nbytes: int) -> np.ndarray:
-    if len(start) == 0:
-        return np.empty((0, nbytes), dtype=np.uint8)
-    return sliding_window_view(arr, nbytes)[start]
-
-
-def _locate(buf: bytes, arr: np.ndarray, indexed: np.ndarray | None) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
-    """Message record offsets (sorted, file order) and other records of one chunk."""
-    size = len(buf)
-    if indexed is not None and len(indexed) and size >= 9:
-        off = np.sort(indexed)
-        if off[0] >= 0 and off[-1] <= size - 9 and (len(off) < 2 or (np.diff(off) > 0).all()):
-            head = _gather(arr, off, 9)
-            ln = np.ascontiguousarray(head[:, 1:9]).view("<u8").reshape(-1)
-            if (head[:, 0] == OP_MESSAGE).all() and (ln <= size).all():
-                end = off + 9 + ln.astype(np.int64)
-                if end[-1] <= size and (ln >= 22).all() and (end[:-1] <= off[1:]).all():
-                    gap_start = np.concatenate(([0], end))
-                    gap_end = np.concatenate((off, [size]))
-                    gaps = np.flatnonzero(gap_end > gap_start)
-                    try:
-                        extra: list[int] = []
-                        others: list[tuple[int, int, int]] = []
-                        for g in gaps:
-                            m, o = _walk(buf, int(gap_start[g]), int(gap_end[g]))
-                            extra += m
-                            others += o
-                    except _Corrupt:
-                        pass  # inconsistent index: fall back to a full walk
-                    else:
-                        if extra:
-                            off = np.sort(np.concatenate((off, np.asarray(extra, dtype=np.int64))))
-                        return off, others
-    messages, others = _walk(buf, 0, size)
-    return np.asarray(messages, dtype=np.int64), others
+# --------------------------------------------------------------------------- one MCAP file
 
 
 class McapFile:
-    """One MCAP file, memory-mapped; top-level records are indexed on open.
+    """One MCAP file; its footer, summary and chunk index are read on open (``mcap`` library).
 
     Use as a context manager.  Raises :class:`RecordingError` (one line naming
-    the file) for anything that is not a complete MCAP file.
+    the file) for anything that is not a complete MCAP file; ``source`` (the
+    recording the user named, default the file) is what the ``imu-array
+    recover`` hint names.
+
+    Attributes: ``schemas`` id -> (name, encoding); ``channels`` id ->
+    :class:`ChannelInfo` (those of the summary, then those met while reading);
+    ``chunks``: the summary's chunk index records (``mcap.records.ChunkIndex``)
+    sorted by file offset, empty when the file is streamed; ``has_summary``:
+    the summary lists the channels; ``indexed``: read by seeking chunk by chunk
+    (else streamed with ``StreamReader``); ``size`` bytes.
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, *, source: str | os.PathLike | None = None) -> None:
         self.path = Path(path)
-        self.schemas: dict[int, tuple[str, str]] = {}  # id -> (name, encoding)
+        self.source = Path(source) if source is not None else self.path
+        self.schemas: dict[int, tuple[str, str]] = {}
         self.channels: dict[int, ChannelInfo] = {}
-        self.chunks: list[_ChunkRef] = []
-        self.loose_messages: list[int] = []  # message records outside chunks (file offsets)
+        self.chunks: list[ChunkIndex] = []
         self.profile = ""
-        self.has_summary = False  # True: the summary section lists every channel
-        self._mm: mmap.mmap | None = None
+        self.has_summary = False
+        self.indexed = False
+        self.size = 0
+        self._data_end = 0  # indexed: the data section ends here (the summary starts)
         self._fh: BinaryIO | None = None
         try:
             self._fh = open(self.path, "rb")
@@ -217,19 +204,16 @@ class McapFile:
             self._open()
         except _Corrupt as err:
             self.close()
-            raise RecordingError(f"{self.path}: corrupt MCAP file: {err}") from None
-        except (struct.error, ValueError, IndexError, OverflowError) as err:
+            raise self._corrupt(err) from None
+        except _PARSE_ERRORS as err:
             self.close()
-            raise RecordingError(f"{self.path}: corrupt MCAP file: {err}") from None
+            raise self._corrupt(err) from None
         except BaseException:
             self.close()
             raise
 
     # -- lifecycle
     def close(self) -> None:
-        if self._mm is not None:
-            self._mm.close()
-            self._mm = None
         if self._fh is not None:
             self._fh.close()
             self._fh = None
@@ -240,149 +224,150 @@ class McapFile:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    # -- parsing
+    # -- errors
+    def _corrupt(self, err: Exception, where: str = "") -> RecordingError:
+        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        return RecordingError(
+            f"{self.path}: corrupt MCAP file{where}: {text}; {recover_command(self.source)} keeps what is intact"
+        )
+
+    def _chunk_error(self, offset: int, text: str) -> RecordingError:
+        return RecordingError(
+            f"{self.path}: corrupt chunk at byte {offset}: {text}; "
+            f"{recover_command(self.source)} keeps the intact chunks"
+        )
+
+    # -- opening
     def _open(self) -> None:
-        assert self._fh is not None
-        size = os.fstat(self._fh.fileno()).st_size
-        head = self._fh.read(16)[:8]
-        if head != MAGIC:
-            if head == b"SQLite f":
+        fh = self._fh
+        assert fh is not None
+        self.size = size = os.fstat(fh.fileno()).st_size
+        try:
+            read_magic(ReadDataStream(fh))
+        except (InvalidMagic, EndOfFile, struct.error):
+            fh.seek(0)
+            if fh.read(8) == b"SQLite f":
                 raise RecordingError(
                     f"{self.path}: sqlite3 rosbag2 storage is not supported; convert to mcap (`ros2 bag convert`)"
-                )
-            raise RecordingError(f"{self.path}: not an MCAP file (bad magic)")
-        min_size = 8 + 9 + 8 + 9 + 20 + 8  # magic, empty header, data end... footer, magic
-        if size < min_size:
-            raise RecordingError(f"{self.path}: truncated MCAP file ({size} bytes)")
-        self._mm = mm = mmap.mmap(self._fh.fileno(), 0, access=mmap.ACCESS_READ)
-        if mm[size - 8 :] != MAGIC:
+                ) from None
+            raise RecordingError(f"{self.path}: not an MCAP file (bad magic)") from None
+        footer_pos = size - MAGIC_SIZE - FOOTER_SIZE
+        truncated = footer_pos < MAGIC_SIZE
+        if not truncated:
+            fh.seek(size - MAGIC_SIZE)
+            try:
+                read_magic(ReadDataStream(fh))
+            except InvalidMagic:
+                truncated = True
+        if truncated:
             raise RecordingError(
-                f"{self.path}: truncated MCAP file (no end magic; was the recording closed cleanly? "
-                "`ros2 bag reindex` may repair it)"
+                f"{self.path}: truncated MCAP file (no footer/summary: was the recorder stopped before "
+                f"closing it?); salvage it with {recover_command(self.source)}"
             )
-        footer = size - 8 - 29
-        op, ln = _REC.unpack_from(mm, footer)
-        if op != OP_FOOTER or ln != 20:
+        fh.seek(footer_pos)
+        footer = next(iter(StreamReader(fh, skip_magic=True).records), None)
+        if not isinstance(footer, Footer):
             raise _Corrupt("no footer record before the end magic")
-        summary_start, _summary_offset_start, _crc = struct.unpack_from("<QQI", mm, footer + 9)
-        if summary_start:
-            if not 8 <= summary_start <= footer:
-                raise _Corrupt("summary offset outside the file")
-            self._scan_summary(summary_start, footer)
-            self.has_summary = bool(self.channels)  # the summary repeats the channels
-        self._scan_data(footer)
+        summary_start = footer.summary_start
+        if summary_start and not MAGIC_SIZE <= summary_start <= footer_pos:
+            raise _Corrupt("summary offset outside the file")
+        if footer.summary_crc:
+            start = summary_start or footer_pos
+            fh.seek(start)
+            crc = zlib.crc32(fh.read(size - MAGIC_SIZE - 4 - start))  # through the footer's summary_offset_start
+            if crc != footer.summary_crc:
+                raise _Corrupt("summary CRC mismatch (the summary / index section is damaged)")
+        if not summary_start:
+            return  # no summary: streamed
+        fh.seek(0)
+        summary = SeekingReader(fh).get_summary()
+        if summary is None:
+            return
+        for sid, schema in summary.schemas.items():
+            self.schemas[sid] = (schema.name, schema.encoding)
+        for channel in summary.channels.values():
+            self._add_channel(channel)
+        self.has_summary = bool(self.channels)  # the summary repeats the channels
+        chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+        prev = MAGIC_SIZE
+        for c in chunks:
+            if c.chunk_start_offset < prev or c.chunk_length < 9 or c.chunk_start_offset + c.chunk_length > summary_start:
+                raise _Corrupt(f"chunk index entry for byte {c.chunk_start_offset} overlaps or leaves the data section")
+            prev = c.chunk_start_offset + c.chunk_length
+        self.chunks = chunks
+        self.indexed = bool(chunks)
+        self._data_end = summary_start
 
-    def _record_schema(self, data, pos: int) -> None:
-        (sid,) = _U16.unpack_from(data, pos)
-        name, p = _string(data, pos + 2)
-        enc, p = _string(data, p)
-        self.schemas[sid] = (name, enc)
+    def _add_channel(self, ch: Channel) -> None:
+        sname, senc = self.schemas.get(ch.schema_id, ("", ""))
+        self.channels[ch.id] = ChannelInfo(ch.id, ch.topic, ch.message_encoding, sname, senc, dict(ch.metadata))
 
-    def _record_channel(self, data, pos: int) -> None:
-        cid, sid = struct.unpack_from("<HH", data, pos)
-        topic, p = _string(data, pos + 4)
-        msg_enc, p = _string(data, p)
-        meta, p = _string_map(data, p)
-        sname, senc = self.schemas.get(sid, ("", ""))
-        self.channels[cid] = ChannelInfo(cid, topic, msg_enc, sname, senc, meta)
+    def _add_schema(self, schema: Schema) -> None:
+        self.schemas[schema.id] = (schema.name, schema.encoding)
 
-    def _other_record(self, data, op: int, pos: int) -> None:
-        """Schema / channel records found in a chunk or at top level (pos = opcode offset)."""
-        if op == OP_SCHEMA:
-            self._record_schema(data, pos + 9)
-        elif op == OP_CHANNEL:
-            self._record_channel(data, pos + 9)
-
-    def _scan_summary(self, start: int, end: int) -> None:
-        mm = self._mm
-        _, others = _walk(mm, start, end)
-        for op, pos, _ in others:
-            self._other_record(mm, op, pos)
-
-    def _scan_data(self, footer: int) -> None:
-        mm = self._mm
-        assert mm is not None
-        pos = 8
-        chunk: _ChunkRef | None = None
-        unpack = _REC.unpack_from
-        while True:
-            if pos + 9 > footer:
-                raise _Corrupt("no DataEnd record (file truncated?)")
-            op, ln = unpack(mm, pos)
-            body = pos + 9
-            nxt = body + ln
-            if nxt > footer and op != OP_FOOTER:
-                raise _Corrupt(f"record (opcode 0x{op:02x}) at byte {pos} runs past the end")
-            if op == OP_CHUNK:
-                t0, t1, usize, crc = struct.unpack_from("<QQQI", mm, body)
-                comp, p = _string(mm, body + 28)
-                (csize,) = _U64.unpack_from(mm, p)
-                if p + 8 + csize > nxt:
-                    raise _Corrupt(f"chunk at byte {pos} is longer than its record")
-                chunk = _ChunkRef(pos, p + 8, csize, usize, crc, comp)
-                self.chunks.append(chunk)
-            elif op == OP_MESSAGE_INDEX:
-                (n,) = _U32.unpack_from(mm, body + 2)
-                if n % 16 or body + 6 + n > nxt:
-                    raise _Corrupt(f"malformed message index at byte {pos}")
-                if chunk is not None:
-                    chunk.indexes.append((body + 6, n // 16))
-            elif op == OP_MESSAGE:
-                self.loose_messages.append(pos)
+    def _register(self, buf, records: list[tuple[int, int, int]]) -> bool:
+        """Parse the Header / Schema / Channel records among ``records``; True if a channel was added."""
+        added = False
+        for op, pos, ln in records:
+            if op == OP_SCHEMA:
+                self._add_schema(Schema.read(_body_stream(buf, pos, ln)))
+            elif op == OP_CHANNEL:
+                self._add_channel(Channel.read(_body_stream(buf, pos, ln)))
+                added = True
             elif op == OP_HEADER:
-                self.profile, _ = _string(mm, body)
-            elif op in (OP_SCHEMA, OP_CHANNEL):
-                self._other_record(mm, op, pos)
-            elif op == OP_DATA_END or op == OP_FOOTER:
-                break
-            else:
-                chunk = None  # message indexes directly follow their chunk
-            pos = nxt
+                self.profile = Header.read(_body_stream(buf, pos, ln)).profile
+        return added
 
-    # -- chunk access
-    @property
-    def chunk_bytes(self) -> int:
-        """Total compressed chunk bytes (for progress reporting)."""
-        return sum(c.compressed_size for c in self.chunks)
-
-    def _chunk_data(self, c: _ChunkRef) -> bytes:
-        dec = _decompressor(c.compression)
-        if dec is None:
-            raise RecordingError(f"{self.path}: unsupported chunk compression {c.compression!r} (zstd, lz4, none)")
-        mm = self._mm
-        assert mm is not None
-        try:
-            data = dec(mm[c.data_offset : c.data_offset + c.compressed_size], c.uncompressed_size)
-        except Exception as err:  # third-party decompressor errors vary
-            raise RecordingError(f"{self.path}: corrupt chunk at byte {c.start}: {c.compression}: {err}") from None
-        if len(data) != c.uncompressed_size:
+    # -- chunks
+    def _decompress(self, chunk: Chunk, offset: int) -> bytes:
+        """Decompressed records of ``chunk`` (record at file byte ``offset``); size and CRC checked."""
+        if chunk.compression not in SUPPORTED_COMPRESSIONS:
             raise RecordingError(
-                f"{self.path}: corrupt chunk at byte {c.start}: {len(data)} bytes after decompression, "
-                f"expected {c.uncompressed_size}"
+                f"{self.path}: unsupported chunk compression {chunk.compression!r} at byte {offset} (zstd, lz4, none)"
             )
-        if c.crc and zlib.crc32(data) != c.crc:
-            raise RecordingError(f"{self.path}: corrupt chunk at byte {c.start}: CRC mismatch")
-        return data
+        try:
+            return decompress_chunk(chunk)
+        except ValueError as err:
+            raise self._chunk_error(offset, str(err)) from None
 
-    def _index_offsets(self, c: _ChunkRef) -> np.ndarray | None:
-        if not c.indexes:
-            return None
-        mm = self._mm
-        parts = [
-            np.frombuffer(mm[p : p + 16 * n], dtype="<u8").reshape(n, 2)[:, 1] for p, n in c.indexes if n
-        ]
-        if not parts:
-            return None
-        off = np.concatenate(parts)
-        if off.max() > np.iinfo(np.int64).max:
-            return None
-        return off.astype(np.int64)
+    def read_chunk(self, i: int) -> LoadedChunk:
+        """Read, check (record head, CRC, size) and decompress indexed chunk ``i``.
 
+        Also reads the top-level records up to the next indexed chunk (or the
+        end of the data section) and the chunk's Message Index from them.
+        """
+        fh = self._fh
+        assert fh is not None and self.indexed
+        c = self.chunks[i]
+        end = self.chunks[i + 1].chunk_start_offset if i + 1 < len(self.chunks) else self._data_end
+        fh.seek(c.chunk_start_offset)
+        raw = fh.read(end - c.chunk_start_offset)
+        if len(raw) != end - c.chunk_start_offset:
+            raise self._chunk_error(c.chunk_start_offset, "file ends inside the chunk")
+        try:
+            op, ln = RECORD_HEAD.unpack_from(raw, 0)
+            if op != OP_CHUNK or 9 + ln != c.chunk_length:
+                raise _Corrupt("the chunk index points at no chunk record")
+            stream = io.BytesIO(raw)
+            stream.seek(9)
+            chunk = Chunk.read(ReadDataStream(stream))
+            data = self._decompress(chunk, c.chunk_start_offset)
+            records = ordered_records(raw, c.chunk_length, len(raw))
+            k = 0
+            while k < len(records) and records[k][0] == OP_MESSAGE_INDEX:
+                k += 1
+            index = message_index_offsets(raw, records[:k])
+        except (_Corrupt, *_PARSE_ERRORS) as err:
+            raise self._chunk_error(c.chunk_start_offset, str(err)) from None
+        return LoadedChunk(c.chunk_start_offset, raw, data, index, records[k:])
+
+    # -- reading
     def iter_batches(self, select: Callable[[ChannelInfo], int]) -> Iterator[tuple[int, MessageBatch]]:
-        """Yield (compressed bytes consumed, batch) per chunk.
+        """Yield (file bytes consumed, batch) for every chunk, in file order.
 
         ``select(channel)`` returns the selection index of a channel, or -1 to
         skip its messages.  Channels are resolved as their records are met.
+        The whole data section is read; its CRC is checked at the end.
         """
         lut = np.full(65536, -1, dtype=np.int32)
         known: set[int] = set()
@@ -394,169 +379,200 @@ class McapFile:
                     lut[cid] = select(ch)
 
         refresh()
-        if self.loose_messages:
-            data = bytes(self._mm[:])  # unchunked file: the file itself is the buffer
-            yield 0, self._batch(data, np.asarray(self.loose_messages, dtype=np.int64), lut)
-        # decompress + CRC (GIL released) of the next chunk overlaps decoding of this one
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            ahead = [pool.submit(self._chunk_data, c) for c in self.chunks[:_PREFETCH]]
-            for i, c in enumerate(self.chunks):
-                data = ahead[i].result()
-                ahead[i] = None
-                if i + _PREFETCH < len(self.chunks):
-                    ahead.append(pool.submit(self._chunk_data, self.chunks[i + _PREFETCH]))
-                yield c.compressed_size, self._chunk_batch(c, data, lut, refresh)
+        if self.indexed:
+            yield from self._indexed_batches(lut, refresh)
+        else:
+            yield from self._streamed_batches(lut, refresh)
 
-    def _chunk_batch(self, c: _ChunkRef, data: bytes, lut: np.ndarray, refresh: Callable[[], None]) -> MessageBatch:
+    def _indexed_batches(self, lut: np.ndarray, refresh: Callable[[], None]) -> Iterator[tuple[int, MessageBatch]]:
+        fh = self._fh
+        assert fh is not None
+        first = self.chunks[0].chunk_start_offset
+        fh.seek(0)
+        head = fh.read(first)
+        try:
+            records = ordered_records(head, MAGIC_SIZE, len(head))
+        except ValueError as err:
+            raise self._corrupt(err) from None
+        yield from self._top_level(head, 0, records, lut, refresh, None)
+
+        state = {"crc": zlib.crc32(head)}  # running CRC of the data section, advanced by the worker
+        n = len(self.chunks)
+
+        def load(i: int) -> LoadedChunk:  # worker thread: read, CRC, decompress, find the index
+            got = self.read_chunk(i)
+            if i + 1 < n:
+                state["crc"] = zlib.crc32(got.raw, state["crc"])
+            else:
+                ends = [pos for op, pos, _ in got.records if op == OP_DATA_END]
+                if ends:
+                    got.data_crc = zlib.crc32(memoryview(got.raw)[: ends[-1]], state["crc"])
+            return got
+
+        # read + decompress + CRC (GIL released) of the next chunks overlaps decoding of this one
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            ahead = [pool.submit(load, i) for i in range(min(_PREFETCH, n))]
+            try:
+                for i in range(n):
+                    got = ahead[i].result()
+                    ahead[i] = None
+                    if i + _PREFETCH < n:
+                        ahead.append(pool.submit(load, i + _PREFETCH))
+                    yield len(got.raw) + (len(head) if i == 0 else 0), self._chunk_batch(got, lut, refresh)
+                    yield from self._top_level(got.raw, got.offset, got.records, lut, refresh, got.data_crc)
+                    if i + 1 == n and not any(op == OP_DATA_END for op, _, _ in got.records):
+                        raise self._corrupt(_Corrupt("no DataEnd record at the end of the data section"))
+            finally:
+                for f in ahead:
+                    if f is not None:
+                        f.cancel()
+
+    def _top_level(
+        self,
+        buf: bytes,
+        base: int,
+        records: list[tuple[int, int, int]],
+        lut: np.ndarray,
+        refresh: Callable[[], None],
+        data_crc: int | None,
+    ) -> Iterator[tuple[int, MessageBatch]]:
+        """Top-level records found between indexed chunks (``buf`` starts at file byte ``base``).
+
+        Schemas and channels are registered, messages outside chunks batched,
+        a chunk the chunk index does not list is read with the Message Index
+        records after it, and DataEnd's CRC is compared with ``data_crc``.
+        """
+        loose: list[int] = []
+        k = 0
+        try:
+            while k < len(records):
+                op, pos, ln = records[k]
+                k += 1
+                if op == OP_MESSAGE:
+                    loose.append(pos)
+                    continue
+                if loose:
+                    yield 0, self._batch(buf, np.asarray(loose, dtype=np.int64), lut)
+                    loose = []
+                if op in (OP_SCHEMA, OP_CHANNEL, OP_HEADER):
+                    if self._register(buf, [(op, pos, ln)]):
+                        refresh()
+                elif op == OP_CHUNK:  # not in the chunk index
+                    chunk = Chunk.read(_body_stream(buf, pos, ln))
+                    data = self._decompress(chunk, base + pos)
+                    j = k
+                    while j < len(records) and records[j][0] == OP_MESSAGE_INDEX:
+                        j += 1
+                    index = message_index_offsets(buf, records[k:j])
+                    k = j
+                    got = LoadedChunk(base + pos, b"", data, index, [])
+                    yield 0, self._chunk_batch(got, lut, refresh)
+                elif op == OP_DATA_END:
+                    expected = DataEnd.read(_body_stream(buf, pos, ln)).data_section_crc
+                    if expected and data_crc is not None and expected != data_crc:
+                        raise self._corrupt(_Corrupt("data section CRC mismatch (DataEnd)"))
+        except (_Corrupt, *_PARSE_ERRORS) as err:
+            raise self._corrupt(err, f" (record at byte {base + pos})") from None
+        if loose:
+            yield 0, self._batch(buf, np.asarray(loose, dtype=np.int64), lut)
+
+    def _streamed_batches(self, lut: np.ndarray, refresh: Callable[[], None]) -> Iterator[tuple[int, MessageBatch]]:
+        """No chunk index: stream every record once (``StreamReader``, data-section CRC checked)."""
+        fh = self._fh
+        assert fh is not None
+        fh.seek(0)
+        reader = StreamReader(fh, emit_chunks=True, validate_crcs=True)
+        done = 0
+        pending: tuple[int, bytes, list] | None = None  # (offset, data, index parts) of the last chunk
+        loose: list[Message] = []
+
+        def flush_chunk() -> MessageBatch:
+            offset, data, parts = pending
+            index = np.concatenate(parts).astype(np.int64) if parts else None
+            return self._chunk_batch(LoadedChunk(offset, b"", data, index, []), lut, refresh)
+
+        def flush_loose() -> MessageBatch:
+            batch = self._message_batch(loose, lut)
+            loose.clear()
+            return batch
+
+        pos = 0
+        try:
+            for record in reader.records:
+                if isinstance(record, MessageIndex) and pending is not None:
+                    if record.records:
+                        entries = np.asarray(record.records, dtype=np.uint64)[:, 1]
+                        if entries.max() <= np.iinfo(np.int64).max:
+                            pending[2].append(entries)
+                    pos = fh.tell()
+                    continue
+                if pending is not None:
+                    now = fh.tell()
+                    yield now - done, flush_chunk()
+                    done, pending = now, None
+                if isinstance(record, Message):
+                    loose.append(record)
+                    if len(loose) >= _LOOSE_BATCH:
+                        now = fh.tell()
+                        yield now - done, flush_loose()
+                        done = now
+                    pos = fh.tell()
+                    continue
+                if loose:
+                    yield 0, flush_loose()
+                if isinstance(record, Chunk):
+                    pending = (pos, self._decompress(record, pos), [])
+                elif isinstance(record, Schema):
+                    self._add_schema(record)
+                elif isinstance(record, Channel):
+                    self._add_channel(record)
+                    refresh()
+                elif isinstance(record, Header):
+                    self.profile = record.profile
+                pos = fh.tell()
+        except CRCValidationError as err:
+            if isinstance(err.record, DataEnd):
+                raise self._corrupt(_Corrupt("data section CRC mismatch (DataEnd)")) from None
+            raise self._corrupt(err, f" (record at byte {pos})") from None
+        except (_Corrupt, *_PARSE_ERRORS) as err:
+            raise self._corrupt(err, f" (record at byte {pos})") from None
+        if pending is not None:
+            yield fh.tell() - done, flush_chunk()
+        if loose:
+            yield 0, flush_loose()
+        yield max(self.size - fh.tell(), 0), self._message_batch([], lut)
+
+    def _chunk_batch(self, got: LoadedChunk, lut: np.ndarray, refresh: Callable[[], None]) -> MessageBatch:
+        data = got.data
         arr = np.frombuffer(data, dtype=np.uint8)
         try:
-            off, others = _locate(data, arr, self._index_offsets(c))
-            for op, pos, _ in others:
-                self._other_record(data, op, pos)
-        except (_Corrupt, struct.error) as err:
-            raise RecordingError(f"{self.path}: corrupt chunk at byte {c.start}: {err}") from None
-        if others:
-            refresh()
+            off, others = locate_messages(data, arr, got.index)
+            if others and self._register(data, others):
+                refresh()
+        except (_Corrupt, *_PARSE_ERRORS) as err:
+            raise self._chunk_error(got.offset, str(err)) from None
         return self._batch(data, off, lut, arr)
 
     def _batch(self, data: bytes, off: np.ndarray, lut: np.ndarray, arr: np.ndarray | None = None) -> MessageBatch:
-        if arr is None:
-            arr = np.frombuffer(data, dtype=np.uint8)
-        if len(off) and off[-1] + _MSG_HEAD_SIZE > len(arr):
-            raise RecordingError(f"{self.path}: corrupt message record at byte {int(off[-1])}")
-        head = np.ascontiguousarray(_gather(arr, off, _MSG_HEAD_SIZE)).view(_MSG_HEAD).reshape(-1)
-        if len(head) and (head["len"] < 22).any():
-            raise RecordingError(f"{self.path}: corrupt message record (shorter than its header)")
-        topic = lut[head["channel"]]
-        keep = topic >= 0
+        """Batch of the selected message records at offsets ``off`` of ``data``."""
+        try:
+            return message_batch(data, off, lut, arr)
+        except ValueError as err:
+            raise RecordingError(f"{self.path}: {err}") from None
+
+    @staticmethod
+    def _message_batch(messages: list[Message], lut: np.ndarray) -> MessageBatch:
+        """Batch of the selected ones among library Message records (streamed, outside chunks)."""
+        channel = np.fromiter((m.channel_id for m in messages), dtype=np.int64, count=len(messages))
+        topic = lut[channel] if len(messages) else np.zeros(0, np.int32)
+        keep = np.flatnonzero(topic >= 0)
+        datas = [messages[i].data for i in keep]
+        length = np.fromiter((len(d) for d in datas), dtype=np.int64, count=len(datas))
+        offset = np.cumsum(length) - length
         return MessageBatch(
-            buffer=arr,
+            buffer=np.frombuffer(b"".join(datas), dtype=np.uint8),
             topic=topic[keep],
-            log_time=head["log_time"][keep].astype(np.int64),
-            offset=off[keep] + _MSG_HEAD_SIZE,
-            length=head["len"][keep].astype(np.int64) - 22,
+            log_time=np.fromiter((messages[i].log_time for i in keep), dtype=np.int64, count=len(keep)),
+            offset=offset,
+            length=length,
         )
-
-
-def _read_metadata_yaml(directory: Path) -> tuple[list[Path], dict]:
-    meta_path = directory / "metadata.yaml"
-    if not meta_path.is_file():
-        mcaps = sorted(p.name for p in directory.glob("*.mcap"))
-        hint = f" (it has {', '.join(mcaps[:3])}: pass the .mcap file, or run `ros2 bag reindex`)" if mcaps else ""
-        raise RecordingError(f"{directory}: not a rosbag2 directory: no metadata.yaml{hint}")
-    try:
-        doc = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f"line {mark.line + 1}: " if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise RecordingError(f"{meta_path}: {where}malformed YAML: {problem}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise RecordingError(f"{meta_path}: cannot read: {err}") from None
-    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
-    if not isinstance(info, dict):
-        raise RecordingError(f"{meta_path}: malformed metadata: no rosbag2_bagfile_information mapping")
-    storage = info.get("storage_identifier")
-    if storage != "mcap":
-        raise RecordingError(
-            f"{meta_path}: storage_identifier is {storage!r}; only 'mcap' is supported "
-            "(convert with `ros2 bag convert` to mcap)"
-        )
-    mode = str(info.get("compression_mode") or "").strip().lower()
-    if mode not in ("", "none"):
-        raise RecordingError(
-            f"{meta_path}: rosbag2 compression_mode {mode!r} is not supported "
-            "(use MCAP chunk compression: `ros2 bag convert` / `ros2 bag record --storage-preset-profile`)"
-        )
-    rel = info.get("relative_file_paths")
-    if not isinstance(rel, list) or not rel or not all(isinstance(x, str) and x for x in rel):
-        raise RecordingError(f"{meta_path}: malformed metadata: relative_file_paths must be a non-empty list of file names")
-    files = []
-    for name in rel:
-        p = directory / name
-        if not p.is_file():
-            raise RecordingError(f"{meta_path}: relative_file_paths lists {name!r}, which does not exist")
-        files.append(p)
-    return files, info
-
-
-class McapRecording:
-    """A recording: rosbag2 MCAP directory or bare ``.mcap`` file.
-
-    ``files`` are the MCAP files in reading order; ``metadata`` the
-    ``rosbag2_bagfile_information`` mapping (None for a bare file).
-    """
-
-    def __init__(self, path: str | os.PathLike) -> None:
-        p = Path(path)
-        if p.name == "metadata.yaml" and p.is_file():
-            p = p.parent
-        self.path = p
-        if not p.exists():
-            raise RecordingError(f"{p}: recording not found")
-        self.metadata: dict | None
-        if p.is_dir():
-            self.files, self.metadata = _read_metadata_yaml(p)
-        elif p.is_file():
-            self.files, self.metadata = [p], None
-        else:
-            raise RecordingError(f"{p}: not a file or directory")
-
-    def open_files(self) -> Iterator[McapFile]:
-        for f in self.files:
-            with McapFile(f) as mf:
-                yield mf
-
-    def topics(self) -> dict[str, list[ChannelInfo]]:
-        """topic -> channels over all files (from the summaries; files without one are scanned)."""
-        out: dict[str, list[ChannelInfo]] = {}
-        for mf in self.open_files():
-            if not mf.has_summary and mf.chunks:  # channel records may hide in chunks
-                for _ in mf.iter_batches(lambda ch: -1):
-                    pass
-            for ch in mf.channels.values():
-                out.setdefault(ch.topic, []).append(ch)
-        return out
-
-    def iter_batches(
-        self,
-        select: Mapping[str, str],
-        *,
-        encoding: str = "cdr",
-        progress: Callable[[float], None] | None = None,
-    ) -> Iterator[MessageBatch]:
-        """Batches of the messages on topics ``select`` (topic -> schema name).
-
-        A channel is selected when its topic is a key of ``select``, its schema
-        name equals the value and its message encoding is ``encoding``;
-        ``MessageBatch.topic`` indexes ``list(select)``.  ``progress(f)`` gets
-        the fraction of chunk bytes done, now and then.
-        """
-        index = {t: i for i, t in enumerate(select)}
-
-        def choose(ch: ChannelInfo) -> int:
-            i = index.get(ch.topic, -1)
-            if i >= 0 and ch.schema_name == select[ch.topic] and ch.message_encoding == encoding:
-                return i
-            return -1
-
-        total = sum(max(f.stat().st_size, 1) for f in self.files)
-        done_files = 0
-        last = -1.0
-        for mf in self.open_files():
-            fsize = max(mf.path.stat().st_size, 1)
-            cbytes = max(mf.chunk_bytes, 1)
-            done = 0
-            with contextlib.closing(mf.iter_batches(choose)) as batches:
-                for used, batch in batches:
-                    done += used
-                    if progress is not None:
-                        frac = (done_files + fsize * min(done / cbytes, 1.0)) / total
-                        if frac - last >= 0.01:
-                            progress(frac)
-                            last = frac
-                    if len(batch):
-                        yield batch
-            done_files += fsize
-        if progress is not None and last < 1.0:
-            progress(1.0)

@@ -13,7 +13,8 @@ directory also a rosbag2 Jazzy (version 9) ``metadata.yaml``.  Files are
 written atomically (:func:`imu_array_ros.io.atomic.atomic_path`).
 
 Format constants and compressors: :mod:`imu_array_ros.io.rosbag.mcap_format`;
-reading: :mod:`imu_array_ros.io.rosbag.mcap_reader`.
+reading: :mod:`imu_array_ros.io.rosbag.mcap_reader` (one file),
+:mod:`imu_array_ros.io.rosbag.mcap_recording` (a recording).
 """
 
 from __future__ import annotations
@@ -34,15 +35,11 @@ from numpy.lib.stride_tricks import sliding_window_view
 from imu_array_ros.io.atomic import atomic_path
 from imu_array_ros.errors import RecordingError
 from imu_array_ros.io.rosbag.mcap_format import (
-    _MSG_HEAD,
-    _MSG_HEAD_SIZE,
-    _REC,
-    _U16,
-    _U32,
-    _U64,
     DEFAULT_CHUNK_SIZE,
     DEFAULT_COMPRESSION,
     MAGIC,
+    MESSAGE_HEAD,
+    MESSAGE_HEAD_SIZE,
     OP_CHANNEL,
     OP_CHUNK,
     OP_CHUNK_INDEX,
@@ -56,7 +53,11 @@ from imu_array_ros.io.rosbag.mcap_format import (
     OP_SCHEMA,
     OP_STATISTICS,
     OP_SUMMARY_OFFSET,
-    _compressor,
+    RECORD_HEAD,
+    U16,
+    U32,
+    U64,
+    compressor,
 )
 
 __all__ = [
@@ -113,16 +114,16 @@ class ChannelData:
 
 def _pack_string(s: str) -> bytes:
     b = s.encode("utf-8")
-    return _U32.pack(len(b)) + b
+    return U32.pack(len(b)) + b
 
 
 def _pack_map(d: Mapping[str, str]) -> bytes:
     body = b"".join(_pack_string(k) + _pack_string(v) for k, v in d.items())
-    return _U32.pack(len(body)) + body
+    return U32.pack(len(body)) + body
 
 
 def _record(op: int, body: bytes) -> bytes:
-    return _REC.pack(op, len(body)) + body
+    return RECORD_HEAD.pack(op, len(body)) + body
 
 
 class _Out:
@@ -211,12 +212,12 @@ def _assemble_chunk(
     index_recs: list[tuple[int, bytes]] = []
     for c, sel in zip(present, np.split(by_chan, first[1:])):
         cid = int(c) + 1
-        width = int(_MSG_HEAD_SIZE + lengths[c])
+        width = int(MESSAGE_HEAD_SIZE + lengths[c])
         rec_dt = np.dtype(
             {
                 "names": ["head", "data"],
-                "formats": [_MSG_HEAD, ("u1", (int(lengths[c]),))],
-                "offsets": [0, _MSG_HEAD_SIZE],
+                "formats": [MESSAGE_HEAD, ("u1", (int(lengths[c]),))],
+                "offsets": [0, MESSAGE_HEAD_SIZE],
                 "itemsize": width,
             }
         )
@@ -234,7 +235,7 @@ def _assemble_chunk(
         entries[:, 0] = time[sel]
         entries[:, 1] = off[sel]
         eb = entries.tobytes()
-        index_recs.append((cid, _record(OP_MESSAGE_INDEX, _U16.pack(cid) + _U32.pack(len(eb)) + eb)))
+        index_recs.append((cid, _record(OP_MESSAGE_INDEX, U16.pack(cid) + U32.pack(len(eb)) + eb)))
     return buf, index_recs
 
 
@@ -248,7 +249,7 @@ def _write_mcap(
     library: str,
 ) -> tuple[int, int, int]:
     """Write one MCAP file; returns (start time, duration, message count)."""
-    compress = _compressor(compression)
+    compress = compressor(compression)
     comp_name = "" if compression == "none" else compression
     out = _Out(fh)
     out.write(MAGIC)
@@ -263,9 +264,9 @@ def _write_mcap(
         if ch.type_name not in schema_ids:
             schema_ids[ch.type_name] = len(schema_ids) + 1
             text, _ = message_definition(ch.type_name)
-            body = _U16.pack(schema_ids[ch.type_name]) + _pack_string(ch.type_name) + _pack_string("ros2msg")
+            body = U16.pack(schema_ids[ch.type_name]) + _pack_string(ch.type_name) + _pack_string("ros2msg")
             data = text.encode("utf-8")
-            schema_recs.append(_record(OP_SCHEMA, body + _U32.pack(len(data)) + data))
+            schema_recs.append(_record(OP_SCHEMA, body + U32.pack(len(data)) + data))
     for i, ch in enumerate(channels):
         meta = {"offered_qos_profiles": qos, "topic_type_hash": message_definition(ch.type_name)[1]}
         body = (
@@ -286,7 +287,7 @@ def _write_mcap(
     row = np.concatenate([np.arange(n, dtype=np.int64) for n in counts] + [np.zeros(0, np.int64)])
     order = np.argsort(times, kind="stable")
     times, chan, row = times[order], chan[order], row[order]
-    rec_len = _MSG_HEAD_SIZE + lengths[chan]
+    rec_len = MESSAGE_HEAD_SIZE + lengths[chan]
     start = np.cumsum(rec_len) - rec_len
     chunk_of = start // chunk_size
     bounds = np.concatenate(([0], np.flatnonzero(np.diff(chunk_of)) + 1, [len(times)]))
@@ -302,9 +303,9 @@ def _write_mcap(
         crc = zlib.crc32(buf)
         comp = compress(buf)
         t0, t1 = int(c_time.min()), int(c_time.max())
-        body_head = struct.pack("<QQQI", t0, t1, size, crc) + _pack_string(comp_name) + _U64.pack(len(comp))
+        body_head = struct.pack("<QQQI", t0, t1, size, crc) + _pack_string(comp_name) + U64.pack(len(comp))
         chunk_start = out.pos
-        out.write(_REC.pack(OP_CHUNK, len(body_head) + len(comp)))
+        out.write(RECORD_HEAD.pack(OP_CHUNK, len(body_head) + len(comp)))
         out.write(body_head)
         out.write(comp)
         chunk_len = out.pos - chunk_start
@@ -318,9 +319,9 @@ def _write_mcap(
             _record(
                 OP_CHUNK_INDEX,
                 struct.pack("<QQQQ", t0, t1, chunk_start, chunk_len)
-                + _U32.pack(len(offs_map))
+                + U32.pack(len(offs_map))
                 + offs_map
-                + _U64.pack(out.pos - idx_start)
+                + U64.pack(out.pos - idx_start)
                 + _pack_string(comp_name)
                 + struct.pack("<QQ", len(comp), size),
             )
@@ -337,7 +338,7 @@ def _write_mcap(
     meta_body = _pack_string("rosbag2") + _pack_map({"serialized_metadata": _dump_yaml(info), "ros_distro": "jazzy"})
     out.write(_record(OP_METADATA, meta_body))
     meta_len = out.pos - meta_start
-    out.write(_record(OP_DATA_END, _U32.pack(out.crc)))
+    out.write(_record(OP_DATA_END, U32.pack(out.crc)))
 
     # summary
     out.track = False
@@ -357,7 +358,7 @@ def _write_mcap(
     stats = (
         struct.pack("<QHIIII", n_msgs, len(schema_recs), len(chan_recs), 0, 1, len(chunk_indexes))
         + struct.pack("<QQ", t_start, t_end)
-        + _U32.pack(len(stats_map))
+        + U32.pack(len(stats_map))
         + stats_map
     )
     group(OP_SCHEMA, schema_recs)
@@ -371,9 +372,9 @@ def _write_mcap(
         rec = _record(OP_SUMMARY_OFFSET, struct.pack("<BQQ", op, g0, glen))
         out.write(rec)
         summary_crc = zlib.crc32(rec, summary_crc)
-    footer_head = _REC.pack(OP_FOOTER, 20) + struct.pack("<QQ", summary_start, offset_start)
+    footer_head = RECORD_HEAD.pack(OP_FOOTER, 20) + struct.pack("<QQ", summary_start, offset_start)
     summary_crc = zlib.crc32(footer_head, summary_crc)
-    out.write(footer_head + _U32.pack(summary_crc))
+    out.write(footer_head + U32.pack(summary_crc))
     out.write(MAGIC)
     return t_start, t_end - t_start, n_msgs
 
@@ -405,7 +406,7 @@ def write_recording(
     topics = [ch.topic for ch in channels]
     if len(set(topics)) != len(topics):
         raise ValueError("duplicate topic in channels")
-    _compressor(compression)  # validate early
+    compressor(compression)  # validate early
 
     def write_file(target: Path, name: str) -> tuple[int, int, int]:
         with open(target, "wb", buffering=1 << 20) as fh:

@@ -18,31 +18,32 @@ Topics (``prefix`` defaults to ``/imu_array``):
     AccelWithCovarianceStamped: linear = specific force, angular = omega_dot,
     6x6 covariance in ROS order [linear, angular].
 
-Reading decodes whole MCAP chunks column-wise (:mod:`.mcap_reader`,
-:mod:`.cdr_columns`); there is no per-message Python in the hot path.
-Writing: :mod:`.mcap_writer`.
+This module holds what the topics mean (names, types, the fields read and
+written, stamp alignment).  Reading decodes whole MCAP chunks column-wise
+(:mod:`.topic_columns`: selected topics as decoded columns, topic checks;
+:mod:`.mcap_recording`, :mod:`.cdr_columns`); there is no per-message Python
+in the hot path.  Writing: :mod:`.mcap_writer`.
 """
 
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from imu_array_ros.io.rosbag.cdr_columns import (
     ACCEL_LAYOUT,
     IMU_LAYOUT,
-    MessageLayout,
-    decode_columns,
     encode_accel_with_covariance_stamped,
     encode_imu,
 )
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.errors import RecordingError
-from imu_array_ros.io.rosbag.mcap_reader import ChannelInfo, McapRecording
+from imu_array_ros.io.rosbag.mcap_recording import McapRecording
 from imu_array_ros.io.rosbag.mcap_writer import ChannelData, write_recording
+from imu_array_ros.io.rosbag.topic_columns import check_topic, list_topics, read_topics
 from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth, ReadStats
 
 __all__ = [
@@ -80,89 +81,6 @@ def imu_topic(name: str, topic_prefix: str = "/imu_array") -> str:
 # --------------------------------------------------------------------------- reading helpers
 
 
-@dataclass
-class _Columns:
-    """Decoded messages of the topics sharing one message type, file order.
-
-    topic (M,) int32 index into the requested topics; stamps (M,) int64 ns;
-    valid (M,) bool (layout decodable); encap_ok (M,) bool; fields name -> (M, n).
-    """
-
-    topic: np.ndarray
-    stamps: np.ndarray
-    valid: np.ndarray
-    encap_ok: np.ndarray
-    fields: dict[str, np.ndarray]
-
-
-def _list_topics(available: Mapping[str, list[ChannelInfo]], limit: int = 12) -> str:
-    names = sorted(available)
-    if not names:
-        return "no topics"
-    more = f", ... ({len(names) - limit} more)" if len(names) > limit else ""
-    return ", ".join(names[:limit]) + more
-
-
-def _check_topic(rec: McapRecording, available, topic: str, type_name: str, what: str) -> bool:
-    """True if ``topic`` exists with ``type_name`` (cdr); raise on a wrong type; False if absent."""
-    chans = available.get(topic)
-    if not chans:
-        return False
-    if not any(c.schema_name == type_name and c.message_encoding == "cdr" for c in chans):
-        got = ", ".join(sorted({f"{c.schema_name or '<no schema>'} ({c.message_encoding})" for c in chans}))
-        raise RecordingError(f"{rec.path}: topic {topic} {what} has type {got}, expected {type_name} (cdr)")
-    return True
-
-
-def _collect(
-    rec: McapRecording,
-    topics: Sequence[tuple[str, MessageLayout]],
-    fields: Mapping[str, Sequence[str]],
-    progress: Callable[[float], None] | None = None,
-) -> dict[str, _Columns]:
-    """Decode every message of ``topics`` ((topic, layout) pairs), grouped by type name."""
-    select = {t: layout.type_name for t, layout in topics}
-    layouts = {layout.type_name: layout for _, layout in topics}
-    members = {
-        name: np.array([i for i, (_, lay) in enumerate(topics) if lay.type_name == name], dtype=np.int32)
-        for name in layouts
-    }
-    parts: dict[str, list] = {name: [] for name in layouts}
-    for batch in rec.iter_batches(select, progress=progress):
-        for name, layout in layouts.items():
-            if len(layouts) == 1:
-                sub = slice(None)
-                topic = batch.topic
-            else:
-                sub = np.isin(batch.topic, members[name])
-                if not sub.any():
-                    continue
-                topic = batch.topic[sub]
-            dec = decode_columns(layout, batch.buffer, batch.offset[sub], batch.length[sub], fields[name])
-            parts[name].append((topic, dec))
-    out: dict[str, _Columns] = {}
-    for name, layout in layouts.items():
-        got = parts[name]
-        names = list(fields[name])
-        if not got:
-            out[name] = _Columns(
-                np.zeros(0, np.int32),
-                np.zeros(0, np.int64),
-                np.zeros(0, bool),
-                np.zeros(0, bool),
-                {f: np.zeros((0, layout.fields[f][1])) for f in names},
-            )
-            continue
-        out[name] = _Columns(
-            topic=np.concatenate([t for t, _ in got]),
-            stamps=np.concatenate([d.stamps for _, d in got]),
-            valid=np.concatenate([d.valid for _, d in got]),
-            encap_ok=np.concatenate([d.encapsulation_ok for _, d in got]),
-            fields={f: np.concatenate([d.fields[f] for _, d in got]) for f in names},
-        )
-    return out
-
-
 def _first_per_stamp(stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unique sorted stamps and, for each, the index of its first occurrence."""
     return np.unique(stamps, return_index=True)
@@ -195,17 +113,22 @@ def read_imu_recording(
     names = tuple(description.names)
     topics = [imu_topic(n, topic_prefix) for n in names]
     rec = McapRecording(path)
-    available = rec.topics()
-    for name, topic in zip(names, topics):
-        if not _check_topic(rec, available, topic, IMU_TYPE, f"for IMU {name!r}"):
-            raise RecordingError(f"{rec.path}: no topic {topic} for IMU {name!r} (recording has: {_list_topics(available)})")
 
-    cols = _collect(
+    def check(available) -> None:
+        for name, topic in zip(names, topics):
+            if not check_topic(rec, available, topic, IMU_TYPE, f"for IMU {name!r}"):
+                raise RecordingError(
+                    f"{rec.path}: no topic {topic} for IMU {name!r} (recording has: {list_topics(available)})"
+                )
+
+    _, by_type = read_topics(
         rec,
         [(t, IMU_LAYOUT) for t in topics],
         {IMU_TYPE: ("angular_velocity", "linear_acceleration")},
+        check,
         progress,
-    )[IMU_TYPE]
+    )
+    cols = by_type[IMU_TYPE]
     k_count = len(names)
     stats = ReadStats(messages=int(len(cols.topic)))
 
@@ -355,24 +278,55 @@ def write_imu_recording(
     write_recording(path, channels)
 
 
-def _open_motion_topics(path, prefix: str, what: str, label: str):
-    """Open a recording and find its ``<prefix>/imu`` (Imu) and ``<prefix>/accel`` topics.
+@dataclass
+class _TopicRows:
+    """The first decodable message per stamp of one topic: rows (n,) into the union
+    of stamps, fields name -> (n, count)."""
 
-    Returns (recording, [(topic, layout), ...] of those present, (imu topic, present),
-    (accel topic, present)); RecordingError naming ``label`` when both are missing.
+    rows: np.ndarray
+    fields: dict[str, np.ndarray]
+
+
+def _read_motion_topics(
+    path, prefix: str, what: str, label: str, imu_fields: Sequence[str], accel_fields: Sequence[str]
+) -> tuple[np.ndarray, _TopicRows | None, _TopicRows | None]:
+    """Read ``<prefix>/imu`` (Imu) and ``<prefix>/accel`` (AccelWithCovarianceStamped).
+
+    Shared by :func:`read_truth` and :func:`read_fused_recording`.  Returns
+    (stamps (N,) int64 ns: sorted union of both topics' decodable stamps, imu,
+    accel), imu / accel None when that topic is absent.  RecordingError naming
+    ``label`` when both are missing, naming ``what`` when one has another type.
     """
     prefix = _prefix(prefix)
     rec = McapRecording(path)
-    available = rec.topics()
     t_imu, t_acc = f"{prefix}/imu", f"{prefix}/accel"
-    has_imu = _check_topic(rec, available, t_imu, IMU_TYPE, what)
-    has_acc = _check_topic(rec, available, t_acc, ACCEL_TYPE, what)
-    if not (has_imu or has_acc):
-        raise RecordingError(
-            f"{rec.path}: {label}: topics {t_imu} and {t_acc} are missing (recording has: {_list_topics(available)})"
-        )
-    topics = ([(t_imu, IMU_LAYOUT)] if has_imu else []) + ([(t_acc, ACCEL_LAYOUT)] if has_acc else [])
-    return rec, topics, (t_imu, has_imu), (t_acc, has_acc)
+
+    def check(available) -> tuple[bool, bool]:
+        has_imu = check_topic(rec, available, t_imu, IMU_TYPE, what)
+        has_acc = check_topic(rec, available, t_acc, ACCEL_TYPE, what)
+        if not (has_imu or has_acc):
+            raise RecordingError(
+                f"{rec.path}: {label}: topics {t_imu} and {t_acc} are missing (recording has: {list_topics(available)})"
+            )
+        return has_imu, has_acc
+
+    present, cols = read_topics(
+        rec,
+        [(t_imu, IMU_LAYOUT), (t_acc, ACCEL_LAYOUT)],
+        {IMU_TYPE: tuple(imu_fields), ACCEL_TYPE: tuple(accel_fields)},
+        check,
+    )
+    found = [cols[name] if has else None for name, has in zip((IMU_TYPE, ACCEL_TYPE), present)]
+    parts = [c.stamps[c.valid] for c in found if c is not None]
+    stamps = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+    out: list[_TopicRows | None] = []
+    for c in found:
+        if c is None:
+            out.append(None)
+            continue
+        s, first = _first_per_stamp(c.stamps[c.valid])
+        out.append(_TopicRows(np.searchsorted(stamps, s), {k: v[c.valid][first] for k, v in c.fields.items()}))
+    return stamps, out[0], out[1]
 
 
 def read_truth(path: str | os.PathLike, *, prefix: str = "/imu_array/truth") -> MotionTruth:
@@ -382,28 +336,21 @@ def read_truth(path: str | os.PathLike, *, prefix: str = "/imu_array/truth") -> 
     lacks a stamp is NaN.  attitude (N, 4) [w x y z] if the Imu messages carry
     orientation (orientation_covariance[0] != -1), else None.
     """
-    rec, topics, (t_imu, has_imu), (t_acc, has_acc) = _open_motion_topics(path, prefix, "(ground truth)", "no ground truth")
-    cols = _collect(
-        rec,
-        topics,
-        {
-            IMU_TYPE: ("orientation", "orientation_covariance", "angular_velocity", "linear_acceleration"),
-            ACCEL_TYPE: ("linear", "angular"),
-        },
+    stamps, imu, acc = _read_motion_topics(
+        path,
+        prefix,
+        "(ground truth)",
+        "no ground truth",
+        ("orientation", "orientation_covariance", "angular_velocity", "linear_acceleration"),
+        ("linear", "angular"),
     )
-    imu = cols.get(IMU_TYPE)
-    acc = cols.get(ACCEL_TYPE)
-    parts = [c.stamps[c.valid] for c in (imu, acc) if c is not None]
-    stamps = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
     n = len(stamps)
     omega = np.full((n, 3), np.nan)
     omega_dot = np.full((n, 3), np.nan)
     force = np.full((n, 3), np.nan)
     attitude = None
     if imu is not None:
-        s, first = _first_per_stamp(imu.stamps[imu.valid])
-        rows = np.searchsorted(stamps, s)
-        f = {k: v[imu.valid][first] for k, v in imu.fields.items()}
+        rows, f = imu.rows, imu.fields
         omega[rows] = f["angular_velocity"]
         force[rows] = f["linear_acceleration"]
         has_q = f["orientation_covariance"][:, 0] != -1.0
@@ -412,11 +359,9 @@ def read_truth(path: str | os.PathLike, *, prefix: str = "/imu_array/truth") -> 
             q = f["orientation"][:, [3, 0, 1, 2]]
             attitude[rows[has_q]] = q[has_q]
     if acc is not None:
-        s, first = _first_per_stamp(acc.stamps[acc.valid])
-        rows = np.searchsorted(stamps, s)
-        omega_dot[rows] = acc.fields["angular"][acc.valid][first]
+        omega_dot[acc.rows] = acc.fields["angular"]
         if imu is None:
-            force[rows] = acc.fields["linear"][acc.valid][first]
+            force[acc.rows] = acc.fields["linear"]
     return MotionTruth(stamps=stamps, omega=omega, omega_dot=omega_dot, specific_force=force, attitude=attitude)
 
 
@@ -474,24 +419,14 @@ def read_fused_recording(path: str | os.PathLike, *, prefix: str = "/imu_array/f
     omega], [omega_dot, omega_dot], [specific_force, specific_force] and the
     specific_force/omega_dot cross blocks); everything else is NaN.
     """
-    rec, topics, (t_imu, has_imu), (t_acc, has_acc) = _open_motion_topics(path, prefix, "(fused)", "no fused output")
-    cols = _collect(
-        rec,
-        topics,
-        {
-            IMU_TYPE: (
-                "angular_velocity",
-                "angular_velocity_covariance",
-                "linear_acceleration",
-                "linear_acceleration_covariance",
-            ),
-            ACCEL_TYPE: ("linear", "angular", "covariance"),
-        },
+    stamps, imu, acc = _read_motion_topics(
+        path,
+        prefix,
+        "(fused)",
+        "no fused output",
+        ("angular_velocity", "angular_velocity_covariance", "linear_acceleration", "linear_acceleration_covariance"),
+        ("linear", "angular", "covariance"),
     )
-    imu = cols.get(IMU_TYPE)
-    acc = cols.get(ACCEL_TYPE)
-    parts = [c.stamps[c.valid] for c in (imu, acc) if c is not None]
-    stamps = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
     n = len(stamps)
     omega = np.full((n, 3), np.nan)
     omega_dot = np.full((n, 3), np.nan)
@@ -499,20 +434,17 @@ def read_fused_recording(path: str | os.PathLike, *, prefix: str = "/imu_array/f
     cov = np.full((n, 9, 9), np.nan)
     w, wd, f = slice(0, 3), slice(3, 6), slice(6, 9)
     if imu is not None:
-        s, first = _first_per_stamp(imu.stamps[imu.valid])
-        rows = np.searchsorted(stamps, s)
-        col = {k: v[imu.valid][first] for k, v in imu.fields.items()}
+        rows, col = imu.rows, imu.fields
         omega[rows] = col["angular_velocity"]
         force[rows] = col["linear_acceleration"]
         cov[rows, w, w] = col["angular_velocity_covariance"].reshape(-1, 3, 3)
         cov[rows, f, f] = col["linear_acceleration_covariance"].reshape(-1, 3, 3)
     if acc is not None:
-        s, first = _first_per_stamp(acc.stamps[acc.valid])
-        rows = np.searchsorted(stamps, s)
-        c6 = acc.fields["covariance"][acc.valid][first].reshape(-1, 6, 6)
-        omega_dot[rows] = acc.fields["angular"][acc.valid][first]
+        rows = acc.rows
+        c6 = acc.fields["covariance"].reshape(-1, 6, 6)
+        omega_dot[rows] = acc.fields["angular"]
         if imu is None:
-            force[rows] = acc.fields["linear"][acc.valid][first]
+            force[rows] = acc.fields["linear"]
         cov[rows, f, f] = c6[:, :3, :3]
         cov[rows, f, wd] = c6[:, :3, 3:]
         cov[rows, wd, f] = c6[:, 3:, :3]

@@ -1,0 +1,263 @@
+"""``imu-array`` argument parsing: argparse with validating types, dispatch to :mod:`.commands`.
+
+Every option is checked here (positive, finite, non-negative, a time) so a
+command function only ever sees sensible values; a bad one gives one line
+``imu-array: error: argument --duration: ...`` and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from datetime import datetime, timedelta, timezone
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
+from pathlib import Path
+from typing import Callable
+
+from imu_array_ros import __version__
+from imu_array_ros.cli import commands
+from imu_array_ros.errors import ImuArrayError
+
+__all__ = [
+    "main",
+    "build_parser",
+    "EXIT_USER_ERROR",
+    "positive_float",
+    "non_negative_float",
+    "non_negative_int",
+    "sample_rate",
+    "start_time",
+]
+
+EXIT_USER_ERROR = 2
+
+#: Highest sample rate accepted: stamps are integer nanoseconds and must stay distinct.
+MAX_RATE_HZ = 1e6
+
+
+# --------------------------------------------------------------------------- argument types
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """A finite number >= 0."""
+    value = _number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {text!r}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """An integer >= 0 (seeds)."""
+    try:
+        value = int(text, 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {text!r}")
+    return value
+
+
+def sample_rate(text: str) -> float:
+    """A sample rate in Hz: > 0 and at most :data:`MAX_RATE_HZ`."""
+    value = positive_float(text)
+    if value > MAX_RATE_HZ:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_RATE_HZ:g} Hz (stamps are whole nanoseconds), got {text!r}")
+    return value
+
+
+_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
+
+
+def start_time(text: str) -> int:
+    """A start time -> int ns since the epoch (UTC).
+
+    Accepts seconds since the epoch (``1795255200``, ``1795255200.25``) or an
+    ISO 8601 time (``2026-11-21T10:00:00Z``, ``2026-11-21T11:00:00+01:00``; a
+    time without offset is UTC).  Must lie within what a ROS
+    ``builtin_interfaces/Time`` (int32 seconds) can hold.
+    """
+    s = text.strip()
+    try:
+        seconds = Decimal(s)
+    except InvalidOperation:
+        seconds = None
+    if seconds is not None:
+        if not seconds.is_finite():
+            raise argparse.ArgumentTypeError(f"must be a finite time, got {text!r}")
+        ns = int((seconds * 10**9).to_integral_value(rounding=ROUND_HALF_EVEN))
+    else:
+        iso = s[:-1] + "+00:00" if s.endswith(("Z", "z")) else s
+        try:
+            when = datetime.fromisoformat(iso)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected an ISO 8601 time (e.g. 2026-11-21T10:00:00Z) or seconds since the epoch, got {text!r}"
+            ) from None
+        if when.tzinfo is None:
+            when = when.replace(tzinfo=timezone.utc)
+        delta: timedelta = when - _EPOCH
+        ns = (delta.days * 86400 + delta.seconds) * 10**9 + delta.microseconds * 1000
+    if not 0 <= ns <= commands.MAX_STAMP_NS:
+        raise argparse.ArgumentTypeError(
+            f"must lie between 1970-01-01T00:00:00Z and 2038-01-19T03:14:07Z "
+            f"(int32 seconds of a ROS time stamp), got {text!r}"
+        )
+    return ns
+
+
+# --------------------------------------------------------------------------- parser
+
+
+class _UsageError(Exception):
+    """A command line argparse rejects; printed as one line by :func:`main`."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage mistake as one line instead of usage + exit."""
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        raise _UsageError(f"{message} (see '{self.prog} --help')")
+
+
+QUIET_HELP = "no progress or summary lines on stderr (errors still appear)"
+
+
+def _common(sp: argparse.ArgumentParser, *, force: str, quiet: str = QUIET_HELP) -> None:
+    sp.add_argument("--force", action="store_true", help=force)
+    sp.add_argument("-q", "--quiet", action="store_true", help=quiet)
+
+
+_FORCE_RECORDING = ("replace an existing output, only if it is itself a recording (an MCAP file, or a rosbag2 "
+                    "directory holding only its own files); an input, a directory holding other files, or any "
+                    "other file is never replaced")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``imu-array`` parser; each subcommand's ``func`` is the typed command to call."""
+    p = _Parser(prog="imu-array", description="Inertial sensor array tools (imu_array_ros).")
+    p.add_argument("--version", action="version", version=f"imu-array {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    sp = sub.add_parser("simulate", help="simulate a recording of an array (rosbag2 MCAP)")
+    sp.add_argument("--array", required=True, type=Path,
+                    help="array description YAML (nominal; written into the recording); must be identifiable")
+    sp.add_argument("--out", required=True, type=Path, help="output: directory (rosbag2) or file ending in .mcap")
+    sp.add_argument("--motion", choices=["twist", "random"], default="twist",
+                    help="twist: smooth hand twisting; random: independent samples (carlsson2017 Monte Carlo)")
+    sp.add_argument("--duration", type=positive_float, default=5.0, help="seconds, > 0 (default 5)")
+    sp.add_argument("--rate", type=sample_rate, default=1000.0,
+                    help=f"sample rate in Hz, 0 < HZ <= {MAX_RATE_HZ:g} (default 1000)")
+    sp.add_argument("--rms-rate", type=positive_float, default=600.0,
+                    help="twist: RMS angular speed; random: |omega|; deg/s, > 0 (default 600)")
+    sp.add_argument("--angular-accel", type=non_negative_float, default=2000.0,
+                    help="random: |omega_dot| in deg/s^2, >= 0 (default 2000)")
+    sp.add_argument("--seed", type=non_negative_int, default=0, help="seed of motion and noise, >= 0 (default 0)")
+    sp.add_argument("--start-time", dest="start_ns", type=start_time, metavar="TIME",
+                    help="stamp of the first sample: ISO 8601 (2026-11-21T10:00:00Z; UTC without an offset) "
+                         "or seconds since the epoch (default: now; give a fixed time for a reproducible recording)")
+    sp.add_argument("--true-array", type=Path, help="description holding the true sensor parameters (default: --array)")
+    sp.add_argument("--error-seed", type=non_negative_int,
+                    help="add seeded sensor errors (positions, gains, biases, angles), >= 0")
+    sp.add_argument("--position-error-std", type=non_negative_float,
+                    help="with --error-seed: position error sigma in m, >= 0 (default 1e-4)")
+    sp.add_argument("--truth-array-out", type=Path,
+                    help="write the true sensor parameters as a description YAML (with --force, replaces only "
+                         "a YAML file)")
+    _common(sp, force=_FORCE_RECORDING)
+    sp.set_defaults(func=commands.simulate)
+
+    sp = sub.add_parser("fuse", help="ML fusion of a recording (skog2016) with Cramér-Rao covariances")
+    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
+    sp.add_argument("--array", required=True, type=Path, help="array description YAML")
+    sp.add_argument("--calibration", type=Path,
+                    help="calibrated description (same schema) to use instead of --array's values")
+    sp.add_argument("--out", required=True, type=Path, help="output: directory (rosbag2) or file ending in .mcap")
+    _common(sp, force=_FORCE_RECORDING)
+    sp.set_defaults(func=commands.fuse)
+
+    sp = sub.add_parser("import-openshoe", help="convert an OpenShoe raw serial capture to a recording")
+    sp.add_argument("capture", type=Path, help="raw capture file (e.g. exp_1.bin)")
+    sp.add_argument("--array", required=True, type=Path, help="array description YAML (IMU order = capture order)")
+    sp.add_argument("--out", required=True, type=Path, help="output: directory (rosbag2) or file ending in .mcap")
+    sp.add_argument("--start-time", dest="start_ns", type=start_time, metavar="TIME",
+                    help="stamp of the first packet: ISO 8601 (2026-11-21T10:00:00Z; UTC without an offset) or "
+                         "seconds since the epoch (default: the capture ends at the file's modification time)")
+    _common(sp, force=_FORCE_RECORDING)
+    sp.set_defaults(func=commands.import_openshoe)
+
+    sp = sub.add_parser("residuals", help="how well the model explains a recording (normalised residuals)")
+    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
+    sp.add_argument("--array", required=True, type=Path, help="array description YAML")
+    sp.add_argument("--calibration", type=Path, help="calibrated description (same schema)")
+    sp.add_argument("--compare-simulated", action="store_true",
+                    help="also analyse a simulated recording of the same (fused) motion")
+    sp.add_argument("--still-threshold", type=non_negative_float, default=0.2,
+                    help="|omega| below this (rad/s, >= 0) is 'still' (default 0.2)")
+    sp.add_argument("--seed", type=non_negative_int, default=0, help="seed of the simulated comparison, >= 0")
+    sp.add_argument("--json", dest="json_out", metavar="FILE",
+                    help="write the summary as JSON to FILE ('-' for stdout); a ratio without samples is null")
+    sp.add_argument("--tables", action="store_true", help="print the ratio table by IMU and axis on stdout")
+    _common(sp, force="replace an existing --json FILE, only if it is itself a JSON file",
+            quiet="no progress or summary lines on stderr (errors still appear); the result asked for on "
+                  "stdout (--tables, --json -) is still printed")
+    sp.set_defaults(func=commands.residuals)
+
+    sp = sub.add_parser("recover", help="salvage a truncated or damaged recording (e.g. a recorder killed mid-write)")
+    sp.add_argument("recording", type=Path, help="the damaged recording: .mcap file or rosbag2 directory (only read)")
+    sp.add_argument("--out", required=True, type=Path,
+                    help="the salvaged recording: directory (rosbag2) or file ending in .mcap")
+    _common(sp, force=_FORCE_RECORDING)
+    sp.set_defaults(func=commands.recover)
+    return p
+
+
+def _call(func: Callable[..., int], args: argparse.Namespace) -> int:
+    kwargs = {k: v for k, v in vars(args).items() if k not in ("func", "command")}
+    return int(func(**kwargs) or 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``imu-array`` with ``argv`` (default ``sys.argv[1:]``); return the exit status.
+
+    0 on success; 2 with one line ``imu-array: error: ...`` on stderr for a user
+    mistake (bad option, bad file, unsafe output); 130 on Ctrl-C.
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except _UsageError as err:
+        print(f"imu-array: error: {err}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except SystemExit as exc:  # --help, --version
+        return exc.code if isinstance(exc.code, int) else 0
+    try:
+        return _call(args.func, args)
+    except ImuArrayError as err:
+        print(f"imu-array: error: {err}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("imu-array: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
