@@ -10,6 +10,9 @@ import pytest
 from imu_array_ros.model.layouts import grid_array32, planar_square4, tetrahedron4
 
 REPO = Path(__file__).resolve().parents[1]
+ARRAY32 = REPO / "config" / "array32.yaml"
+#: a fixed, realistic start time keeps simulated recordings reproducible
+START = "2026-11-21T10:00:00Z"
 SHARED_DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"
 
 #: skog2016 Sec. V-A noise figures: sigma_s = 0.01 m/s^2, sigma_w = 1 deg/s.
@@ -34,3 +37,29 @@ def planar4():
 @pytest.fixture
 def tetra4():
     return tetrahedron4(**SKOG2016_NOISE)
+
+
+# --------------------------------------------------------------------------- the command line, in-process
+
+
+def cli(capsys, *args):
+    """Run ``imu-array ARGS`` in-process; (exit status, stdout, stderr)."""
+    from imu_array_ros.cli import main
+
+    capsys.readouterr()
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_user_error(result, *fragments):
+    """Exit status 2, nothing on stdout, exactly one line ``imu-array: error: ...`` on stderr
+    holding every fragment, no traceback; returns that line."""
+    code, out, err = result
+    assert code == 2, (code, err)
+    assert "Traceback" not in err and out == "", (out, err)
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("imu-array: error: "), err
+    for frag in fragments:
+        assert frag in lines[0], (frag, lines[0])
+    return lines[0]

@@ -25,38 +25,14 @@ from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import DEFAULT_ERROR_SCALES, LinearArrayModel, apply_terms, random_error_terms
 from imu_array_ros.simulation.simulator import simulate_twist
 
-from conftest import REPO, SHARED_DATA
+from conftest import ARRAY32, REPO, SHARED_DATA, START, assert_user_error, cli
 
-ARRAY32 = REPO / "config" / "array32.yaml"
-#: a fixed, realistic start time keeps simulated recordings reproducible
-START = "2026-11-21T10:00:00Z"
-
-
-def cli(capsys, *args):
-    """Run ``imu-array ARGS`` in-process; (exit status, stdout, stderr)."""
-    capsys.readouterr()
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def ok(capsys, *args):
     code, out, err = cli(capsys, *args)
     assert code == 0, err
     return out, err
-
-
-def assert_user_error(result, *fragments):
-    """Exit status 2, exactly one line on stderr, ``imu-array: error: ...`` holding every fragment."""
-    code, _, err = result
-    assert code == 2, (code, err)
-    assert "Traceback" not in err
-    lines = err.splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("imu-array: error: "), err
-    for frag in fragments:
-        assert frag in lines[0], (frag, lines[0])
-    return lines[0]
 
 
 def run(*args, program=None):

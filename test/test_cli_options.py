@@ -20,29 +20,11 @@ from imu_array_ros.io.openshoe.framing import encode_packets
 from imu_array_ros.io.rosbag.recording import read_fused_recording, read_imu_recording, read_truth
 from imu_array_ros.model.description import load_description
 
-from conftest import REPO
+from conftest import ARRAY32, REPO, assert_user_error, cli
 
-ARRAY32 = REPO / "config" / "array32.yaml"
 CORNERS = REPO / "config" / "mimu4444bt_corners.yaml"
 README = (REPO / "README.md").read_text(encoding="utf-8")
 NOV21_10H_NS = calendar.timegm((2026, 11, 21, 10, 0, 0)) * 10**9  # 2026-11-21T10:00:00Z
-
-
-def cli(capsys, *args):
-    capsys.readouterr()
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def user_error(result, *fragments):
-    code, out, err = result
-    assert code == 2, (code, err)
-    assert "Traceback" not in err and out == ""
-    assert len(err.splitlines()) == 1 and err.startswith("imu-array: error: "), err
-    for frag in fragments:
-        assert frag in err, (frag, err)
-    return err
 
 
 def strict_json(text: str):
@@ -103,16 +85,16 @@ def test_bad_option_values_are_one_line_errors(tmp_path, capsys, argv, option, p
     argv = list(argv)
     if argv[0] in ("simulate", "import-openshoe"):
         argv += ["--out", tmp_path / "out.mcap"]
-    err = user_error(cli(capsys, *argv), option, problem)
+    err = assert_user_error(cli(capsys, *argv), option, problem)
     assert f"'imu-array {argv[0]} --help'" in err
     assert not list(tmp_path.iterdir())
 
 
 def test_duration_and_rate_must_give_samples(tmp_path, capsys):
-    user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--duration", "0.001", "--rate", "100"), "gives no sample")
-    user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--duration", "1e9", "--rate", "1000"), "more than")
-    user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--position-error-std", "1e-4"), "needs --error-seed")
-    user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--start-time", "2038-01-19T03:14:07Z", "--duration", "2"),
+    assert_user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--duration", "0.001", "--rate", "100"), "gives no sample")
+    assert_user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--duration", "1e9", "--rate", "1000"), "more than")
+    assert_user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--position-error-std", "1e-4"), "needs --error-seed")
+    assert_user_error(cli(capsys, *SIM, "--out", tmp_path / "r", "--start-time", "2038-01-19T03:14:07Z", "--duration", "2"),
                "2038")
     assert not list(tmp_path.iterdir())
 
@@ -187,15 +169,15 @@ def test_non_identifiable_arrays_are_refused_naming_the_file(spinning, tmp_path,
     for argv in (["simulate", "--array", line, "--out", tmp_path / "s.mcap"],
                  ["fuse", spinning, "--array", line, "--out", tmp_path / "f.mcap"],
                  ["residuals", spinning, "--array", line]):
-        assert user_error(cli(capsys, *argv)).startswith(expected)
+        assert assert_user_error(cli(capsys, *argv)).startswith(expected)
     # with --calibration the geometry comes from the calibration file: that is the file named
-    err = user_error(cli(capsys, "fuse", spinning, "--array", ARRAY32, "--calibration", line, "--out", tmp_path / "c.mcap"))
+    err = assert_user_error(cli(capsys, "fuse", spinning, "--array", ARRAY32, "--calibration", line, "--out", tmp_path / "c.mcap"))
     assert err.startswith(f"imu-array: error: {line}: "), err
     two = yaml.safe_load(ARRAY32.read_text())
     del two["imu_array"]["imus"][2:]
     two_path = tmp_path / "two.yaml"
     two_path.write_text(yaml.safe_dump(two))
-    user_error(cli(capsys, "simulate", "--array", two_path, "--out", tmp_path / "s.mcap"), str(two_path), "at least 3")
+    assert_user_error(cli(capsys, "simulate", "--array", two_path, "--out", tmp_path / "s.mcap"), str(two_path), "at least 3")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["line.yaml", "two.yaml"]
 
 

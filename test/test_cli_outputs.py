@@ -21,26 +21,8 @@ from imu_array_ros.io.atomic import atomic_path, atomic_write_text, check_output
 from imu_array_ros.io.rosbag.recording import read_fused_recording, read_imu_recording
 from imu_array_ros.model.description import load_description
 
-from conftest import REPO
+from conftest import ARRAY32, REPO, START, assert_user_error, cli
 
-ARRAY32 = REPO / "config" / "array32.yaml"
-START = "2026-11-21T10:00:00Z"
-
-
-def cli(capsys, *args):
-    capsys.readouterr()
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def refused(result, *fragments):
-    code, _, err = result
-    assert code == 2, (code, err)
-    assert "Traceback" not in err
-    assert len(err.splitlines()) == 1 and err.startswith("imu-array: error: "), err
-    for frag in fragments:
-        assert frag in err, (frag, err)
 
 
 def snapshot(root: Path) -> dict:
@@ -78,13 +60,13 @@ def test_simulate_force_does_not_delete_a_directory_of_other_files(tmp_path, mon
     victim.mkdir()
     (victim / "thesis.tex").write_text("x\n")
     before = snapshot(tmp_path)
-    refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", "victim", "--duration", 0.1, "--force"),
+    assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", "victim", "--duration", 0.1, "--force"),
             "victim", "not a rosbag2 recording", "not replaced")
     assert snapshot(tmp_path) == before
     # a rosbag2 directory with a stranger inside is not replaced either
     (victim / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  relative_file_paths: [victim_0.mcap]\n")
     before = snapshot(tmp_path)
-    refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", "victim", "--duration", 0.1, "--force"),
+    assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", "victim", "--duration", 0.1, "--force"),
             "thesis.tex", "not part of its recording")
     assert snapshot(tmp_path) == before
 
@@ -94,66 +76,66 @@ def test_fuse_never_touches_its_input(bag, tmp_path, capsys):
     data = sb1 / "sb_0.mcap"
     before = snapshot(tmp_path)
     # the output directory holds the input file
-    refused(cli(capsys, "fuse", data, "--array", ARRAY32, "--out", sb1, "--force"), "contains the input")
+    assert_user_error(cli(capsys, "fuse", data, "--array", ARRAY32, "--out", sb1, "--force"), "contains the input")
     # the output is the input bag's data file
-    refused(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", data, "--force"), "lies inside the input")
+    assert_user_error(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", data, "--force"), "lies inside the input")
     # a new file inside the input bag is refused too (the bag would no longer hold only its own files)
-    refused(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", sb1 / "fused.mcap", "--force"), "lies inside the input")
+    assert_user_error(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", sb1 / "fused.mcap", "--force"), "lies inside the input")
     # the output is the input, directly, through a symlink, through a hard link
-    refused(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", sb1, "--force"), "overwrite the input")
+    assert_user_error(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", sb1, "--force"), "overwrite the input")
     link = tmp_path / "link"
     link.symlink_to(sb1)
-    refused(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", link, "--force"), "overwrite the input")
-    refused(cli(capsys, "fuse", link, "--array", ARRAY32, "--out", sb1, "--force"), "overwrite the input")
+    assert_user_error(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", link, "--force"), "overwrite the input")
+    assert_user_error(cli(capsys, "fuse", link, "--array", ARRAY32, "--out", sb1, "--force"), "overwrite the input")
     hard = tmp_path / "hard.mcap"
     os.link(data, hard)
-    refused(cli(capsys, "fuse", data, "--array", ARRAY32, "--out", hard, "--force"), "overwrite the input")
+    assert_user_error(cli(capsys, "fuse", data, "--array", ARRAY32, "--out", hard, "--force"), "overwrite the input")
     # the output is the array description (an input as well)
-    refused(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", ARRAY32, "--force"), "overwrite the input")
+    assert_user_error(cli(capsys, "fuse", sb1, "--array", ARRAY32, "--out", ARRAY32, "--force"), "overwrite the input")
     after = {k: v for k, v in snapshot(tmp_path).items() if not k.startswith(("link", "hard.mcap"))}
     assert after == before
     assert not leftovers(tmp_path, sb1)
 
 
-def test_out_dot_and_the_current_directory_are_refused(bag, tmp_path, monkeypatch, capsys):
+def test_out_dot_and_the_current_directory_are_assert_user_error(bag, tmp_path, monkeypatch, capsys):
     work = tmp_path / "work"
     copy_bag(bag, work)
     monkeypatch.chdir(work)
     before = snapshot(tmp_path)
     for out in (".", "..", str(work), "./", str(tmp_path)):
-        refused(cli(capsys, "fuse", REPO / "bags" / "twist32_sample", "--array", ARRAY32, "--out", out, "--force"))
-        refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", out, "--duration", 0.05, "--force"))
+        assert_user_error(cli(capsys, "fuse", REPO / "bags" / "twist32_sample", "--array", ARRAY32, "--out", out, "--force"))
+        assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", out, "--duration", 0.05, "--force"))
     assert snapshot(tmp_path) == before  # nothing removed, no '..<random>.old' or '.tmp' left behind
-    refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", str(work), "--force"), "current directory")
+    assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", str(work), "--force"), "current directory")
 
 
 def test_an_existing_file_named_mcap_that_is_not_mcap_is_kept(tmp_path, capsys):
     fake = tmp_path / "notes.mcap"
     fake.write_text("my notes, not a recording\n")
-    refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", fake, "--duration", 0.05, "--force"),
+    assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", fake, "--duration", 0.05, "--force"),
             "not an MCAP file")
     assert fake.read_text() == "my notes, not a recording\n"
     # a directory recording named like a file, and a file where a directory recording is written
-    refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", tmp_path, "--duration", 0.05, "--force"))
+    assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", tmp_path, "--duration", 0.05, "--force"))
     plain = tmp_path / "thesis.tex"
     plain.write_text("x")
-    refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", plain, "--duration", 0.05, "--force"),
+    assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", plain, "--duration", 0.05, "--force"),
             "not a directory")
     assert plain.read_text() == "x"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.mcap", "thesis.tex"]
 
 
-def test_symlinked_output_is_refused(bag, tmp_path, capsys):
+def test_symlinked_output_is_assert_user_error(bag, tmp_path, capsys):
     target = tmp_path / "real.mcap"
     assert main(["fuse", str(bag), "--array", str(ARRAY32), "--out", str(target), "-q"]) == 0
     before = target.read_bytes()
     link = tmp_path / "link.mcap"
     link.symlink_to(target)
-    refused(cli(capsys, "fuse", bag, "--array", ARRAY32, "--out", link, "--force"), "symbolic link")
+    assert_user_error(cli(capsys, "fuse", bag, "--array", ARRAY32, "--out", link, "--force"), "symbolic link")
     assert link.is_symlink() and target.read_bytes() == before
     dangling = tmp_path / "dangling.mcap"
     dangling.symlink_to(tmp_path / "nowhere.mcap")
-    refused(cli(capsys, "fuse", bag, "--array", ARRAY32, "--out", dangling), "symbolic link")
+    assert_user_error(cli(capsys, "fuse", bag, "--array", ARRAY32, "--out", dangling), "symbolic link")
     assert not (tmp_path / "nowhere.mcap").exists()
 
 
@@ -162,7 +144,7 @@ def test_force_replaces_a_recording_of_the_same_kind(bag, tmp_path, capsys):
     out_dir = tmp_path / "sim"
     assert main(["simulate", "--array", str(ARRAY32), "--out", str(out_dir), "--duration", "0.05", "--rate", "200",
                  "--seed", "1", "--start-time", "0", "-q"]) == 0
-    refused(cli(capsys, "simulate", "--array", ARRAY32, "--out", out_dir, "--duration", 0.1, "--rate", 200),
+    assert_user_error(cli(capsys, "simulate", "--array", ARRAY32, "--out", out_dir, "--duration", 0.1, "--rate", 200),
             "already exists", "--force")
     code, _, err = cli(capsys, "simulate", "--array", ARRAY32, "--out", out_dir, "--duration", 0.1, "--rate", 200,
                        "--seed", 2, "--start-time", 0, "--force")
@@ -181,16 +163,16 @@ def test_force_replaces_a_recording_of_the_same_kind(bag, tmp_path, capsys):
 def test_residuals_json_is_not_overwritten_without_force(bag, tmp_path, capsys):
     report = tmp_path / "report.json"
     report.write_text('{"mine": true}\n')
-    refused(cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", report), "already exists", "--force")
+    assert_user_error(cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", report), "already exists", "--force")
     assert report.read_text() == '{"mine": true}\n'
     code, _, err = cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", report, "--force")
     assert code == 0, err
     assert set(json.loads(report.read_text())) == {"recording"}
     thesis = tmp_path / "thesis.json"
     thesis.write_text("\\documentclass{article}\n")
-    refused(cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", thesis, "--force"), "not a JSON file")
+    assert_user_error(cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", thesis, "--force"), "not a JSON file")
     assert thesis.read_text() == "\\documentclass{article}\n"
-    refused(cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", bag / "metadata.yaml", "--force"),
+    assert_user_error(cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", bag / "metadata.yaml", "--force"),
             "inside the input")
     assert not leftovers(tmp_path)
 
@@ -199,19 +181,19 @@ def test_truth_array_out_is_checked_like_any_output(tmp_path, capsys):
     base = ["simulate", "--array", ARRAY32, "--duration", 0.05, "--rate", 200, "--error-seed", 1]
     array_copy = tmp_path / "array.yaml"
     array_copy.write_bytes(ARRAY32.read_bytes())
-    refused(cli(capsys, *base, "--array", array_copy, "--out", tmp_path / "r.mcap", "--truth-array-out", array_copy,
+    assert_user_error(cli(capsys, *base, "--array", array_copy, "--out", tmp_path / "r.mcap", "--truth-array-out", array_copy,
                 "--force"), "--truth-array-out", "overwrite the input")
     assert array_copy.read_bytes() == ARRAY32.read_bytes()
-    refused(cli(capsys, *base, "--out", tmp_path / "r", "--truth-array-out", tmp_path / "r" / "t.yaml"), "overlaps")
+    assert_user_error(cli(capsys, *base, "--out", tmp_path / "r", "--truth-array-out", tmp_path / "r" / "t.yaml"), "overlaps")
     notes = tmp_path / "notes.yaml"
     notes.write_text("just a sentence, not a mapping\n")
-    refused(cli(capsys, *base, "--out", tmp_path / "r.mcap", "--truth-array-out", notes, "--force"), "not a YAML file")
+    assert_user_error(cli(capsys, *base, "--out", tmp_path / "r.mcap", "--truth-array-out", notes, "--force"), "not a YAML file")
     assert notes.read_text() == "just a sentence, not a mapping\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["array.yaml", "notes.yaml"]  # nothing written on refusal
     truth = tmp_path / "truth.yaml"
     code, _, err = cli(capsys, *base, "--out", tmp_path / "r.mcap", "--truth-array-out", truth)
     assert code == 0, err
-    refused(cli(capsys, *base, "--out", tmp_path / "r2.mcap", "--truth-array-out", truth), "already exists")
+    assert_user_error(cli(capsys, *base, "--out", tmp_path / "r2.mcap", "--truth-array-out", truth), "already exists")
     code, _, err = cli(capsys, *base, "--out", tmp_path / "r2.mcap", "--truth-array-out", truth, "--force")
     assert code == 0, err
 
@@ -219,7 +201,7 @@ def test_truth_array_out_is_checked_like_any_output(tmp_path, capsys):
 def test_import_openshoe_never_overwrites_its_capture(tmp_path, capsys):
     capture = tmp_path / "exp.bin"
     capture.write_bytes(b"\x00" * 64)
-    refused(cli(capsys, "import-openshoe", capture, "--array", REPO / "config" / "mimu4444bt_corners.yaml",
+    assert_user_error(cli(capsys, "import-openshoe", capture, "--array", REPO / "config" / "mimu4444bt_corners.yaml",
                 "--out", capture, "--force"), "overwrite the input")
     assert capture.read_bytes() == b"\x00" * 64
 
