@@ -1,0 +1,170 @@
+"""THE forward model of the array: nominal geometry + noise + ordered terms.
+
+Each sensor of IMU k is a chain that starts from the motion in the nominal
+sensor frame and passes every term acting on that sensor, in ``order``::
+
+    accelerometer:  x = R^T s  -> position -> axis_offsets -> time_offset -> misalignment
+                      -> nonorthogonality -> nonlinearity -> gain -> bias -> bias_drift
+    gyroscope:      x = R^T omega -> time_offset -> misalignment -> nonorthogonality
+                      -> gain -> g_sensitivity -> bias -> bias_drift
+
+(with every term at its identity value this is skog2016 eq. 1-5; with the
+nilsson2014 terms it is y = K L (I + [xi]x) R^T s(r) + b).  :meth:`SensorModel.predict`
+is what the simulator measures with and what residuals compare against;
+:meth:`SensorModel.jacobians` chains the terms' analytic derivatives backwards
+into d y / d theta (per term, per IMU) and d y / d [omega, omega_dot, s] (per
+sample) for the fitting engine and the discovery tool.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from imu_array_ros.model.terms import REGISTRY, SENSORS, MotionContext, Term, term_names
+
+__all__ = ["SensorModel", "ModelJacobians", "motion_context"]
+
+
+def motion_context(stamps, omega, omega_dot, specific_force, rotations, *, t0_ns=None, omega_ddot=None,
+                   specific_force_dot=None) -> MotionContext:
+    """A :class:`MotionContext` from arrays (N, 3) in the array frame; rotations (K, 3, 3)."""
+    f = lambda a: None if a is None else np.asarray(a, dtype=float).reshape(-1, 3)  # noqa: E731
+    return MotionContext(stamps=np.asarray(stamps, dtype=np.int64).reshape(-1), omega=f(omega), omega_dot=f(omega_dot),
+                         specific_force=f(specific_force), rotations=np.asarray(rotations, dtype=float),
+                         t0_ns=t0_ns, omega_ddot=f(omega_ddot), specific_force_dot=f(specific_force_dot))
+
+
+@dataclass
+class ModelJacobians:
+    """Predictions and Jacobians of every reading, rows [acc x, y, z, gyro x, y, z] per IMU.
+
+    predicted (N, K, 6); motion (N, K, 6, 9) d y / d [omega, omega_dot, s];
+    params: term name -> (N, K, 6, P) d y / d theta_k (IMU k's P parameters).
+    """
+
+    predicted: np.ndarray
+    motion: np.ndarray
+    params: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Nominal geometry, noise and every registered term (at its identity value unless set).
+
+    names (K,); rotations (K, 3, 3) nominal sensor -> array; acc_std, gyro_std
+    (K, 3) white-noise standard deviations; terms: registry name -> :class:`Term`.
+    """
+
+    names: tuple[str, ...]
+    frame_id: str
+    rotations: np.ndarray
+    acc_std: np.ndarray
+    gyro_std: np.ndarray
+    terms: dict[str, Term]
+
+    @property
+    def n_imus(self) -> int:
+        return len(self.names)
+
+    @classmethod
+    def from_description(cls, desc) -> "SensorModel":
+        """Every term's values from the description's fields (identity where absent)."""
+        k = len(desc.imus)
+        terms = {}
+        for name in term_names():
+            tc = REGISTRY[name]
+            values = tc.default_values(k)
+            for i, imu in enumerate(desc.imus):
+                col = 0
+                for f in tc.fields:
+                    v = desc_field(imu, f.path)
+                    if v is not None:
+                        values[i, col:col + f.size] = np.asarray(v, dtype=float).ravel()
+                    col += f.size
+            terms[name] = tc(values)
+        return cls(names=desc.names, frame_id=desc.frame_id, rotations=desc.orientations,
+                   acc_std=np.full((k, 3), desc.accelerometer_noise_std),
+                   gyro_std=np.full((k, 3), desc.gyroscope_noise_std), terms=terms)
+
+    def with_terms(self, **values: np.ndarray) -> "SensorModel":
+        """A copy with some terms' values (K, P) replaced."""
+        terms = dict(self.terms)
+        for name, v in values.items():
+            terms[name] = terms[name].with_values(np.asarray(v, dtype=float).reshape(self.n_imus, -1))
+        return replace(self, terms=terms)
+
+    def chain(self, sensor: str, keep: Iterable[str] = ()) -> list[Term]:
+        """The terms acting on ``sensor`` in order; identity terms left out unless in ``keep``."""
+        keep = set(keep)
+        out = [t for t in self.terms.values() if sensor in t.sensors and (t.name in keep or not t.is_identity)]
+        return sorted(out, key=lambda t: t.order)
+
+    def _prepare(self, ctx: MotionContext) -> MotionContext:
+        ctx.positions = self.terms["position"].values
+        return ctx
+
+    def _base(self, ctx: MotionContext, sensor: str) -> np.ndarray:
+        v = ctx.specific_force if sensor == "accelerometer" else ctx.omega
+        return np.einsum("kji,nj->nki", ctx.rotations, v)
+
+    def predict(self, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free readings (accelerometers, gyroscopes), each (N, K, 3), sensor frames, unclipped."""
+        ctx = self._prepare(ctx)
+        out = []
+        for sensor in SENSORS:
+            x = self._base(ctx, sensor)
+            for term in self.chain(sensor):
+                x = term.apply(x, ctx, sensor)
+            out.append(x)
+        return out[0], out[1]
+
+    def jacobians(self, ctx: MotionContext, free: Sequence[str] = ()) -> ModelJacobians:
+        """Predictions and analytic Jacobians (motion, and the ``free`` terms' parameters)."""
+        unknown = [n for n in free if n not in self.terms]
+        if unknown:
+            raise KeyError(f"unknown term {unknown[0]!r} (known: {', '.join(term_names())})")
+        ctx = self._prepare(ctx)
+        n, k = ctx.n, self.n_imus
+        predicted = np.empty((n, k, 6))
+        motion = np.zeros((n, k, 6, 9))
+        params = {name: np.zeros((n, k, 6, self.terms[name].dim())) for name in free}
+        eye = np.broadcast_to(np.eye(3), (n, k, 3, 3))
+        for s, sensor in enumerate(SENSORS):
+            rows = slice(3 * s, 3 * s + 3)
+            chain = self.chain(sensor, keep=free)
+            x = self._base(ctx, sensor)
+            inputs = []
+            for term in chain:
+                inputs.append(x)
+                x = term.apply(x, ctx, sensor)
+            predicted[:, :, rows] = x
+            d = eye  # d y / d (signal after the current term)
+            for term, x_in in zip(reversed(chain), reversed(inputs)):
+                if term.name in params:
+                    params[term.name][:, :, rows] += d @ term.d_params(x_in, ctx, sensor)
+                dm = term.d_motion(x_in, ctx, sensor)
+                if dm is not None:
+                    motion[:, :, rows] += d @ dm
+                if "position" in params:
+                    dp = term.d_positions(x_in, ctx, sensor)  # terms that read the positions
+                    if dp is not None:
+                        params["position"][:, :, rows] += d @ dp
+                di = term.d_input(x_in, ctx, sensor)
+                if di is not None:
+                    d = d @ di
+            base = 6 if sensor == "accelerometer" else 0  # R^T s or R^T omega
+            motion[:, :, rows, base:base + 3] += d @ ctx.rot_t[None]
+        return ModelJacobians(predicted=predicted, motion=motion, params=params)
+
+
+def desc_field(imu, path: tuple[str, ...]):
+    """Value of a term field in an :class:`~imu_array_ros.model.description.ImuSpec`, or None."""
+    obj = imu
+    for key in path:
+        obj = obj.get(key) if isinstance(obj, dict) else getattr(obj, key, None)
+        if obj is None:
+            return None
+    return obj

@@ -1,0 +1,11 @@
+"""``accelerometer_bias``: constant offset of each accelerometer axis (nilsson2014 b)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Bias
+
+
+@register
+class AccelerometerBias(Bias):
+    name = "accelerometer_bias"
+    sensors = ("accelerometer",)
+    fields = (Field(("accelerometer", "bias"), (3,), "m/s^2"),)

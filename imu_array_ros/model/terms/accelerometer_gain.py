@@ -1,0 +1,11 @@
+"""``accelerometer_gain``: scale factor of each accelerometer axis (nilsson2014 K)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Gain
+
+
+@register
+class AccelerometerGain(Gain):
+    name = "accelerometer_gain"
+    sensors = ("accelerometer",)
+    fields = (Field(("accelerometer", "gain"), (3,), "1", default=1.0, positive=True),)

@@ -1,0 +1,11 @@
+"""``accelerometer_misalignment``: small rotation of the accelerometer triad vs its nominal orientation (nilsson2014 xi)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Misalignment
+
+
+@register
+class AccelerometerMisalignment(Misalignment):
+    name = "accelerometer_misalignment"
+    sensors = ("accelerometer",)
+    fields = (Field(("accelerometer", "misalignment"), (3,), "rad"),)

@@ -1,0 +1,11 @@
+"""``accelerometer_nonorthogonality``: non-orthogonal sensing axes (nilsson2014 L)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Nonorthogonality
+
+
+@register
+class AccelerometerNonorthogonality(Nonorthogonality):
+    name = "accelerometer_nonorthogonality"
+    sensors = ("accelerometer",)
+    fields = (Field(("accelerometer", "nonorthogonality"), (3,), "rad"),)

@@ -1,0 +1,11 @@
+"""``gyroscope_bias``: constant offset of each gyroscope axis (nilsson2014 b)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Bias
+
+
+@register
+class GyroscopeBias(Bias):
+    name = "gyroscope_bias"
+    sensors = ("gyroscope",)
+    fields = (Field(("gyroscope", "bias"), (3,), "rad/s"),)

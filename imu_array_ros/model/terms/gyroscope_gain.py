@@ -1,0 +1,11 @@
+"""``gyroscope_gain``: scale factor of each gyroscope axis (nilsson2014 K)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Gain
+
+
+@register
+class GyroscopeGain(Gain):
+    name = "gyroscope_gain"
+    sensors = ("gyroscope",)
+    fields = (Field(("gyroscope", "gain"), (3,), "1", default=1.0, positive=True),)

@@ -1,0 +1,11 @@
+"""``gyroscope_misalignment``: small rotation of the gyroscope triad vs its nominal orientation (nilsson2014 xi)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Misalignment
+
+
+@register
+class GyroscopeMisalignment(Misalignment):
+    name = "gyroscope_misalignment"
+    sensors = ("gyroscope",)
+    fields = (Field(("gyroscope", "misalignment"), (3,), "rad"),)

@@ -1,0 +1,11 @@
+"""``gyroscope_nonorthogonality``: non-orthogonal sensing axes (nilsson2014 L)."""
+
+from imu_array_ros.model.terms.base import Field, register
+from imu_array_ros.model.terms.triad import Nonorthogonality
+
+
+@register
+class GyroscopeNonorthogonality(Nonorthogonality):
+    name = "gyroscope_nonorthogonality"
+    sensors = ("gyroscope",)
+    fields = (Field(("gyroscope", "nonorthogonality"), (3,), "rad"),)

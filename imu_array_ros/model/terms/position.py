@@ -1,0 +1,32 @@
+"""``position``: where each accelerometer triad sits in the array frame (skog2016 eq. 1).
+
+The accelerometer chain starts from the specific force at the array origin in
+the sensor frame, ``R^T s``; this term adds the lever-arm part, so that
+x = R^T f(p) = R^T (s + C p) with C = [omega]x^2 + [omega_dot]x.  Its value is the
+position itself (the YAML ``position``), not an offset.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imu_array_ros.model.terms.base import Field, MotionContext, Term, register
+
+
+@register
+class Position(Term):
+    name = "position"
+    sensors = ("accelerometer",)
+    order = 0
+    fields = (Field(("position",), (3,), "m"),)
+
+    def apply(self, x, ctx: MotionContext, sensor):
+        return x + np.einsum("kji,nkj->nki", ctx.rotations, np.einsum("nij,kj->nki", ctx.lever, self.values))
+
+    def d_params(self, x, ctx, sensor):
+        return np.einsum("kji,njl->nkil", ctx.rotations, ctx.lever)  # R^T C
+
+    def d_motion(self, x, ctx, sensor):
+        j = ctx.force_jacobian(self.values)  # (N, K, 3, 9) of s + C p; minus the s part (the chain's base)
+        j[..., 6:] = 0.0
+        return np.einsum("kji,nkjl->nkil", ctx.rotations, j)
