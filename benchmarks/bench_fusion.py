@@ -13,8 +13,9 @@ ratio compares two figures of the same run.  Writes benchmarks/results/fusion.md
                                                    [--reference 5d79859]
 
 ``--reference REV`` also times the fusion module of git revision REV (read with
-``git show``; its saturation rule shimmed in if the module predates the clip
-levels) on the same samples in the same run.
+``git show``, with the ``estimation/`` modules it imports at that revision; its
+saturation rule shimmed in if the module predates the clip levels) on the same
+samples in the same run.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(var, "1")
 
 import argparse  # noqa: E402
+import re  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import types  # noqa: E402
@@ -48,9 +50,16 @@ DROPOUT_RATE = 0.02
 REPO = Path(__file__).resolve().parents[1]
 
 
-def reference_fusion(rev: str):
-    """``MLFusion`` of ``imu_array_ros/estimation/ml_fusion.py`` at git revision ``rev`` (a module in memory)."""
-    src = subprocess.run(["git", "show", f"{rev}:imu_array_ros/estimation/ml_fusion.py"], cwd=REPO, check=True,
+def estimation_module_at(rev: str, name: str) -> types.ModuleType:
+    """``imu_array_ros/estimation/<name>.py`` at git revision ``rev`` (read with ``git show``), as a module in memory.
+
+    The ``imu_array_ros.estimation`` modules it imports (the fusion is split over several modules after
+    c3a7fd0) are taken from ``rev`` too, each loaded once; everything else from this tree.
+    """
+    module_name = f"{name}_{re.sub(r'[^0-9A-Za-z_]', '_', rev)}"  # importable by that name
+    if module_name in sys.modules:
+        return sys.modules[module_name]
+    src = subprocess.run(["git", "show", f"{rev}:imu_array_ros/estimation/{name}.py"], cwd=REPO, check=True,
                          capture_output=True, text=True).stdout
     old_import = "from imu_array_ros.model.sensor_model import SATURATION_MARGIN, LinearArrayModel, unsaturated"
     if old_import in src:  # before the clip levels: that version's own rule, |y| >= 0.998 * range
@@ -58,10 +67,20 @@ def reference_fusion(rev: str):
                           "SATURATION_MARGIN = 0.998\n"
                           "def unsaturated(values, limit, margin):\n"
                           "    return np.abs(values) < margin * limit\n")
-    module = types.ModuleType(f"ml_fusion_{rev}")
-    sys.modules[module.__name__] = module  # dataclasses look their module up
-    exec(compile(src, f"{rev}:ml_fusion.py", "exec"), module.__dict__)
-    return module.MLFusion
+    pattern = r"^(\s*)from imu_array_ros\.estimation\.(\w+) import"
+    for dep in sorted(set(m.group(2) for m in re.finditer(pattern, src, flags=re.M))):
+        loaded = estimation_module_at(rev, dep)
+        src = re.sub(rf"^(\s*)from imu_array_ros\.estimation\.{dep} import", rf"\1from {loaded.__name__} import",
+                     src, flags=re.M)
+    module = types.ModuleType(module_name)
+    sys.modules[module.__name__] = module  # dataclasses look their module up; later imports find it here
+    exec(compile(src, f"{rev}:{name}.py", "exec"), module.__dict__)
+    return module
+
+
+def reference_fusion(rev: str):
+    """``MLFusion`` of ``imu_array_ros/estimation/ml_fusion.py`` at git revision ``rev`` (:func:`estimation_module_at`)."""
+    return estimation_module_at(rev, "ml_fusion").MLFusion
 
 
 def best_of(fn, repeat):

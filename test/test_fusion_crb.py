@@ -215,7 +215,7 @@ def test_shape_mismatch_is_an_error(array32, rng):
 
 
 def test_batched_3x3_helpers_match_numpy(rng):
-    from imu_array_ros.estimation.ml_fusion import inv_sym3, solve_sym3
+    from imu_array_ros.estimation.batched_linalg import inv_sym3, solve_sym3
 
     a = rng.normal(size=(100, 3, 3))
     h = a @ np.swapaxes(a, 1, 2) + 1e-3 * np.eye(3)
