@@ -29,6 +29,7 @@ import numpy as np
 
 from imu_array_ros.model.description import ArrayDescription, ImuSpec, TriadCalibration
 from imu_array_ros.model.kinematics import skew
+from imu_array_ros.model.terms.triad import nonorthogonality_matrix
 
 __all__ = [
     "LinearArrayModel",
@@ -166,20 +167,6 @@ class LinearArrayModel:
             acc_std=self.acc_std[idx],
             gyro_std=self.gyro_std[idx],
         )
-
-
-def nonorthogonality_matrix(l: np.ndarray) -> np.ndarray:
-    """Unit lower-triangular L of nilsson2014 eq. 1 from ``[l_yz, l_zy, l_zx]``.
-
-    ``L = [[1, 0, 0], [l_yz, 1, 0], [l_zy, l_zx, 1]]``; works on (..., 3).
-    """
-    l = np.asarray(l, dtype=float)
-    out = np.zeros(l.shape[:-1] + (3, 3))
-    out[..., 0, 0] = out[..., 1, 1] = out[..., 2, 2] = 1.0
-    out[..., 1, 0] = l[..., 0]
-    out[..., 2, 0] = l[..., 1]
-    out[..., 2, 1] = l[..., 2]
-    return out
 
 
 # --------------------------------------------------------------------------- error terms
