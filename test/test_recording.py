@@ -250,6 +250,26 @@ def _ros_imu(ts, stamp, frame_id, gyro, acc):
     )
 
 
+def _write_with_mcap_library(path, ts, s, *, library="test", order=None, channel_metadata=None, **writer_kwargs):
+    """Write the IMU samples ``s`` with the ``mcap`` library's own Writer (an independent writer);
+    ``order``: message order as indexes into the (sample, IMU) pairs, default sample by sample."""
+    from mcap.writer import Writer as McapWriter
+
+    text, _ = mcap_writer.message_definition(IMU)
+    items = [(i, k) for i in range(len(s)) for k in range(len(NAMES))]
+    with open(path, "wb") as fh:
+        w = McapWriter(fh, **writer_kwargs)
+        w.start(profile="ros2", library=library)
+        sid = w.register_schema(IMU, "ros2msg", text.encode())
+        cids = [w.register_channel(imu_topic(n), "cdr", sid, *([channel_metadata] if channel_metadata else []))
+                for n in NAMES]
+        for j in (range(len(items)) if order is None else order):
+            i, k = items[j]
+            raw = bytes(ts.serialize_cdr(_ros_imu(ts, s.stamps[i], NAMES[k], s.gyro[i, k], s.accel[i, k]), IMU))
+            w.add_message(cids[k], int(s.stamps[i]), raw, int(s.stamps[i]))
+        w.finish()
+
+
 def write_with_rosbags(path, ts, samples, *, extra=(), compress=False, prefix="/imu_array"):
     """rosbags.rosbag2.Writer (mcap storage, v9); ``extra``: (k, stamp, gyro, acc) appended messages."""
     w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
@@ -288,14 +308,11 @@ def test_rosbags_written_bag_reads_bit_exact(tmp_path, ts, compress):
 def test_mcap_library_unindexed_unchunked_and_shuffled(tmp_path, ts):
     """mcap Writer without message indexes (record walk), messages out of time order, lz4; and an unchunked file."""
     from mcap.writer import CompressionType, IndexType
-    from mcap.writer import Writer as McapWriter
 
     desc = make_desc()
     s = make_samples(desc, n=60, seed=12)
     rng = np.random.default_rng(13)
-    items = [(i, k) for i in range(len(s)) for k in range(len(NAMES))]
-    order = rng.permutation(len(items))
-    text, rihs = mcap_writer.message_definition(IMU)
+    order = rng.permutation(len(s) * len(NAMES))
     for variant, kwargs in {
         "noindex": dict(compression=CompressionType.LZ4, index_types=IndexType.NONE, chunk_size=3000),
         "unchunked": dict(compression=CompressionType.NONE, use_chunking=False),
@@ -303,16 +320,7 @@ def test_mcap_library_unindexed_unchunked_and_shuffled(tmp_path, ts):
                           repeat_schemas=False, use_statistics=False, use_summary_offsets=False, chunk_size=3000),
     }.items():
         path = tmp_path / f"{variant}.mcap"
-        with open(path, "wb") as fh:
-            w = McapWriter(fh, **kwargs)
-            w.start(profile="ros2", library="test")
-            sid = w.register_schema(IMU, "ros2msg", text.encode())
-            cids = [w.register_channel(imu_topic(n), "cdr", sid, {"offered_qos_profiles": ""}) for n in NAMES]
-            for j in order:
-                i, k = items[j]
-                raw = bytes(ts.serialize_cdr(_ros_imu(ts, s.stamps[i], NAMES[k], s.gyro[i, k], s.accel[i, k]), IMU))
-                w.add_message(cids[k], int(s.stamps[i]), raw, int(s.stamps[i]))
-            w.finish()
+        _write_with_mcap_library(path, ts, s, order=order, channel_metadata={"offered_qos_profiles": ""}, **kwargs)
         with mcap_reader.McapFile(path) as mf:
             assert mf.has_summary == (variant != "nosummary")
         back, stats = read_imu_recording(path, desc)
@@ -677,23 +685,13 @@ def test_data_section_crc_of_zero_is_not_checked(tmp_path, ts, data_crcs, varian
     """mcap library writer: with enable_data_crcs the flip is caught (seeking and streaming path);
     without, DataEnd holds 0 = "not computed" (MCAP spec) and the file reads."""
     from mcap.writer import CompressionType, IndexType
-    from mcap.writer import Writer as McapWriter
 
     desc = make_desc()
     s = make_samples(desc, n=80, seed=32)
-    text, _ = mcap_writer.message_definition(IMU)
     path = tmp_path / f"{variant}.mcap"
     index = IndexType.ALL if variant == "indexed" else IndexType.NONE
-    with open(path, "wb") as fh:
-        w = McapWriter(fh, chunk_size=4000, compression=CompressionType.LZ4, index_types=index, enable_data_crcs=data_crcs)
-        w.start(profile="ros2", library="crc-test-library")
-        sid = w.register_schema(IMU, "ros2msg", text.encode())
-        cids = [w.register_channel(imu_topic(n), "cdr", sid) for n in NAMES]
-        for i in range(len(s)):
-            for k, name in enumerate(NAMES):
-                raw = bytes(ts.serialize_cdr(_ros_imu(ts, s.stamps[i], name, s.gyro[i, k], s.accel[i, k]), IMU))
-                w.add_message(cids[k], int(s.stamps[i]), raw, int(s.stamps[i]))
-        w.finish()
+    _write_with_mcap_library(path, ts, s, library="crc-test-library", chunk_size=4000, compression=CompressionType.LZ4,
+                             index_types=index, enable_data_crcs=data_crcs)
     data = path.read_bytes()
     with mcap_reader.McapFile(path) as mf:
         assert mf.indexed == (variant == "indexed")
@@ -734,25 +732,15 @@ def test_every_chunk_is_decompressed_once(tmp_path, ts, monkeypatch, variant):
     from mcap.data_stream import RecordBuilder
     from mcap.records import Footer
     from mcap.writer import CompressionType, IndexType
-    from mcap.writer import Writer as McapWriter
 
     desc = make_desc()
     s = make_samples(desc, n=200, seed=33)
     truth = make_truth(s)
     path = tmp_path / "r.mcap"
     if variant == "mcap_nosummary":  # channels only inside chunks, no summary, no indexes
-        text, _ = mcap_writer.message_definition(IMU)
-        with open(path, "wb") as fh:
-            w = McapWriter(fh, chunk_size=6000, compression=CompressionType.ZSTD, index_types=IndexType.NONE,
-                           repeat_channels=False, repeat_schemas=False, use_statistics=False, use_summary_offsets=False)
-            w.start(profile="ros2", library="test")
-            sid = w.register_schema(IMU, "ros2msg", text.encode())
-            cids = [w.register_channel(imu_topic(n), "cdr", sid) for n in NAMES]
-            for i in range(len(s)):
-                for k, name in enumerate(NAMES):
-                    raw = bytes(ts.serialize_cdr(_ros_imu(ts, s.stamps[i], name, s.gyro[i, k], s.accel[i, k]), IMU))
-                    w.add_message(cids[k], int(s.stamps[i]), raw, int(s.stamps[i]))
-            w.finish()
+        _write_with_mcap_library(path, ts, s, chunk_size=6000, compression=CompressionType.ZSTD,
+                                 index_types=IndexType.NONE, repeat_channels=False, repeat_schemas=False,
+                                 use_statistics=False, use_summary_offsets=False)
         has_truth = False
     else:
         chans = []

@@ -54,6 +54,24 @@ def _check_fusable(desc: ArrayDescription, source: Path) -> None:
     check_identifiable(desc.positions, len(desc.imus), where=str(source))
 
 
+def _read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet: bool):
+    """Load the description (checked fusable), read ``recording`` and fuse it in chunks.
+
+    Returns (description, MLFusion, ImuSamples, ReadStats, FusedSamples, FusionStats).
+    """
+    from imu_array_ros.estimation.ml_fusion import MLFusion
+    from imu_array_ros.estimation.stream import fuse_chunked
+    from imu_array_ros.io.rosbag.recording import read_imu_recording
+    from imu_array_ros.model.sensor_model import LinearArrayModel
+
+    desc, source = _load_array(array, calibration)
+    _check_fusable(desc, source)
+    fusion = MLFusion(LinearArrayModel.from_description(desc))
+    samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
+    fused, stats = fuse_chunked(fusion, samples, Progress("fusing", quiet))
+    return desc, fusion, samples, rstats, fused, stats
+
+
 def _write_text(path: Path, text: str, option: str) -> None:
     from imu_array_ros.io.atomic import atomic_write_text
 
@@ -176,19 +194,12 @@ def fuse(
     quiet: bool = False,
 ) -> int:
     """ML fusion of ``recording`` (skog2016) into ``out`` with Cramér-Rao covariances."""
-    from imu_array_ros.estimation.ml_fusion import MLFusion
-    from imu_array_ros.estimation.stream import fuse_chunked
-    from imu_array_ros.io.rosbag.recording import read_imu_recording, write_fused_recording
-    from imu_array_ros.model.sensor_model import LinearArrayModel
+    from imu_array_ros.io.rosbag.recording import write_fused_recording
 
     out = check_output(out, [recording, array, calibration], "recording", force)
-    desc, source = _load_array(array, calibration)
-    _check_fusable(desc, source)
-    fusion = MLFusion(LinearArrayModel.from_description(desc))
-    samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
+    desc, _, _, rstats, fused, stats = _read_and_fuse(recording, array, calibration, quiet)
     info(quiet, f"read {rstats.samples} array samples ({rstats.messages} messages); bad messages {rstats.bad_messages}, "
                 f"duplicates {rstats.duplicate_messages}, incomplete samples {rstats.incomplete_samples}")
-    fused, stats = fuse_chunked(fusion, samples, Progress("fusing", quiet))
     info(quiet, f"fused {stats.fused} of {stats.samples} samples; skipped (not identifiable) {stats.skipped_unidentifiable}, "
                 f"saturated-gyro samples {stats.saturated_gyro_samples}, not converged {stats.not_converged}")
     if stats.skipped_stamps:
@@ -257,20 +268,13 @@ def residuals(
     a ratio over no samples being ``null``.
     """
     from imu_array_ros.discovery.residuals import normalized_residuals, simulate_same_motion
-    from imu_array_ros.estimation.ml_fusion import MLFusion
     from imu_array_ros.estimation.stream import fuse_chunked
-    from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.sensor_model import LinearArrayModel
 
     to_stdout = json_out is not None and str(json_out) == "-"
     if json_out is not None and not to_stdout:
         json_out = check_output(json_out, [recording, array, calibration], "json", force, option="--json")
-    desc, source = _load_array(array, calibration)
-    _check_fusable(desc, source)
-    model = LinearArrayModel.from_description(desc)
-    samples, _ = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
-    fusion = MLFusion(model)
-    fused, stats = fuse_chunked(fusion, samples, Progress("fusing", quiet))
+    _, fusion, samples, _, fused, stats = _read_and_fuse(recording, array, calibration, quiet)
+    model = fusion.model
     if stats.fused == 0:
         raise FusionError(f"{recording}: no sample could be fused")
     reports = {"recording": normalized_residuals(samples, model, fused, still_threshold=still_threshold)}
