@@ -31,7 +31,7 @@ setup(
     maintainer_email="imu-array-ros@example.com",
     description="Inertial sensor arrays as one high-grade IMU (ROS 2 Jazzy).",
     license="Apache-2.0",
-    extras_require={"test": ["pytest"]},
+    extras_require={"test": ["pytest", "hypothesis"]},
     entry_points={
         "console_scripts": [
             "imu-array = imu_array_ros.cli:main",

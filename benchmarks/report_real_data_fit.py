@@ -25,6 +25,7 @@ from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
 from imu_array_ros.io.openshoe.framing import si_saturation_level  # noqa: E402
 from imu_array_ros.io.openshoe.capture import import_capture  # noqa: E402
 from imu_array_ros.discovery.residuals import normalized_residuals, simulate_same_motion  # noqa: E402
+from imu_array_ros.model.forward import SensorModel  # noqa: E402
 from imu_array_ros.model.sensor_model import LinearArrayModel  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,16 +52,17 @@ def range_extension(samples, fused, model) -> str:
 
 def main() -> None:
     desc = load_description(REPO / "config" / "mimu4444bt_corners.yaml")
-    model = LinearArrayModel.from_description(desc)
+    sensor_model = SensorModel.from_description(desc)
+    model = LinearArrayModel.from_sensor_model(sensor_model, desc.accelerometer_range, desc.gyroscope_range)
     fusion = MLFusion(model)
     rows, ext_rows, tables = [], [], ""
     for i, path in enumerate(sorted(DATA.glob("exp_*.bin"))):
         samples, _ = import_capture(path, desc)
         fused, stats = fusion.fuse(samples.stamps, samples.accel, samples.gyro)
-        real = normalized_residuals(samples, model, fused)
-        sim_samples = simulate_same_motion(fused, model, np.random.default_rng(i), like=samples)
+        real = normalized_residuals(samples, sensor_model, fused)
+        sim_samples = simulate_same_motion(fused, sensor_model, np.random.default_rng(i), like=samples)
         sim_fused, _ = fusion.fuse(sim_samples.stamps, sim_samples.accel, sim_samples.gyro)
-        sim = normalized_residuals(sim_samples, model, sim_fused)
+        sim = normalized_residuals(sim_samples, sensor_model, sim_fused)
         r, s = real.summary(), sim.summary()
         ext_rows.append(f"| {path.name} " + range_extension(samples, fused, model) + "\n")
         rows.append(

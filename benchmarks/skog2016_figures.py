@@ -38,7 +38,7 @@ def curve(desc, direction, speeds, rng, tensor=False):
     rows = []
     for speed in speeds:
         truth = random_motion(N, np.deg2rad(speed), np.deg2rad(1000.0), rng, omega_direction=direction)
-        s = simulate_measurements(model, truth, rng)
+        s = simulate_measurements(desc, truth, rng)
         f, _ = fusion.fuse(s.stamps, s.accel, s.gyro)
         rmse = np.rad2deg(np.sqrt(np.mean((f.omega - truth.omega) ** 2, axis=0)))
         bound = np.rad2deg(np.sqrt(np.diag(crb(truth.omega[:1], model, gyro_valid=model.gyro_unsaturated(s.gyro[:1]))[0])[:3]))

@@ -63,3 +63,16 @@ def assert_user_error(result, *fragments):
     for frag in fragments:
         assert frag in lines[0], (frag, lines[0])
     return lines[0]
+
+
+# --------------------------------------------------------------------------- true arrays
+
+
+def perturbed(desc, rng, scales=None):
+    """``desc`` with seeded errors in its terms (``perturb``; default sizes), as a description."""
+    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
+
+    scales = DEFAULT_ERROR_SCALES if scales is None else scales
+    model = perturb(SensorModel.from_description(desc), rng, scales)
+    return model.to_description(desc, names=[n for n, s in scales.items() if s])

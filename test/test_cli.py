@@ -20,9 +20,12 @@ import yaml
 
 from imu_array_ros.cli import main
 from imu_array_ros.estimation.ml_fusion import fuse
+from imu_array_ros.estimation.model_fusion import fuse_model
 from imu_array_ros.io.rosbag.recording import read_fused_recording, read_imu_recording, read_truth, write_imu_recording
-from imu_array_ros.model.description import load_description
-from imu_array_ros.model.sensor_model import DEFAULT_ERROR_SCALES, LinearArrayModel, apply_terms, random_error_terms
+from imu_array_ros.model.description import load_description, save_description
+from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
 from imu_array_ros.simulation.simulator import simulate_twist
 
 from conftest import ARRAY32, REPO, SHARED_DATA, START, assert_user_error, cli
@@ -61,7 +64,7 @@ def test_simulate_then_fuse_matches_the_core_bit_for_bit(sim_recording, tmp_path
     fused = read_fused_recording(out)
     desc = load_description(ARRAY32)
     samples, _ = read_imu_recording(sim_recording, desc)
-    ref, _ = fuse(samples, LinearArrayModel.from_description(desc))
+    ref, _ = fuse_model(samples, SensorModel.from_description(desc))  # what the CLI (and the node) call
     np.testing.assert_array_equal(fused.stamps, ref.stamps)
     np.testing.assert_array_equal(fused.omega, ref.omega)
     np.testing.assert_array_equal(fused.specific_force, ref.specific_force)
@@ -81,12 +84,10 @@ def test_simulate_with_errors_writes_truth_description(tmp_path, capsys):
     true_desc = load_description(truth_yaml)
     assert true_desc.calibration == {"method": "simulation ground truth", "seed": 2, "error_seed": 5}
     # the same errors, drawn independently here from the documented recipe
-    expected = LinearArrayModel.from_description(
-        apply_terms(nominal, random_error_terms(len(nominal.imus), np.random.default_rng(5), dict(DEFAULT_ERROR_SCALES))))
+    expected = perturb(SensorModel.from_description(nominal), np.random.default_rng(5), dict(DEFAULT_ERROR_SCALES))
+    for name, term in SensorModel.from_description(true_desc).terms.items():
+        np.testing.assert_allclose(term.values, expected.terms[name].values, rtol=1e-12, atol=1e-15, err_msg=name)
     written = LinearArrayModel.from_description(true_desc)
-    for field in ("positions", "acc_matrix", "gyro_matrix", "acc_bias", "gyro_bias"):
-        np.testing.assert_allclose(getattr(written, field), getattr(expected, field), rtol=1e-12, atol=1e-15,
-                                   err_msg=field)
     assert np.abs(true_desc.positions - nominal.positions).max() > 1e-5
     # the recording's measurements come from the true sensors: consistent with the truth file, not the nominal one
     samples, _ = read_imu_recording(rec, nominal)
@@ -95,6 +96,35 @@ def test_simulate_with_errors_writes_truth_description(tmp_path, capsys):
     with_nominal = nees_omega(fuse(samples, LinearArrayModel.from_description(nominal))[0], truth)
     assert abs(with_truth.mean() - 3) < 4 * np.sqrt(6 / len(with_truth)), with_truth.mean()
     assert with_nominal.mean() > 30
+
+
+def test_true_array_simulates_every_term(tmp_path, capsys, rng):
+    """--true-array T.yaml: the recording is SensorModel(T).predict of the motion, with every term of T;
+    fusing it with T (all terms compensated) is consistent, with the nominal array it is not."""
+    from imu_array_ros.model.terms import REGISTRY
+
+    nominal = load_description(ARRAY32)
+    model = SensorModel.from_description(nominal)
+    sizes = {"position": 1e-3, "time_offset": 1e-3, "bias_drift": 1e-3, "accelerometer_nonlinearity": 5e-4,
+             "gyroscope_g_sensitivity": 5e-4, "axis_offsets": 5e-4}
+    true = model.with_terms(**{n: model.terms[n].values + rng.normal(0, sizes.get(n, 5e-3), model.terms[n].values.shape)
+                               for n in REGISTRY})
+    true_yaml = tmp_path / "true.yaml"
+    save_description(true.to_description(nominal), true_yaml)
+    rec = tmp_path / "rec"
+    ok(capsys, "simulate", "--array", ARRAY32, "--true-array", true_yaml, "--out", rec, "--duration", 1.0,
+       "--rate", 400, "--seed", 4, "--start-time", START)
+    samples, _ = read_imu_recording(rec, nominal)
+    expected, truth = simulate_twist(SensorModel.from_description(load_description(true_yaml)), 1.0, 400.0,
+                                     np.random.default_rng(4), start_ns=int(samples.stamps[0]))
+    np.testing.assert_array_equal(samples.accel, expected.accel)
+    np.testing.assert_array_equal(samples.gyro, expected.gyro)
+    out = tmp_path / "f.mcap"
+    ok(capsys, "fuse", rec, "--array", true_yaml, "--out", out)
+    with_true = nees_omega(read_fused_recording(out), truth)
+    assert abs(with_true.mean() - 3) < 4 * np.sqrt(6 / len(with_true)), with_true.mean()
+    ok(capsys, "fuse", rec, "--array", ARRAY32, "--out", out, "--force")
+    assert nees_omega(read_fused_recording(out), truth).mean() > 30
 
 
 def test_calibration_file_is_used(sim_recording, tmp_path, capsys):

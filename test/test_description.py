@@ -14,9 +14,8 @@ from imu_array_ros.model.description import (
     save_description,
 )
 from imu_array_ros.errors import ConfigError, IdentifiabilityError
-from imu_array_ros.model.sensor_model import apply_terms, random_error_terms
 
-from conftest import REPO
+from conftest import REPO, perturbed
 
 
 def test_shipped_array32_matches_the_papers():
@@ -38,9 +37,9 @@ def test_shipped_descriptions_load_and_are_identifiable(name):
 
 
 def test_round_trip_with_calibration_fields(tmp_path, array32, rng):
-    desc = apply_terms(array32, random_error_terms(32, rng))
+    desc = perturbed(array32, rng)
     desc = desc.with_imus(
-        [imu.__class__(**{**imu.__dict__, "position_std": np.full(3, 1e-5)}) for imu in desc.imus],
+        [imu.with_values(stds={"position": np.full(3, 1e-5)}) for imu in desc.imus],
         calibration={"method": "test", "residual_rms": 0.1},
     )
     path = tmp_path / "cal.yaml"
@@ -49,8 +48,9 @@ def test_round_trip_with_calibration_fields(tmp_path, array32, rng):
     assert back.calibration == {"method": "test", "residual_rms": 0.1}
     for a, b in zip(desc.imus, back.imus):
         for field in ("gain", "nonorthogonality", "misalignment", "bias"):
-            np.testing.assert_array_equal(getattr(a.accelerometer, field), getattr(b.accelerometer, field))
-        np.testing.assert_array_equal(a.gyroscope.bias, b.gyroscope.bias)
+            np.testing.assert_array_equal(a.value(f"accelerometer.{field}"), b.value(f"accelerometer.{field}"))
+        np.testing.assert_array_equal(a.value("gyroscope.bias"), b.value("gyroscope.bias"))
+        assert set(a.values) == set(b.values) and a.values  # the perturbed fields, and only those
         np.testing.assert_array_equal(a.position, b.position)
         np.testing.assert_array_equal(a.position_std, b.position_std)
 
@@ -124,3 +124,130 @@ def test_identifiability_conditions():
         check_identifiable([[0, 0, 0], [0.01, 0, 0]], 2)
     with pytest.raises(IdentifiabilityError, match="collinear"):
         check_identifiable([[0, 0, 0], [0.01, 0.01, 0], [0.02, 0.02, 0]], 3)
+
+
+# --------------------------------------------------------------------------- the registry-driven schema
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from imu_array_ros.model.description import description_from_dict, dump_description, term_fields  # noqa: E402
+from imu_array_ros.model.forward import SensorModel  # noqa: E402
+from imu_array_ros.model.terms import REGISTRY  # noqa: E402
+
+_FINITE = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
+_POSITIVE = st.floats(1e-3, 1e3, allow_nan=False, allow_infinity=False)
+_STD = st.floats(0.0, 1e3, allow_nan=False, allow_infinity=False)
+
+
+def _field_strategy(f, numbers):
+    if f.shape == ():
+        return numbers
+    leaf = st.lists(numbers, min_size=f.shape[-1], max_size=f.shape[-1])
+    return leaf if len(f.shape) == 1 else st.lists(leaf, min_size=f.shape[0], max_size=f.shape[0])
+
+
+@st.composite
+def _imu_dicts(draw, i):
+    d = {"name": f"imu_{i}", "position": draw(_field_strategy(term_fields()["position"], _FINITE)),
+         "orientation": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]}
+    for key, f in term_fields().items():
+        section = d if len(f.path) == 1 else d.setdefault(f.path[0], {})
+        if key != "position" and draw(st.booleans()):
+            section[f.path[-1]] = draw(_field_strategy(f, _POSITIVE if f.positive else _FINITE))
+        if draw(st.booleans()):
+            section[f.path[-1] + "_std"] = draw(_field_strategy(f, _STD))
+    return {k: v for k, v in d.items() if v != {}}
+
+
+@st.composite
+def _description_dicts(draw):
+    n = draw(st.integers(1, 3))
+    return {"imu_array": {"frame_id": "array", "accelerometer_noise_std": 0.05, "gyroscope_noise_std": 0.01,
+                          "gyroscope_range": 35.0, "accelerometer_range": 160.0,
+                          "imus": [draw(_imu_dicts(i)) for i in range(n)]}}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_description_dicts())
+def test_every_term_field_and_its_std_round_trips(data):
+    """save(load(x)) == x for every registered term's fields and their _std, in any combination."""
+    desc = description_from_dict(data)
+    assert description_to_dict(desc) == data
+    back = description_from_dict(yaml.safe_load(dump_description(desc)))
+    assert description_to_dict(back) == data
+
+
+def test_schema_is_the_registry():
+    """Every registered term's fields are keys (gyroscope.nonorthogonality included); nothing else is."""
+    keys = {f.key for cls in REGISTRY.values() for f in cls.fields}
+    assert set(term_fields()) == keys
+    assert {"gyroscope.nonorthogonality", "accelerometer.axis_offsets", "accelerometer.quadratic",
+            "gyroscope.g_sensitivity", "accelerometer.time_offset", "gyroscope.time_offset",
+            "accelerometer.bias_drift", "gyroscope.bias_drift"} <= keys
+
+
+def test_foundation_files_load_unchanged(tmp_path):
+    """A file in the foundation's schema (nilsson2014 triads, position_std) gives the same model values."""
+    text = """imu_array:
+  frame_id: array
+  accelerometer_noise_std: 0.05
+  gyroscope_noise_std: 0.01
+  gyroscope_range: 34.9
+  accelerometer_range: 156.9
+  imus:
+  - name: a
+    position: [0.01, 0.02, 0.0]
+    position_std: [1.0e-05, 2.0e-05, 3.0e-05]
+    orientation: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+    accelerometer: {gain: [1.01, 0.99, 1.0], nonorthogonality: [0.001, 0.0, -0.002], misalignment: [0.0, 0.01, 0.0],
+                    bias: [0.1, -0.1, 0.2]}
+    gyroscope: {gain: [1.0, 1.02, 1.0], misalignment: [0.003, 0.0, 0.0], bias: [0.01, 0.0, -0.01]}
+calibration: {method: geometry}
+"""
+    path = tmp_path / "old.yaml"
+    path.write_text(text)
+    desc = load_description(path)
+    model = SensorModel.from_description(desc)
+    np.testing.assert_array_equal(model.terms["accelerometer_gain"].values, [[1.01, 0.99, 1.0]])
+    np.testing.assert_array_equal(model.terms["accelerometer_nonorthogonality"].values, [[0.001, 0.0, -0.002]])
+    np.testing.assert_array_equal(model.terms["gyroscope_misalignment"].values, [[0.003, 0.0, 0.0]])
+    np.testing.assert_array_equal(model.terms["gyroscope_bias"].values, [[0.01, 0.0, -0.01]])
+    np.testing.assert_array_equal(model.terms["gyroscope_nonorthogonality"].values, [[0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(desc.imus[0].position_std, [1e-5, 2e-5, 3e-5])
+    assert description_to_dict(load_description(REPO / "config" / "array32.yaml")) == yaml.safe_load(
+        (REPO / "config" / "array32.yaml").read_text())
+    assert description_to_dict(desc) == yaml.safe_load(text)  # nothing dropped, nothing added
+
+
+def test_saving_keeps_gyroscope_nonorthogonality_and_new_terms(tmp_path, array32, rng):
+    """The foundation's writer dropped gyroscope.nonorthogonality; every term now survives a save."""
+    model = SensorModel.from_description(array32)
+    values = {name: REGISTRY[name].default_values(32) + rng.normal(0, 1e-3, (32, REGISTRY[name].dim()))
+              for name in REGISTRY}
+    model = model.with_terms(**values)
+    stds = {name: np.full((32, REGISTRY[name].dim()), 1e-4) for name in ("position", "gyroscope_g_sensitivity")}
+    path = tmp_path / "cal.yaml"
+    save_description(model.to_description(array32, stds=stds), path)
+    back = load_description(path)
+    for name, term in SensorModel.from_description(back).terms.items():
+        np.testing.assert_array_equal(term.values, values[name], err_msg=name)
+    np.testing.assert_array_equal(back.imus[5].stds["gyroscope.g_sensitivity"], np.full((3, 3), 1e-4))
+    assert "g_sensitivity_std:" in path.read_text() and "nonorthogonality:" in path.read_text()
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda imu: imu["gyroscope"].update(g_sensitivity=[[0, 0], [0, 0], [0, 0]]), "gyroscope.g_sensitivity"),
+    (lambda imu: imu["gyroscope"].update(gain_std=[0.1, -0.1, 0.1]), "must be >= 0"),
+    (lambda imu: imu["accelerometer"].update(time_offset="soon"), "accelerometer.time_offset"),
+    (lambda imu: imu.update(position_std=[1, 2]), "position_std"),
+])
+def test_bad_term_fields_are_one_line_errors(tmp_path, array32, mutate, message):
+    data = _base(array32)
+    imu = data["imu_array"]["imus"][0]
+    imu["accelerometer"], imu["gyroscope"] = {}, {}
+    mutate(imu)
+    path = _write(tmp_path, data)
+    with pytest.raises(ConfigError) as err:
+        load_description(path)
+    assert message in str(err.value) and "\n" not in str(err.value)

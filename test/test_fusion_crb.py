@@ -14,9 +14,11 @@ from imu_array_ros.errors import ConfigError, FusionError, IdentifiabilityError
 from imu_array_ros.estimation.ml_fusion import MLFusion, fuse
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.model.samples import ImuSamples
-from imu_array_ros.model.sensor_model import LinearArrayModel, apply_terms, random_error_terms
+from imu_array_ros.model.sensor_model import LinearArrayModel
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
 from imu_array_ros.estimation.tensor_method import tensor_method
+
+from conftest import perturbed
 
 N_MC = 20000  # realizations per point; RMSE relative standard error ~ 1/sqrt(2 N) = 0.5 %
 
@@ -24,7 +26,7 @@ N_MC = 20000  # realizations per point; RMSE relative standard error ~ 1/sqrt(2 
 def _monte_carlo(desc, speed_dps, direction, rng, n=N_MC):
     model = LinearArrayModel.from_description(desc)
     truth = random_motion(n, np.deg2rad(speed_dps), np.deg2rad(1000.0), rng, omega_direction=direction)
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(desc, truth, rng)
     fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
     assert stats.fused == n
     rmse = np.sqrt(np.mean((fused.omega - truth.omega) ** 2, axis=0))
@@ -71,17 +73,17 @@ def test_fig6_tensor_method_worse_than_ml(tetra4, rng):
 
 def test_tensor_method_needs_3d_array(planar4, rng):
     model = LinearArrayModel.from_description(planar4)
-    samples = simulate_measurements(model, random_motion(3, 1.0, 1.0, rng), rng)
+    samples = simulate_measurements(planar4, random_motion(3, 1.0, 1.0, rng), rng)
     with pytest.raises(IdentifiabilityError):
         tensor_method(samples, model)
 
 
 def test_covariance_is_inverse_fisher_information(array32, rng):
     """The fusion's blockwise CRB equals eq. 15 built row by row, at the estimate."""
-    desc = apply_terms(array32, random_error_terms(32, rng))  # rotated, calibrated frames
+    desc = perturbed(array32, rng)  # rotated, calibrated frames
     model = LinearArrayModel.from_description(desc)
     truth = random_motion(200, np.deg2rad(2500), np.deg2rad(3000), rng)
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(desc, truth, rng)
     samples.accel[5, 3] = np.nan  # an IMU missing in one sample
     fused, _ = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
     acc_valid = model.acc_unsaturated(samples.accel)
@@ -119,7 +121,7 @@ def test_nees_consistent_on_twisting_32_imu_array(array32, rng):
 
 def test_calibrated_sensors_need_their_calibration(array32, rng):
     """Sensor errors in the truth: consistent with the true description, not with the nominal."""
-    true_desc = apply_terms(array32, random_error_terms(32, rng))
+    true_desc = perturbed(array32, rng)
     samples, truth = simulate_twist(true_desc, duration=2.0, rate_hz=500.0, rng=rng)
 
     def mean_nees(desc):
@@ -135,7 +137,7 @@ def test_saturated_gyros_keep_sign_and_accuracy(array32, rng):
     """All gyro axes saturated: omega comes from the accelerometers, sign from the saturated gyros."""
     model = LinearArrayModel.from_description(array32)
     truth = random_motion(5000, np.deg2rad(5000), np.deg2rad(2000), rng, omega_direction=[1, -1, 1])
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(array32, truth, rng)
     fused, stats = fuse(samples, model)
     assert stats.saturated_gyro_samples == 5000 and stats.fused == 5000
     err = fused.omega - truth.omega
@@ -152,7 +154,7 @@ def test_planar_array_with_all_gyros_saturated(planar4, rng):
     """
     model = LinearArrayModel.from_description(planar4)
     truth = random_motion(20000, np.deg2rad(5000), np.deg2rad(2000), rng)
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(planar4, truth, rng)
     fused, stats = fuse(samples, model)
     assert stats.fused == 20000 and stats.saturated_gyro_samples > 19000
     err = fused.omega - truth.omega
@@ -164,7 +166,7 @@ def test_missing_imu_equals_smaller_array(array32, rng):
     """A sample with IMUs missing is fused exactly like an array without them."""
     model = LinearArrayModel.from_description(array32)
     truth = random_motion(50, np.deg2rad(800), np.deg2rad(800), rng)
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(array32, truth, rng)
     drop = [3, 17, 30]
     samples.accel[:, drop] = np.nan
     samples.gyro[:, drop] = np.nan
@@ -180,7 +182,7 @@ def test_missing_imu_equals_smaller_array(array32, rng):
 def test_unidentifiable_samples_are_skipped_and_counted(planar4, rng):
     model = LinearArrayModel.from_description(planar4)
     truth = random_motion(10, 2.0, 2.0, rng)
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(planar4, truth, rng)
     samples.accel[2, 1:] = np.nan  # only one accelerometer triad left
     samples.gyro[4] = np.nan  # no gyroscope at all
     samples.accel[6, 0, 1] = np.inf  # a bad value: that axis is dropped, sample still fused
@@ -245,7 +247,7 @@ def test_readings_just_below_the_clip_level_keep_their_information(array32, rng)
     wx, speed = 1998.0, 2600.0
     direction = np.array([wx, np.sqrt((speed**2 - wx**2) / 2), -np.sqrt((speed**2 - wx**2) / 2)])
     truth = random_motion(N_MC, np.deg2rad(speed), np.deg2rad(1000.0), rng, omega_direction=direction)
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(array32, truth, rng)
     on_x = np.abs(model.gyro_matrix[:, :, 0]) > 0.99  # (K, 3): the sensor axis along array x
     assert np.all(on_x.sum(axis=1) == 1)
     gx = np.abs(samples.gyro[:, on_x])  # (N, 32)
@@ -272,12 +274,12 @@ def test_readings_at_the_clip_level_are_saturated(array32, rng):
         y = np.array([clip, -clip, clip * (1 - 0.5e-9), clip * (1 - 2e-9), 0.998 * clip, np.nan, np.inf, 0.0])
         assert model.gyro_unsaturated(y).tolist() == [False, False, False, True, True, False, False, True]
         truth = random_motion(200, np.deg2rad(2100), np.deg2rad(1000), rng, omega_direction=[0, 0, 1])
-        samples = simulate_measurements(model, truth, rng)
+        samples = simulate_measurements(desc, truth, rng)
         assert np.abs(samples.gyro).max() == clip  # clipped at the clip level, not at the range
         fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
         assert stats.saturated_gyro_samples == 200 and stats.fused == 200
         # one reading exactly at the clip in an otherwise slow sample: flagged and counted
-        slow = simulate_measurements(model, random_motion(3, 1.0, 1.0, rng), rng)
+        slow = simulate_measurements(desc, random_motion(3, 1.0, 1.0, rng), rng)
         slow.gyro[1, 4, 2] = -clip
         assert MLFusion(model).fuse(slow.stamps, slow.accel, slow.gyro)[1].saturated_gyro_samples == 1
 

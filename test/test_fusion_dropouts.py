@@ -70,14 +70,15 @@ def test_random_imu_dropouts_equal_reduced_arrays(array32, rng):
     _assert_same(fused, _Rows(_concat(parts)), "IMU dropouts vs sub-array")
 
 
-def _mixed_batch(model, rng):
+def _mixed_batch(desc, rng):
     """Samples at 1000-4000 deg/s with every kind of invalid axis, and the unidentifiable ones' indices."""
-    k = model.n_imus
+    k = len(desc.imus)
+    model = LinearArrayModel.from_description(desc)
     speeds = np.deg2rad([1000.0, 2300.0, 2600.0, 4000.0])
     truth_parts = [random_motion(120, w, np.deg2rad(2000.0), rng) for w in speeds]
-    samples = simulate_measurements(model, truth_parts[0], rng)
+    samples = simulate_measurements(desc, truth_parts[0], rng)
     for t in truth_parts[1:]:
-        s = simulate_measurements(model, t, rng)
+        s = simulate_measurements(desc, t, rng)
         samples.accel = np.concatenate([samples.accel, s.accel])
         samples.gyro = np.concatenate([samples.gyro, s.gyro])
     n = len(samples.accel)
@@ -110,7 +111,7 @@ def _mixed_batch(model, rng):
 def test_mixed_invalid_axes_equal_one_sample_at_a_time(array32, rng):
     """Missing/bad/saturated axes of both sensors and unidentifiable samples: batch = one by one."""
     model = LinearArrayModel.from_description(array32)
-    samples, bad = _mixed_batch(model, rng)
+    samples, bad = _mixed_batch(array32, rng)
     n = len(samples.stamps)
     fz = MLFusion(model)
     fused, stats = fz.fuse(samples.stamps, samples.accel, samples.gyro)
@@ -168,7 +169,7 @@ def test_planar_array_dropouts_and_unidentifiable_patterns(planar4, rng):
     """
     model = LinearArrayModel.from_description(planar4)
     truth = random_motion(600, np.deg2rad(2500), np.deg2rad(2000), rng)  # some gyros saturate too
-    samples = simulate_measurements(model, truth, rng)
+    samples = simulate_measurements(planar4, truth, rng)
     n_drop = rng.integers(0, 3, size=600)
     drop = np.argsort(rng.random((600, 4)), axis=1) < n_drop[:, None]
     samples.accel[drop] = np.nan

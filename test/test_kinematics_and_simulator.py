@@ -66,7 +66,7 @@ def test_gravity_turns_in_body_frame(array32, rng):
     assert np.ptp(g_dir, axis=0).min() > 0.5  # gravity direction sweeps in every body axis
     # default hand twisting stays inside the sensor ranges: the simulated readings are
     # the model's, not clipped ones (checked on the unclipped, noise-free readings)
-    clean = simulate_measurements(LinearArrayModel.from_description(array32), truth, rng, noise=False, saturate=False)
+    clean = simulate_measurements(array32, truth, rng, noise=False, saturate=False)
     assert np.abs(clean.accel).max() < 0.5 * array32.accelerometer_range
     assert np.abs(clean.gyro).max() < 0.5 * array32.gyroscope_range
     assert np.abs(clean.gyro).max() > 0.1 * array32.gyroscope_range  # ... while really twisting
@@ -77,8 +77,8 @@ def test_simulator_saturates_and_adds_noise_of_the_right_size(array32, rng):
     from imu_array_ros.simulation.motion import random_motion
 
     truth = random_motion(4000, np.deg2rad(2500), 0.0, rng, omega_direction=[0, 0, 1])
-    noisy = simulate_measurements(model, truth, rng)
-    clean = simulate_measurements(model, truth, rng, noise=False)
+    noisy = simulate_measurements(array32, truth, rng)
+    clean = simulate_measurements(array32, truth, rng, noise=False)
     assert np.all(np.abs(noisy.gyro[:, :, 2]) == model.gyro_range)  # every z gyro saturated ...
     assert np.all(np.sign(noisy.gyro[:, :, 2]) == np.sign(clean.gyro[:, :, 2]))  # ... with its sign kept
     # top (identity) and underside (180 deg about y = x) IMUs see z with opposite signs
@@ -110,24 +110,32 @@ def test_measurement_model_against_a_hand_computed_case():
     Gyro: R^T w = [0, 0, 2]; xi = [0.01, 0, 0]: + [0, -0.02, 0]; K = diag(1, 1, 1.05);
       b = [0.001, 0, 0]                                     -> [0.001, -0.02, 2.1]
     """
-    from imu_array_ros.model.description import ArrayDescription, ImuSpec, TriadCalibration
+    from imu_array_ros.model.description import ArrayDescription, ImuSpec
     from imu_array_ros.model.samples import MotionTruth
 
     imu = ImuSpec(
         name="imu_a",
         position=np.array([0.1, 0.0, 0.0]),
         orientation=np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # columns: sensor axes in array
-        accelerometer=TriadCalibration(gain=np.array([1.1, 0.9, 1.0]), nonorthogonality=np.array([0.02, 0.0, 0.0]),
-                                       misalignment=np.array([0.0, 0.0, 0.01]), bias=np.array([0.1, -0.2, 0.05])),
-        gyroscope=TriadCalibration(gain=np.array([1.0, 1.0, 1.05]), misalignment=np.array([0.01, 0.0, 0.0]),
-                                   bias=np.array([0.001, 0.0, 0.0])),
+        values={"accelerometer.gain": np.array([1.1, 0.9, 1.0]),
+                "accelerometer.nonorthogonality": np.array([0.02, 0.0, 0.0]),
+                "accelerometer.misalignment": np.array([0.0, 0.0, 0.01]),
+                "accelerometer.bias": np.array([0.1, -0.2, 0.05]),
+                "gyroscope.gain": np.array([1.0, 1.0, 1.05]), "gyroscope.misalignment": np.array([0.01, 0.0, 0.0]),
+                "gyroscope.bias": np.array([0.001, 0.0, 0.0])},
     )
     desc = ArrayDescription("a", 0.01, 0.001, 35.0, 160.0, (imu,))
     truth = MotionTruth(stamps=np.array([0]), omega=np.array([[0.0, 0.0, 2.0]]), omega_dot=np.array([[0.0, 0.0, 3.0]]),
                         specific_force=np.array([[0.0, 0.0, 9.81]]))
-    y = simulate_measurements(LinearArrayModel.from_description(desc), truth, np.random.default_rng(0), noise=False)
+    y = simulate_measurements(desc, truth, np.random.default_rng(0), noise=False)
     np.testing.assert_allclose(y.accel[0, 0], [0.4256, 0.168028, 9.86], rtol=0, atol=1e-12)
     np.testing.assert_allclose(y.gyro[0, 0], [0.001, -0.02, 2.1], rtol=0, atol=1e-12)
+    # the fusion's linear form of the same model reads the same
+    lin = LinearArrayModel.from_description(desc)
+    z = np.concatenate([quadratic_monomials(truth.omega[0]), truth.omega_dot[0], truth.specific_force[0]])
+    np.testing.assert_allclose(lin.acc_design[0] @ z + lin.acc_bias[0], [0.4256, 0.168028, 9.86], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lin.gyro_matrix[0] @ truth.omega[0] + lin.gyro_bias[0], [0.001, -0.02, 2.1],
+                               rtol=0, atol=1e-12)
 
 
 def test_core_does_not_import_ros():

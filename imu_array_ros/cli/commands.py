@@ -57,16 +57,18 @@ def _check_fusable(desc: ArrayDescription, source: Path) -> None:
 def _read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet: bool):
     """Load the description (checked fusable), read ``recording`` and fuse it in chunks.
 
-    Returns (description, MLFusion, ImuSamples, ReadStats, FusedSamples, FusionStats).
+    Returns (description, ModelFusion, ImuSamples, ReadStats, FusedSamples, FusionStats);
+    the fusion carries every term of the description (``fusion.model``).
     """
-    from imu_array_ros.estimation.ml_fusion import MLFusion
+    from imu_array_ros.estimation.model_fusion import ModelFusion
     from imu_array_ros.estimation.stream import fuse_chunked
     from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.sensor_model import LinearArrayModel
+    from imu_array_ros.model.forward import SensorModel
 
     desc, source = _load_array(array, calibration)
     _check_fusable(desc, source)
-    fusion = MLFusion(LinearArrayModel.from_description(desc))
+    fusion = ModelFusion(SensorModel.from_description(desc), acc_range=desc.accelerometer_range,
+                         gyro_range=desc.gyroscope_range)
     samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
     fused, stats = fuse_chunked(fusion, samples, Progress("fusing", quiet))
     return desc, fusion, samples, rstats, fused, stats
@@ -124,7 +126,8 @@ def simulate(
     ``start_ns``: stamp of the first sample, ns since the epoch (default: now).
     """
     from imu_array_ros.io.rosbag.recording import write_imu_recording
-    from imu_array_ros.model.sensor_model import DEFAULT_ERROR_SCALES, apply_terms, random_error_terms
+    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
     from imu_array_ros.simulation.simulator import simulate_random, simulate_twist
 
     if motion not in ("twist", "random"):
@@ -155,17 +158,18 @@ def simulate(
     true_desc = load_description(true_array) if true_array else desc
     if true_array and true_desc.names != desc.names:
         raise ConfigError(f"{true_array}: IMU names differ from {array}")
+    true_model = SensorModel.from_description(true_desc)  # every term of the true description
     if error_seed is not None:
         scales = dict(DEFAULT_ERROR_SCALES)
         if position_error_std is not None:
-            scales["position_offset"] = position_error_std
-        terms = random_error_terms(len(desc.imus), np.random.default_rng(error_seed), scales)
-        true_desc = apply_terms(true_desc, terms)
+            scales["position"] = position_error_std
+        true_model = perturb(true_model, np.random.default_rng(error_seed), scales)
+        true_desc = true_model.to_description(true_desc, names=[n for n in scales if scales[n]])
     if motion == "twist":
-        samples, truth = simulate_twist(true_desc, duration, rate, rng, rms_rate=np.deg2rad(rms_rate),
+        samples, truth = simulate_twist(true_model, duration, rate, rng, rms_rate=np.deg2rad(rms_rate),
                                         start_ns=start_ns)
     else:
-        samples, truth = simulate_random(true_desc, n, np.deg2rad(rms_rate), np.deg2rad(angular_accel), rng,
+        samples, truth = simulate_random(true_model, n, np.deg2rad(rms_rate), np.deg2rad(angular_accel), rng,
                                          rate_hz=rate, start_ns=start_ns)
     info(quiet, f"simulated {len(samples)} samples of {len(desc.imus)} IMUs ({motion}, {duration:g} s at {rate:g} Hz)")
     write_imu_recording(out, samples, desc, truth=truth)

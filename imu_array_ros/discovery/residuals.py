@@ -1,11 +1,12 @@
 """How well a model explains a recording: normalised residuals (NIS).
 
-For every fused sample the model predicts each valid sensor axis from the ML
-estimate theta_hat = [omega, omega_dot, s] (skog2016 eq. 5).  The normalised
+For every fused sample the model (:class:`~imu_array_ros.model.forward.SensorModel`,
+every term) predicts each valid sensor axis from the ML estimate
+theta_hat = [omega, omega_dot, s] (skog2016 eq. 5).  The normalised
 squared residual of axis a is ``z^2 = (y_a - h_a(theta_hat))^2 / sigma_a^2``.  If
 the model is right, its expected value is ``1 - leverage_a`` with
 ``leverage_a = phi_a^T Cov(theta_hat) phi_a / sigma_a^2`` (phi_a the axis' row
-of the Jacobian Phi of eq. 15 and Cov the CRB), so that the per-sample NIS
+of the model's motion Jacobian, Phi of eq. 15, and Cov the CRB), so that the per-sample NIS
 ``sum_a z^2`` has expected value ``m - 9`` for m valid axes.  The report
 gives ``ratio = sum z^2 / sum E[z^2]`` by IMU and axis, separately for still
 and moving samples: 1 means the model explains the data to the noise level,
@@ -18,10 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imu_array_ros.estimation.crb import jacobian_rows
-from imu_array_ros.model.kinematics import specific_force_at
+from imu_array_ros.model.forward import SensorModel, motion_context
 from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
-from imu_array_ros.model.sensor_model import LinearArrayModel
 from imu_array_ros.simulation.simulator import simulate_measurements
 
 __all__ = ["ResidualReport", "normalized_residuals", "simulate_same_motion", "AXES"]
@@ -88,12 +87,13 @@ def _worst(r: np.ndarray, names) -> list:
     return [(names[i // 6], AXES[i % 6], float(flat[i])) for i in order if np.isfinite(flat[i])]
 
 
-def normalized_residuals(samples: ImuSamples, model: LinearArrayModel, fused: FusedSamples, *,
+def normalized_residuals(samples: ImuSamples, model: SensorModel, fused: FusedSamples, *,
                          still_threshold: float = 0.2, chunk: int = 4096) -> ResidualReport:
     """Residual analysis of ``samples`` against ``model`` at the fused estimates.
 
     ``still_threshold`` (rad/s): a sample is 'still' when |omega_hat| is below it.
-    Only samples present in ``fused`` are used (matched by stamp).
+    Only samples present in ``fused`` are used (matched by stamp).  Bias drifts
+    count from the samples' first stamp.
     """
     idx = np.searchsorted(samples.stamps, fused.stamps)
     if np.any(idx >= len(samples)) or np.any(samples.stamps[np.clip(idx, 0, len(samples) - 1)] != fused.stamps):
@@ -104,20 +104,23 @@ def normalized_residuals(samples: ImuSamples, model: LinearArrayModel, fused: Fu
     nis = np.zeros(len(fused))
     nis_exp = np.zeros(len(fused))
     moving = np.linalg.norm(fused.omega, axis=1) >= still_threshold
-    sig2 = np.concatenate([model.acc_std, model.gyro_std], axis=1) ** 2  # (K, 6)
+    sig2 = model.std ** 2  # (K, 6)
+    t0 = int(samples.stamps[0]) if len(samples) else None
+    # time derivatives of the estimate over the whole recording (not per chunk)
+    ctx_all = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
+                             t0_ns=t0, derivatives=True)
     for lo in range(0, len(fused), chunk):
         hi = min(lo + chunk, len(fused))
         sel = idx[lo:hi]
-        w, wd, s = fused.omega[lo:hi], fused.omega_dot[lo:hi], fused.specific_force[lo:hi]
-        f = specific_force_at(s, w, wd, model.positions)
-        pred_a = np.einsum("kij,nkj->nki", model.acc_matrix, f) + model.acc_bias
-        pred_g = np.einsum("kij,nj->nki", model.gyro_matrix, w) + model.gyro_bias
+        ctx = motion_context(fused.stamps[lo:hi], fused.omega[lo:hi], fused.omega_dot[lo:hi],
+                             fused.specific_force[lo:hi], model.rotations, t0_ns=t0,
+                             omega_ddot=ctx_all.omega_ddot[lo:hi], specific_force_dot=ctx_all.specific_force_dot[lo:hi])
+        jac = model.jacobians(ctx)
         ya, yg = samples.accel[sel], samples.gyro[sel]
-        valid = np.concatenate([model.acc_unsaturated(ya), model.gyro_unsaturated(yg)], axis=2)
-        res = np.concatenate([ya - pred_a, yg - pred_g], axis=2)
+        valid = model.valid(ya, yg)
+        res = np.concatenate([ya, yg], axis=2) - jac.predicted
         z2 = np.where(valid, np.nan_to_num(res) ** 2 / sig2, 0.0)
-        acc_rows, gyr_rows = jacobian_rows(w, model)
-        rows = np.concatenate([acc_rows, np.broadcast_to(gyr_rows, acc_rows.shape)], axis=2)  # (n, K, 6, 9)
+        rows = jac.motion  # (n, K, 6, 9)
         lev = np.einsum("nkai,nij,nkaj->nka", rows, fused.covariance[lo:hi], rows) / sig2
         e = np.where(valid, 1.0 - lev, 0.0)
         nis[lo:hi] = z2.sum(axis=(1, 2))
@@ -133,7 +136,7 @@ def normalized_residuals(samples: ImuSamples, model: LinearArrayModel, fused: Fu
     )
 
 
-def simulate_same_motion(fused: FusedSamples, model: LinearArrayModel, rng: np.random.Generator,
+def simulate_same_motion(fused: FusedSamples, model: SensorModel, rng: np.random.Generator,
                          like: ImuSamples | None = None) -> ImuSamples:
     """Simulated recording of the motion estimated in ``fused``, measured by ``model``.
 

@@ -1,7 +1,9 @@
 """Cramér-Rao bound of the array fusion problem (skog2016 Sec. IV).
 
 Written directly from eq. 13-15, independently of the algebra inside
-:mod:`imu_array_ros.estimation.ml_fusion`, so that each can check the other:
+:mod:`imu_array_ros.estimation.ml_fusion`, so that each can check the other
+(the accelerometer rows come from the model's design D_k, which tests check
+against eq. 13 for one lever arm per IMU):
 
     I(theta) = Phi^T Q^{-1} Phi,   Phi = [J_h  H],   theta = [omega, omega_dot, s]
 
@@ -15,32 +17,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from imu_array_ros.model.kinematics import skew
+from imu_array_ros.model.kinematics import quadratic_monomials_jacobian, skew
 from imu_array_ros.model.sensor_model import LinearArrayModel
 
 __all__ = ["jacobian_rows", "fisher_information", "crb", "square_array_omega_information"]
 
 
-def _a_matrix(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """A(u, v) = Omega_u^T Omega_v + Omega_{v x u} (skog2016 eq. 13); u (N,3), v (K,3) -> (N,K,3,3)."""
-    su = skew(u)[:, None]
-    sv = skew(v)[None]
-    return np.swapaxes(su, -1, -2) @ sv + skew(np.cross(v[None], u[:, None]))
-
-
 def jacobian_rows(omega: np.ndarray, model: LinearArrayModel) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of Phi for every sensor axis: accelerometers (N, K, 3, 9), gyroscopes (K, 3, 9)."""
+    """Rows of Phi for every sensor axis: accelerometers (N, K, 3, 9), gyroscopes (K, 3, 9).
+
+    The accelerometer rows are the model's design D_k (the calibrated A_k [A(omega, r_k),
+    -Omega_{r_k}, I] of eq. 13 when each IMU has one lever arm) times d z / d theta.
+    """
     omega = np.atleast_2d(np.asarray(omega, dtype=float))
     n, k = len(omega), model.n_imus
-    acc_rows = np.concatenate(
-        [
-            _a_matrix(omega, model.positions),
-            np.broadcast_to(-skew(model.positions)[None], (n, k, 3, 3)),
-            np.broadcast_to(np.eye(3), (n, k, 3, 3)),
-        ],
-        axis=3,
-    )
-    acc_rows = model.acc_matrix[None] @ acc_rows
+    dz = np.zeros((n, 12, 9))  # d z / d theta, z = [q(omega), omega_dot, s]
+    dz[:, :6, :3] = quadratic_monomials_jacobian(omega)
+    dz[:, 6:, 3:] = np.eye(6)
+    acc_rows = np.einsum("kiz,nzt->nkit", model.acc_design, dz)
     gyr_rows = np.concatenate([model.gyro_matrix, np.zeros((k, 3, 6))], axis=2)
     return acc_rows, gyr_rows
 

@@ -69,7 +69,7 @@ from imu_array_ros.estimation.pattern_geometry import (
 from imu_array_ros.estimation.validity import Invalid, masked_product, pattern_summary, weight_sum
 from imu_array_ros.model.identifiability import check_identifiable
 from imu_array_ros.errors import FusionError
-from imu_array_ros.model.kinematics import centripetal_matrix, euler_matrix, quadratic_monomials
+from imu_array_ros.model.kinematics import quadratic_monomials
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 from imu_array_ros.model.sensor_model import LinearArrayModel
 
@@ -158,9 +158,7 @@ class MLFusion:
         self.config = config or FusionConfig()
         check_identifiable(model.positions, model.n_imus, where=f"array {model.frame_id!r}")
         k = model.n_imus
-        r = model.positions
-        d = np.concatenate([centripetal_matrix(r), euler_matrix(r), np.broadcast_to(np.eye(3), (k, 3, 3))], axis=2)
-        self._D = np.einsum("kij,kjl->kil", model.acc_matrix, d).reshape(3 * k, 12)  # sensor axes x z
+        self._D = np.ascontiguousarray(model.acc_design.reshape(3 * k, 12))  # sensor axes x z (exact per-axis lever arms)
         self._w_acc = (1.0 / model.acc_std**2).reshape(3 * k)
         self._WD = self._w_acc[:, None] * self._D  # (3K, 12): beta = (y - b) @ WD over valid axes
         # F = D^T W D of one sensor axis (3K, 144) and of one whole IMU (K, 144): F of any pattern is a sum of these

@@ -1,15 +1,17 @@
 """Array description: the YAML input contract (see README "Array description").
 
 One file describes the array geometry, the noise figures, and optionally each
-IMU's calibration in the nilsson2014 model (eq. 1, extended by the
-misalignment of eq. 2)::
-
-    y = K · L · (I + [xi]x) · u + b
-
-all in the IMU's sensor frame, where ``u`` is the true specific force
-(accelerometer) or angular velocity (gyroscope, ``L = I``) expressed in the
-nominal sensor frame.  Calibrations write this same schema back, plus a
-top-level ``calibration:`` block, so a calibrated file is again a description.
+IMU's values of the sensor-model terms (:mod:`imu_array_ros.model.terms`), all
+in the IMU's sensor frame.  The per-IMU schema is *driven by the term
+registry*: every :class:`~imu_array_ros.model.terms.Field` of every registered
+term is a key (``position`` at the IMU's top level, ``accelerometer.gain`` as
+``gain`` in the IMU's ``accelerometer`` mapping, ...), and every field ``F``
+may carry ``F_std`` beside it (same shape, >= 0: the standard deviation a
+calibration reports).  A new term's fields are therefore parsed, validated and
+written with nothing here edited.  Calibrations write this same schema back,
+plus a top-level ``calibration:`` block, so a calibrated file is again a
+description; fields a file gives are written back as given (``save(load(x))``
+keeps every value), fields it omits take the term's identity value.
 
 Parsing is strict: unknown keys, wrong shapes, non-finite numbers and
 non-orthonormal orientations are :class:`~imu_array_ros.errors.ConfigError`
@@ -28,9 +30,9 @@ import yaml
 
 from imu_array_ros.io.atomic import atomic_write_text
 from imu_array_ros.errors import ConfigError
+from imu_array_ros.model.terms import REGISTRY, Field, term_names
 
 __all__ = [
-    "TriadCalibration",
     "ImuSpec",
     "ArrayDescription",
     "load_description",
@@ -52,33 +54,16 @@ _ARRAY_KEYS = {
 #: at (default: the range) and the quantisation step; a reading with
 #: |y| >= clip - lsb/2 (no lsb: clip * (1 - 1e-9)) counts as saturated.
 _OPTIONAL_ARRAY_KEYS = ("accelerometer_clip", "gyroscope_clip", "accelerometer_lsb", "gyroscope_lsb")
-_IMU_KEYS = {"name", "position", "orientation", "position_std", "accelerometer", "gyroscope"}
-_ACC_KEYS = {"gain", "nonorthogonality", "misalignment", "bias"}
-_GYR_KEYS = {"gain", "misalignment", "bias"}
+STD_SUFFIX = "_std"
 
 
-@dataclass(frozen=True)
-class TriadCalibration:
-    """Calibration of one sensor triad (nilsson2014 eq. 1-2), sensor frame.
-
-    gain (3,) diagonal of K; nonorthogonality (3,) [l_yz, l_zy, l_zx] rad
-    (always zero for gyroscopes); misalignment (3,) small rotation xi, rad;
-    bias (3,) in m/s^2 or rad/s.
-    """
-
-    gain: np.ndarray = field(default_factory=lambda: np.ones(3))
-    nonorthogonality: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    misalignment: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    @property
-    def is_identity(self) -> bool:
-        return (
-            np.all(self.gain == 1.0)
-            and not np.any(self.nonorthogonality)
-            and not np.any(self.misalignment)
-            and not np.any(self.bias)
-        )
+def term_fields() -> dict[str, Field]:
+    """Every registered term's YAML fields by dotted key, in chain order (``position`` first)."""
+    out: dict[str, Field] = {}
+    for name in term_names():
+        for f in REGISTRY[name].fields:
+            out[f.key] = f
+    return out
 
 
 @dataclass(frozen=True)
@@ -87,15 +72,36 @@ class ImuSpec:
 
     position (3,) m: accelerometer triad in the array frame.
     orientation (3, 3): rotation sensor frame -> array frame (nominal).
-    position_std (3,) m or None: set by geometry calibrations.
+    values: term field key (e.g. ``"accelerometer.gain"``) -> value, as the
+    file gave it (fields not given take the term's identity value, see
+    :meth:`value`); ``position`` lives in its own attribute.
+    stds: field key (``"position"`` included) -> standard deviation, same shape.
     """
 
     name: str
     position: np.ndarray
     orientation: np.ndarray
-    position_std: np.ndarray | None = None
-    accelerometer: TriadCalibration = field(default_factory=TriadCalibration)
-    gyroscope: TriadCalibration = field(default_factory=TriadCalibration)
+    values: dict[str, np.ndarray] = field(default_factory=dict)
+    stds: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def position_std(self) -> np.ndarray | None:
+        return self.stds.get("position")
+
+    def value(self, key: str) -> np.ndarray:
+        """The value of term field ``key`` (its identity value when the file does not give it)."""
+        if key == "position":
+            return self.position
+        if key in self.values:
+            return self.values[key]
+        return term_fields()[key].default_value()
+
+    def with_values(self, values: dict | None = None, stds: dict | None = None) -> "ImuSpec":
+        """A copy with some field values / standard deviations set (``position`` included)."""
+        vals = {**self.values, **(values or {})}
+        position = vals.pop("position", self.position)
+        return replace(self, position=np.asarray(position, dtype=float), values=vals,
+                       stds={**self.stds, **(stds or {})})
 
 
 @dataclass(frozen=True)
@@ -181,15 +187,41 @@ def _check_keys(source: str, where: str, mapping: Any, allowed: set[str], requir
     return mapping
 
 
-def _triad(source: str, where: str, value: Any, allowed: set[str]) -> TriadCalibration:
-    if value is None:
-        return TriadCalibration()
-    m = _check_keys(source, where, value, allowed, set())
-    kw = {}
-    for key in allowed:
-        if key in m:
-            kw[key] = _vector(source, f"{where}.{key}", m[key], 3, positive=(key == "gain"))
-    return TriadCalibration(**kw)
+def _field_value(source: str, where: str, value: Any, f: Field, *, std: bool = False) -> np.ndarray:
+    """A term field (or its ``_std``) of the shape the field declares; 3x3 as rows or 9 numbers."""
+    if f.shape == ():
+        x = np.array(_number(source, where, value))
+    else:
+        if len(f.shape) == 2 and isinstance(value, (list, tuple)) and all(isinstance(r, (list, tuple)) for r in value):
+            value = [x for row in value for x in row]
+        x = _vector(source, where, value, f.size, positive=f.positive and not std).reshape(f.shape)
+    if std and np.any(x < 0):
+        raise _fail(source, where, f"a standard deviation must be >= 0, got {value!r}")
+    return x
+
+
+def _imu_terms(source: str, where: str, m: dict) -> tuple[dict, dict]:
+    """(values, stds) of the term fields in one IMU's mapping ``m`` (keys already checked)."""
+    values: dict[str, np.ndarray] = {}
+    stds: dict[str, np.ndarray] = {}
+    for key, f in term_fields().items():
+        section = m if len(f.path) == 1 else m.get(f.path[0]) or {}
+        leaf = f.path[-1]
+        if leaf in section and key != "position":
+            values[key] = _field_value(source, f"{where}.{key}", section[leaf], f)
+        if leaf + STD_SUFFIX in section:
+            stds[key] = _field_value(source, f"{where}.{key}{STD_SUFFIX}", section[leaf + STD_SUFFIX], f, std=True)
+    return values, stds
+
+
+def _imu_schema() -> tuple[set[str], dict[str, set[str]]]:
+    """Allowed keys of an IMU mapping and of each of its sections (``accelerometer``, ...)."""
+    top = {"name", "orientation"}
+    sections: dict[str, set[str]] = {}
+    for f in term_fields().values():
+        keys = top if len(f.path) == 1 else sections.setdefault(f.path[0], set())
+        keys |= {f.path[-1], f.path[-1] + STD_SUFFIX}
+    return top | set(sections), sections
 
 
 def _rotation(source: str, where: str, value: Any) -> np.ndarray:
@@ -215,9 +247,10 @@ def description_from_dict(data: Any, source: str = "<memory>") -> ArrayDescripti
         raise _fail(source, "imu_array.imus", "expected a non-empty list of IMUs")
     imus = []
     seen: set[str] = set()
+    imu_keys, section_keys = _imu_schema()
     for i, raw in enumerate(imus_raw):
         where = f"imu_array.imus[{i}]"
-        m = _check_keys(source, where, raw, _IMU_KEYS, {"name", "position", "orientation"})
+        m = _check_keys(source, where, raw, imu_keys, {"name", "position", "orientation"})
         name = m["name"]
         if not isinstance(name, str) or not name or not name.replace("_", "").isalnum() or name[0].isdigit():
             raise _fail(source, f"{where}.name", f"must be a ROS name token (letters, digits, _), got {name!r}")
@@ -225,18 +258,17 @@ def description_from_dict(data: Any, source: str = "<memory>") -> ArrayDescripti
             raise _fail(source, f"{where}.name", f"duplicate IMU name {name!r}")
         seen.add(name)
         where = f"imu {name!r}"
+        for sec, allowed in section_keys.items():
+            if m.get(sec) is not None:
+                _check_keys(source, f"{where}.{sec}", m[sec], allowed, set())
+        values, stds = _imu_terms(source, where, m)
         imus.append(
             ImuSpec(
                 name=name,
-                position=_vector(source, f"{where}.position", m["position"], 3),
+                position=_field_value(source, f"{where}.position", m["position"], term_fields()["position"]),
                 orientation=_rotation(source, f"{where}.orientation", m["orientation"]),
-                position_std=(
-                    None
-                    if m.get("position_std") is None
-                    else _vector(source, f"{where}.position_std", m["position_std"], 3)
-                ),
-                accelerometer=_triad(source, f"{where}.accelerometer", m.get("accelerometer"), _ACC_KEYS),
-                gyroscope=_triad(source, f"{where}.gyroscope", m.get("gyroscope"), _GYR_KEYS),
+                values=values,
+                stds=stds,
             )
         )
     calibration = top.get("calibration")
@@ -277,31 +309,27 @@ def _floats(v) -> list[float]:
     return [float(x) for x in np.asarray(v, dtype=float).ravel()]
 
 
-def _triad_dict(cal: TriadCalibration, with_nonorth: bool) -> dict:
-    d = {"gain": _floats(cal.gain)}
-    if with_nonorth:
-        d["nonorthogonality"] = _floats(cal.nonorthogonality)
-    d["misalignment"] = _floats(cal.misalignment)
-    d["bias"] = _floats(cal.bias)
+def _imu_dict(imu: ImuSpec) -> dict:
+    """One IMU's mapping: name, position(_std), orientation, then each section's fields in chain order."""
+    d: dict[str, Any] = {"name": imu.name, "position": _floats(imu.position)}
+    if "position" in imu.stds:
+        d["position_std"] = _floats(imu.stds["position"])
+    d["orientation"] = _floats(imu.orientation)
+    for key, f in term_fields().items():
+        if key == "position" or (key not in imu.values and key not in imu.stds):
+            continue
+        section = d.setdefault(f.path[0], {})
+        for leaf, src in ((f.path[-1], imu.values), (f.path[-1] + STD_SUFFIX, imu.stds)):
+            if key in src:
+                v = np.asarray(src[key], dtype=float)
+                section[leaf] = float(v) if f.shape == () else (
+                    [_floats(row) for row in v.reshape(f.shape)] if len(f.shape) == 2 else _floats(v))
     return d
 
 
 def description_to_dict(desc: ArrayDescription) -> dict:
     """Plain-data form of a description (inverse of :func:`description_from_dict`)."""
-    imus = []
-    for imu in desc.imus:
-        d: dict[str, Any] = {
-            "name": imu.name,
-            "position": _floats(imu.position),
-            "orientation": _floats(imu.orientation),
-        }
-        if imu.position_std is not None:
-            d["position_std"] = _floats(imu.position_std)
-        if not imu.accelerometer.is_identity:
-            d["accelerometer"] = _triad_dict(imu.accelerometer, True)
-        if not imu.gyroscope.is_identity:
-            d["gyroscope"] = _triad_dict(imu.gyroscope, False)
-        imus.append(d)
+    imus = [_imu_dict(imu) for imu in desc.imus]
     out: dict[str, Any] = {
         "imu_array": {
             "frame_id": desc.frame_id,
@@ -323,7 +351,8 @@ class _FlowListDumper(yaml.SafeDumper):
 
 
 def _represent_list(dumper, data):
-    flow = all(isinstance(x, (int, float)) for x in data)
+    flow = all(isinstance(x, (int, float)) for x in data) or all(
+        isinstance(r, list) and all(isinstance(x, (int, float)) for x in r) for r in data)
     return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
 

@@ -23,18 +23,38 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from imu_array_ros.model.saturation import CLIP_RELATIVE_TOLERANCE, unsaturated
 from imu_array_ros.model.terms import REGISTRY, SENSORS, MotionContext, Term, term_names
 
-__all__ = ["SensorModel", "ModelJacobians", "motion_context"]
+__all__ = ["SensorModel", "ModelJacobians", "motion_context", "motion_derivative"]
 
 
 def motion_context(stamps, omega, omega_dot, specific_force, rotations, *, t0_ns=None, omega_ddot=None,
-                   specific_force_dot=None) -> MotionContext:
-    """A :class:`MotionContext` from arrays (N, 3) in the array frame; rotations (K, 3, 3)."""
+                   specific_force_dot=None, derivatives: bool = False) -> MotionContext:
+    """A :class:`MotionContext` from arrays (N, 3) in the array frame; rotations (K, 3, 3).
+
+    ``derivatives``: fill omega_ddot and specific_force_dot (when not given) by
+    differentiating omega_dot and specific_force over the stamps (second-order
+    central differences, one-sided at the ends; :func:`numpy.gradient`).  This is
+    how the simulator and the fitting engine obtain the derivatives the
+    ``time_offset`` term needs, so both see the same first-order model.
+    """
     f = lambda a: None if a is None else np.asarray(a, dtype=float).reshape(-1, 3)  # noqa: E731
+    if derivatives:
+        omega_ddot = motion_derivative(stamps, omega_dot) if omega_ddot is None else omega_ddot
+        specific_force_dot = motion_derivative(stamps, specific_force) if specific_force_dot is None else specific_force_dot
     return MotionContext(stamps=np.asarray(stamps, dtype=np.int64).reshape(-1), omega=f(omega), omega_dot=f(omega_dot),
                          specific_force=f(specific_force), rotations=np.asarray(rotations, dtype=float),
                          t0_ns=t0_ns, omega_ddot=f(omega_ddot), specific_force_dot=f(specific_force_dot))
+
+
+def motion_derivative(stamps, values) -> np.ndarray:
+    """d values / dt (N, 3) over integer ns ``stamps`` (N,); zeros for fewer than two samples."""
+    values = np.asarray(values, dtype=float).reshape(-1, 3)
+    if len(values) < 2:
+        return np.zeros_like(values)
+    t = (np.asarray(stamps, dtype=np.int64) - int(stamps[0])) * 1e-9
+    return np.gradient(values, t, axis=0)
 
 
 @dataclass
@@ -55,7 +75,10 @@ class SensorModel:
     """Nominal geometry, noise and every registered term (at its identity value unless set).
 
     names (K,); rotations (K, 3, 3) nominal sensor -> array; acc_std, gyro_std
-    (K, 3) white-noise standard deviations; terms: registry name -> :class:`Term`.
+    (K, 3) white-noise standard deviations; terms: registry name -> :class:`Term`;
+    acc_clip, gyro_clip: magnitude the raw readings clip at (inf: never);
+    acc_clip_tolerance, gyro_clip_tolerance: a reading with |y| >= clip - tolerance
+    is saturated (None: ``CLIP_RELATIVE_TOLERANCE * clip``; half an LSB when quantised).
     """
 
     names: tuple[str, ...]
@@ -64,10 +87,43 @@ class SensorModel:
     acc_std: np.ndarray
     gyro_std: np.ndarray
     terms: dict[str, Term]
+    acc_clip: float = np.inf
+    gyro_clip: float = np.inf
+    acc_clip_tolerance: float | None = None
+    gyro_clip_tolerance: float | None = None
 
     @property
     def n_imus(self) -> int:
         return len(self.names)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(K, 3) accelerometer positions (the ``position`` term's values), m."""
+        return self.terms["position"].values
+
+    def acc_unsaturated(self, values: np.ndarray) -> np.ndarray:
+        """Raw accelerometer readings (any shape) that are finite and not clipped."""
+        return unsaturated(values, self.acc_clip, self._tolerance(self.acc_clip, self.acc_clip_tolerance))
+
+    def gyro_unsaturated(self, values: np.ndarray) -> np.ndarray:
+        """Raw gyroscope readings (any shape) that are finite and not clipped."""
+        return unsaturated(values, self.gyro_clip, self._tolerance(self.gyro_clip, self.gyro_clip_tolerance))
+
+    def valid(self, accel: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+        """(N, K, 6) True for the axes that carry information (finite, not saturated),
+        rows [acc x, y, z, gyro x, y, z] as in :class:`ModelJacobians`."""
+        return np.concatenate([self.acc_unsaturated(accel), self.gyro_unsaturated(gyro)], axis=-1)
+
+    @staticmethod
+    def _tolerance(clip: float, tol: float | None) -> float:
+        if not np.isfinite(clip):
+            return 0.0
+        return CLIP_RELATIVE_TOLERANCE * clip if tol is None else tol
+
+    @property
+    def std(self) -> np.ndarray:
+        """(K, 6) noise standard deviations, rows as in :meth:`valid`."""
+        return np.concatenate([self.acc_std, self.gyro_std], axis=1)
 
     @classmethod
     def from_description(cls, desc) -> "SensorModel":
@@ -78,16 +134,46 @@ class SensorModel:
             tc = REGISTRY[name]
             values = tc.default_values(k)
             for i, imu in enumerate(desc.imus):
-                col = 0
-                for f in tc.fields:
-                    v = desc_field(imu, f.path)
-                    if v is not None:
-                        values[i, col:col + f.size] = np.asarray(v, dtype=float).ravel()
-                    col += f.size
+                values[i] = np.concatenate([np.asarray(imu.value(f.key), dtype=float).ravel() for f in tc.fields])
             terms[name] = tc(values)
+        half = lambda lsb: None if lsb is None else 0.5 * lsb  # noqa: E731
         return cls(names=desc.names, frame_id=desc.frame_id, rotations=desc.orientations,
                    acc_std=np.full((k, 3), desc.accelerometer_noise_std),
-                   gyro_std=np.full((k, 3), desc.gyroscope_noise_std), terms=terms)
+                   gyro_std=np.full((k, 3), desc.gyroscope_noise_std), terms=terms,
+                   acc_clip=float(desc.accelerometer_clip or desc.accelerometer_range),
+                   gyro_clip=float(desc.gyroscope_clip or desc.gyroscope_range),
+                   acc_clip_tolerance=half(desc.accelerometer_lsb), gyro_clip_tolerance=half(desc.gyroscope_lsb))
+
+    def to_description(self, desc, names: Iterable[str] | None = None, stds: dict[str, np.ndarray] | None = None):
+        """``desc`` (an :class:`~imu_array_ros.model.description.ArrayDescription` of the same
+        IMUs) with the values of the terms ``names`` (default: every term that is not at
+        its identity value) written into its fields, and ``stds`` (term name -> (K, P)
+        standard deviations; NaN entries are left out) written as ``<field>_std``."""
+        if tuple(desc.names) != tuple(self.names):
+            raise ValueError("the description's IMUs differ from the model's")
+        names = [n for n in self.terms if not self.terms[n].is_identity] if names is None else list(names)
+        stds = stds or {}
+        imus = []
+        for i, imu in enumerate(desc.imus):
+            values, sd = {}, {}
+            for name in names:
+                for key, v in self.terms[name].split().items():
+                    values[key] = v[i]
+                if name in stds:
+                    for key, v in type(self.terms[name])(np.asarray(stds[name])).split().items():
+                        if np.all(np.isfinite(v[i])):
+                            sd[key] = v[i]
+            imus.append(imu.with_values(values, sd))
+        return desc.with_imus(imus)
+
+    def linear_part(self) -> "SensorModel":
+        """A copy with every term that is not ``linear`` at its identity value."""
+        return replace(self, terms={n: (t if t.linear else type(t).identity(self.n_imus)) for n, t in self.terms.items()})
+
+    @property
+    def nonlinear_terms(self) -> list[str]:
+        """Names of the terms that are not linear and not at their identity value."""
+        return [n for n, t in self.terms.items() if not t.linear and not t.is_identity]
 
     def with_terms(self, **values: np.ndarray) -> "SensorModel":
         """A copy with some terms' values (K, P) replaced."""
@@ -159,12 +245,3 @@ class SensorModel:
             motion[:, :, rows, base:base + 3] += d @ ctx.rot_t[None]
         return ModelJacobians(predicted=predicted, motion=motion, params=params)
 
-
-def desc_field(imu, path: tuple[str, ...]):
-    """Value of a term field in an :class:`~imu_array_ros.model.description.ImuSpec`, or None."""
-    obj = imu
-    for key in path:
-        obj = obj.get(key) if isinstance(obj, dict) else getattr(obj, key, None)
-        if obj is None:
-            return None
-    return obj

@@ -1,10 +1,13 @@
-"""Simulated array measurements (skog2016 eq. 1-5 through the sensor model).
+"""Simulated array measurements through THE forward model.
 
-``simulate_measurements`` evaluates the rigid-body specific force at every
-accelerometer position (skog2016 eq. 1), maps it and the angular velocity
-into each sensor frame with the (true) linear sensor model of
-:mod:`imu_array_ros.model.sensor_model`, adds white Gaussian noise and clips at
-the sensors' clip levels (``accelerometer_clip``/``gyroscope_clip``, default the ranges).
+``simulate_measurements`` evaluates :meth:`SensorModel.predict
+<imu_array_ros.model.forward.SensorModel.predict>` (every term of the model:
+geometry, calibration, time offsets, g-sensitivity, ...) for the true motion,
+adds white Gaussian noise with the model's standard deviations and clips at
+the sensors' clip levels (``accelerometer_clip``/``gyroscope_clip``, default the
+ranges).  The derivatives the ``time_offset`` term needs are those of
+:func:`~imu_array_ros.model.forward.motion_context` with ``derivatives=True``,
+the same the fitting engine uses.  Bias drifts count from the first stamp.
 """
 
 from __future__ import annotations
@@ -12,20 +15,25 @@ from __future__ import annotations
 import numpy as np
 
 from imu_array_ros.model.description import ArrayDescription
-from imu_array_ros.model.kinematics import specific_force_at
-from imu_array_ros.simulation.motion import TwistTrajectory, random_motion
+from imu_array_ros.model.forward import SensorModel, motion_context
 from imu_array_ros.model.samples import ImuSamples, MotionTruth
-from imu_array_ros.model.sensor_model import ErrorTerm, LinearArrayModel, apply_terms
+from imu_array_ros.simulation.motion import TwistTrajectory, random_motion
 
-__all__ = ["simulate_measurements", "simulate_twist", "simulate_random"]
+__all__ = ["simulate_measurements", "simulate_twist", "simulate_random", "as_sensor_model"]
 
 
-def simulate_measurements(model: LinearArrayModel, truth: MotionTruth, rng: np.random.Generator,
+def as_sensor_model(model: SensorModel | ArrayDescription) -> SensorModel:
+    """The sensor model of a description (a :class:`SensorModel` passes through)."""
+    return model if isinstance(model, SensorModel) else SensorModel.from_description(model)
+
+
+def simulate_measurements(model: SensorModel | ArrayDescription, truth: MotionTruth, rng: np.random.Generator,
                           *, noise: bool = True, saturate: bool = True) -> ImuSamples:
     """Measurements of every IMU for the given motion; (N, K, 3) in sensor frames."""
-    f = specific_force_at(truth.specific_force, truth.omega, truth.omega_dot, model.positions)
-    acc = np.einsum("kij,nkj->nki", model.acc_matrix, f) + model.acc_bias
-    gyr = np.einsum("kij,nj->nki", model.gyro_matrix, truth.omega) + model.gyro_bias
+    model = as_sensor_model(model)
+    ctx = motion_context(truth.stamps, truth.omega, truth.omega_dot, truth.specific_force, model.rotations,
+                         derivatives=True)
+    acc, gyr = model.predict(ctx)
     if noise:
         acc = acc + rng.normal(size=acc.shape) * model.acc_std
         gyr = gyr + rng.normal(size=gyr.shape) * model.gyro_std
@@ -35,13 +43,8 @@ def simulate_measurements(model: LinearArrayModel, truth: MotionTruth, rng: np.r
     return ImuSamples(truth.stamps, acc, gyr, model.names)
 
 
-def _true_model(desc: ArrayDescription, terms) -> LinearArrayModel:
-    return LinearArrayModel.from_description(apply_terms(desc, terms or ()))
-
-
-def simulate_twist(desc: ArrayDescription, duration: float, rate_hz: float, rng: np.random.Generator, *,
-                   terms: list[ErrorTerm] | None = None, rms_rate: float = np.deg2rad(600.0),
-                   start_ns: int = 0) -> tuple[ImuSamples, MotionTruth]:
+def simulate_twist(model: SensorModel | ArrayDescription, duration: float, rate_hz: float, rng: np.random.Generator,
+                   *, rms_rate: float = np.deg2rad(600.0), start_ns: int = 0) -> tuple[ImuSamples, MotionTruth]:
     """Hand-twisting recording of ``duration`` s at ``rate_hz``, stamps from ``start_ns`` (ns since the epoch).
 
     The motion and the measurements do not depend on ``start_ns``; only the stamps move.
@@ -49,12 +52,12 @@ def simulate_twist(desc: ArrayDescription, duration: float, rate_hz: float, rng:
     n = int(round(duration * rate_hz))
     stamps = int(start_ns) + np.round(np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
     truth = TwistTrajectory.random(rng, rms_rate=rms_rate).sample(stamps)
-    return simulate_measurements(_true_model(desc, terms), truth, rng), truth
+    return simulate_measurements(model, truth, rng), truth
 
 
-def simulate_random(desc: ArrayDescription, n: int, omega_norm: float, omega_dot_norm: float, rng: np.random.Generator,
-                    *, terms: list[ErrorTerm] | None = None, rate_hz: float = 1000.0,
+def simulate_random(model: SensorModel | ArrayDescription, n: int, omega_norm: float, omega_dot_norm: float,
+                    rng: np.random.Generator, *, rate_hz: float = 1000.0,
                     start_ns: int = 0) -> tuple[ImuSamples, MotionTruth]:
     """Independent samples with set |omega|, |omega_dot| (carlsson2017 Monte Carlo), stamps from ``start_ns``."""
     truth = random_motion(n, omega_norm, omega_dot_norm, rng, rate_hz=rate_hz, start_ns=start_ns)
-    return simulate_measurements(_true_model(desc, terms), truth, rng), truth
+    return simulate_measurements(model, truth, rng), truth

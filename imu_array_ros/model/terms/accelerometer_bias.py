@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Bias
 @register
 class AccelerometerBias(Bias):
     name = "accelerometer_bias"
+    hint = "turn the array through many orientations"
     sensors = ("accelerometer",)
     fields = (Field(("accelerometer", "bias"), (3,), "m/s^2"),)

@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Gain
 @register
 class AccelerometerGain(Gain):
     name = "accelerometer_gain"
+    hint = "turn the array so that large specific forces act along every accelerometer axis"
     sensors = ("accelerometer",)
     fields = (Field(("accelerometer", "gain"), (3,), "1", default=1.0, positive=True),)

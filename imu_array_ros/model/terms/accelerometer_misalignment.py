@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Misalignment
 @register
 class AccelerometerMisalignment(Misalignment):
     name = "accelerometer_misalignment"
+    hint = "turn the array through many orientations and rotate it fast about several axes"
     sensors = ("accelerometer",)
     fields = (Field(("accelerometer", "misalignment"), (3,), "rad"),)

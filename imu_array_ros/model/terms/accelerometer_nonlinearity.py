@@ -13,6 +13,7 @@ from imu_array_ros.model.terms.base import Field, Term, register
 @register
 class AccelerometerNonlinearity(Term):
     name = "accelerometer_nonlinearity"
+    hint = "turn the array so that large specific forces of both signs act along every accelerometer axis"
     sensors = ("accelerometer",)
     order = 30
     linear = False

@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Nonorthogonality
 @register
 class AccelerometerNonorthogonality(Nonorthogonality):
     name = "accelerometer_nonorthogonality"
+    hint = "turn the array so that large specific forces act along every accelerometer axis"
     sensors = ("accelerometer",)
     fields = (Field(("accelerometer", "nonorthogonality"), (3,), "rad"),)

@@ -15,6 +15,7 @@ from imu_array_ros.model.terms.base import Field, MotionContext, Term, register
 @register
 class AxisOffsets(Term):
     name = "axis_offsets"
+    hint = "rotate the array fast about all three axes, and do not fit axis offsets together with positions"
     sensors = ("accelerometer",)
     order = 1
     fields = (Field(("accelerometer", "axis_offsets"), (3, 3), "m"),)

@@ -158,7 +158,9 @@ class Term:
     in: 'accelerometer', 'gyroscope' or both), ``order`` (position in a chain; lower first),
     ``fields`` (the YAML fields it owns, in parameter order), ``linear`` (True
     when the term keeps the reading linear in [q(omega), omega_dot, s], so the
-    fusion can carry it exactly).  Instances hold ``values`` (K, P).
+    fusion can carry it exactly), ``hint`` (one short sentence: the motion that
+    identifies the term's parameters, quoted when a fit cannot identify them).
+    Instances hold ``values`` (K, P).
     """
 
     name: ClassVar[str] = ""
@@ -167,6 +169,7 @@ class Term:
     fields: ClassVar[tuple[Field, ...]] = ()
     linear: ClassVar[bool] = True
     description: ClassVar[str] = ""
+    hint: ClassVar[str] = ""
 
     def __init__(self, values: np.ndarray) -> None:
         values = np.asarray(values, dtype=float)

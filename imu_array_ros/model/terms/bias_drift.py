@@ -13,6 +13,7 @@ from imu_array_ros.model.terms.base import Field, Term, register
 @register
 class BiasDrift(Term):
     name = "bias_drift"
+    hint = "record for longer"
     sensors = ("accelerometer", "gyroscope")
     order = 51
     linear = False

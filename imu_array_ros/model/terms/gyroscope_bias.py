@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Bias
 @register
 class GyroscopeBias(Bias):
     name = "gyroscope_bias"
+    hint = "rotate the array fast about several axes"
     sensors = ("gyroscope",)
     fields = (Field(("gyroscope", "bias"), (3,), "rad/s"),)

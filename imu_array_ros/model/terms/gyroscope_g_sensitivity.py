@@ -16,6 +16,7 @@ from imu_array_ros.model.terms.base import Field, MotionContext, Term, register
 @register
 class GyroscopeGSensitivity(Term):
     name = "gyroscope_g_sensitivity"
+    hint = "turn the array through many orientations so the specific force at every gyroscope varies in all directions"
     sensors = ("gyroscope",)
     order = 45
     linear = False

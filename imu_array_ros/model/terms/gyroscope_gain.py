@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Gain
 @register
 class GyroscopeGain(Gain):
     name = "gyroscope_gain"
+    hint = "rotate the array fast about all three axes"
     sensors = ("gyroscope",)
     fields = (Field(("gyroscope", "gain"), (3,), "1", default=1.0, positive=True),)

@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Misalignment
 @register
 class GyroscopeMisalignment(Misalignment):
     name = "gyroscope_misalignment"
+    hint = "rotate the array fast about all three axes"
     sensors = ("gyroscope",)
     fields = (Field(("gyroscope", "misalignment"), (3,), "rad"),)

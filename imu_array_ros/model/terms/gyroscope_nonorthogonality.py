@@ -7,5 +7,6 @@ from imu_array_ros.model.terms.triad import Nonorthogonality
 @register
 class GyroscopeNonorthogonality(Nonorthogonality):
     name = "gyroscope_nonorthogonality"
+    hint = "rotate the array fast about all three axes"
     sensors = ("gyroscope",)
     fields = (Field(("gyroscope", "nonorthogonality"), (3,), "rad"),)

@@ -16,6 +16,7 @@ from imu_array_ros.model.terms.base import Field, MotionContext, Term, register
 @register
 class Position(Term):
     name = "position"
+    hint = "rotate the array about at least two different axes, with angular acceleration"
     sensors = ("accelerometer",)
     order = 0
     fields = (Field(("position",), (3,), "m"),)

@@ -19,8 +19,10 @@ from imu_array_ros.model.terms.base import Field, MotionContext, Term, register
 @register
 class TimeOffset(Term):
     name = "time_offset"
+    hint = "twist the array with quickly changing angular rate and specific force"
     sensors = ("accelerometer", "gyroscope")
     order = 2
+    linear = False  # the accelerometer part needs d s / dt, which is not in the motion
     fields = (Field(("accelerometer", "time_offset"), (), "s"), Field(("gyroscope", "time_offset"), (), "s"))
 
     def _rate(self, ctx: MotionContext, sensor: str) -> np.ndarray:
