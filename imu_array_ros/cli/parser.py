@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from imu_array_ros import __version__
-from imu_array_ros.cli import commands
+from imu_array_ros.cli import calibrate, commands
 from imu_array_ros.errors import ImuArrayError
 
 __all__ = [
@@ -27,6 +27,7 @@ __all__ = [
     "positive_float",
     "non_negative_float",
     "non_negative_int",
+    "positive_int",
     "sample_rate",
     "start_time",
 ]
@@ -74,6 +75,14 @@ def non_negative_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if value < 0:
         raise argparse.ArgumentTypeError(f"must not be negative, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (counts)."""
+    value = non_negative_int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
     return value
 
 
@@ -222,6 +231,23 @@ def build_parser() -> argparse.ArgumentParser:
                   "stdout (--tables, --json -) is still printed")
     sp.set_defaults(func=commands.residuals)
 
+    sp = sub.add_parser("calibrate", help="calibrate the array's sensor model from a recording")
+    cal = sp.add_subparsers(dest="calibration_command", required=True, metavar="METHOD")
+    sp = cal.add_parser("fit", help="maximum likelihood of any sensor-model terms jointly with the motion")
+    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
+    sp.add_argument("--array", required=True, type=Path, help="array description YAML (initial values)")
+    sp.add_argument("--calibration", type=Path,
+                    help="calibrated description (same schema) to start from instead of --array's values")
+    sp.add_argument("--terms", required=True,
+                    help="comma-separated registry names of the terms to fit, e.g. position,gyroscope_gain,time_offset")
+    sp.add_argument("--imus", help="comma-separated IMU names whose parameters are fitted (default: all)")
+    sp.add_argument("--reference",
+                    help="IMU whose parameters fix the gauge freedoms (default: the first fitted IMU)")
+    sp.add_argument("--max-iterations", type=positive_int, default=50, help="iteration cap, >= 1 (default 50)")
+    sp.add_argument("--out", required=True, type=Path, help="calibrated description YAML to write")
+    _common(sp, force="replace an existing --out, only if it is itself a YAML mapping")
+    sp.set_defaults(func=calibrate.calibrate_fit)
+
     sp = sub.add_parser("recover", help="salvage a truncated or damaged recording (e.g. a recorder killed mid-write)")
     sp.add_argument("recording", type=Path, help="the damaged recording: .mcap file or rosbag2 directory (only read)")
     sp.add_argument("--out", required=True, type=Path,
@@ -232,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _call(func: Callable[..., int], args: argparse.Namespace) -> int:
-    kwargs = {k: v for k, v in vars(args).items() if k not in ("func", "command")}
+    kwargs = {k: v for k, v in vars(args).items() if k not in ("func", "command", "calibration_command")}
     return int(func(**kwargs) or 0)
 
 

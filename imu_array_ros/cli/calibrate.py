@@ -1,0 +1,110 @@
+"""``imu-array calibrate ...``: calibrations that write a calibrated description.
+
+``calibrate fit`` is the general one: maximum likelihood of any set of sensor-model
+terms jointly with the motion (:func:`imu_array_ros.estimation.fit_terms.fit_terms`),
+written as the description schema with every fitted field, its ``_std`` (the
+Cramér-Rao bound of the joint problem) and a ``calibration:`` block.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+
+import numpy as np
+
+from imu_array_ros import __version__
+from imu_array_ros.cli.progress import Progress, info
+from imu_array_ros.errors import CalibrationError, OutputError
+from imu_array_ros.io.atomic import check_output
+
+__all__ = ["calibrate_fit", "parse_list"]
+
+
+def parse_list(text: str | None) -> list[str] | None:
+    """``a,b, c`` -> ['a', 'b', 'c']; None stays None."""
+    if text is None:
+        return None
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    return items
+
+
+def _float(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibration: Path | None = None,
+                  imus: str | None = None, reference: str | None = None, max_iterations: int = 50,
+                  force: bool = False, quiet: bool = False) -> int:
+    """Fit the sensor-model ``terms`` (comma-separated registry names) to ``recording``; write ``out``."""
+    from imu_array_ros.cli.commands import _check_fusable, _load_array
+    from imu_array_ros.estimation.fit_terms import fit_terms
+    from imu_array_ros.io.rosbag.recording import read_imu_recording
+    from imu_array_ros.model.description import save_description
+    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.terms import REGISTRY, term_names
+
+    free = parse_list(terms)
+    if not free:
+        raise CalibrationError(f"--terms: name at least one term (known: {', '.join(term_names())})")
+    unknown = [t for t in free if t not in REGISTRY]
+    if unknown:
+        raise CalibrationError(f"--terms: unknown term {unknown[0]!r} (known: {', '.join(term_names())})")
+    out = check_output(out, [recording, array, calibration], "yaml", force)
+    desc, source = _load_array(array, calibration)
+    _check_fusable(desc, source)
+    imu_list = parse_list(imus)
+    for name in (imu_list or []) + ([reference] if reference else []):
+        desc.index(name)  # a one-line error naming the unknown IMU
+    samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
+    info(quiet, f"read {rstats.samples} array samples of {len(desc.imus)} IMUs")
+    model = SensorModel.from_description(desc)
+
+    def progress(iteration: int, cost: float) -> None:
+        info(quiet, f"fitting: iteration {iteration}, cost {cost:.6g}")
+
+    fit = fit_terms(samples.stamps, samples.accel, samples.gyro, model, free, imus=imu_list, reference=reference,
+                    max_iterations=max_iterations, progress=progress)
+    for line in fit.gauge:
+        info(quiet, f"gauge: {line}")
+    info(quiet, f"fitted {len(fit.theta)} parameters on {fit.samples_used} samples"
+                f" ({fit.samples_dropped} without motion information dropped) in {fit.iterations} iterations"
+                f"{'' if fit.converged else ' (NOT converged: raise --max-iterations or check the data)'}")
+    info(quiet, f"log-likelihood {fit.loglik_before:.6g} -> {fit.loglik_after:.6g}; "
+                f"NIS per degree of freedom {fit.nis_before:.4g} -> {fit.nis_after:.4g}")
+    for name in fit.free:
+        change = fit.model.terms[name].values - model.terms[name].values
+        std = fit.std[name]
+        info(quiet, f"  {name}: RMS change {np.sqrt(np.mean(change ** 2)):.3g}, "
+                    f"median std {np.nanmedian(std) if np.isfinite(std).any() else float('nan'):.3g} "
+                    f"({REGISTRY[name].fields[0].unit})")
+    record = {
+        "method": "fit_terms: joint maximum likelihood of the terms and the motion (Schur-complement "
+                  "Gauss-Newton/Levenberg-Marquardt); *_std = Cramer-Rao bound of the joint problem",
+        "software": f"imu_array_ros {__version__}",
+        "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "recording": str(recording),
+        "terms": list(fit.free),
+        "imus": list(fit.imus),
+        "held_for_gauge": list(fit.held),
+        "samples_used": int(fit.samples_used),
+        "samples_dropped": int(fit.samples_dropped),
+        "iterations": int(fit.iterations),
+        "converged": bool(fit.converged),
+        "log_likelihood_before": _float(fit.loglik_before),
+        "log_likelihood_after": _float(fit.loglik_after),
+        "nis_before": _float(fit.nis_before),
+        "nis_after": _float(fit.nis_after),
+    }
+    # held parameters are exact in the chosen gauge: std 0 (the record lists them); IMUs not fitted get no _std
+    fitted = np.isin(np.array(desc.names), np.array(fit.imus))
+    stds = {n: np.where(fitted[:, None] & ~np.isfinite(fit.std[n]), 0.0, fit.std[n]) for n in fit.free}
+    result = fit.model.to_description(desc, names=sorted(set(fit.free) | set(
+        n for n, t in fit.model.terms.items() if not t.is_identity)), stds=stds)
+    try:
+        save_description(result.with_imus(result.imus, calibration=record), out)
+    except OSError as err:
+        raise OutputError(f"{out}: cannot write --out: {err.strerror or err}") from None
+    info(quiet, f"wrote {out}")
+    return 0
