@@ -47,7 +47,7 @@ from imu_array_ros.model.description import load_description  # noqa: E402
 from imu_array_ros.model.forward import SensorModel  # noqa: E402
 from imu_array_ros.model.layouts import make_description  # noqa: E402
 from imu_array_ros.model.terms import REGISTRY  # noqa: E402
-from imu_array_ros.simulation.perturb import perturb  # noqa: E402
+from imu_array_ros.simulation.perturb import TERM_TEST_SIZES, perturb  # noqa: E402
 from imu_array_ros.simulation.motion import TwistTrajectory  # noqa: E402
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist  # noqa: E402
 
@@ -56,14 +56,8 @@ FREE = ("position", "gyroscope_gain", "gyroscope_misalignment", "gyroscope_g_sen
 #: true 1-sigma errors of the joint case (a realistic MEMS array, as test/test_model_fusion.py)
 JOINT_SIZES = {"position": 1e-3, "gyroscope_gain": 0.01, "gyroscope_misalignment": 5e-3,
                "gyroscope_g_sensitivity": 5e-4, "time_offset": 1e-3}
-#: per-term Monte Carlo: the sizes of test/test_sensor_terms.py, and the recording length (s)
-MC_SIZES = {
-    "position": 0.01, "axis_offsets": 2e-3, "time_offset": 2e-3,
-    "accelerometer_misalignment": 0.01, "accelerometer_nonorthogonality": 0.01, "accelerometer_nonlinearity": 1e-3,
-    "accelerometer_gain": 0.02, "accelerometer_bias": 0.3, "bias_drift": 1e-3,
-    "gyroscope_misalignment": 0.01, "gyroscope_nonorthogonality": 0.01, "gyroscope_gain": 0.02,
-    "gyroscope_g_sensitivity": 1e-3, "gyroscope_bias": 0.01,
-}
+#: per-term Monte Carlo: the sizes of the Jacobian tests, and the recording length (s)
+MC_SIZES = TERM_TEST_SIZES
 MC_SECONDS = {"position": 1.5, "axis_offsets": 1.5, "time_offset": 1.5, "bias_drift": 1.5}
 SUBSET = (0, 3, 12, 15, 17, 18, 29, 30)
 

@@ -12,16 +12,12 @@ from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.model.kinematics import quadratic_monomials
 
+from imu_array_ros.simulation.perturb import TERM_TEST_SIZES
+
 from conftest import perturbed
 
 #: realistic 1-sigma sizes, per registry name (each term is exercised away from identity)
-SIZES = {
-    "position": 0.01, "axis_offsets": 2e-3, "time_offset": 2e-3,
-    "accelerometer_misalignment": 0.01, "accelerometer_nonorthogonality": 0.01, "accelerometer_nonlinearity": 1e-3,
-    "accelerometer_gain": 0.02, "accelerometer_bias": 0.3, "bias_drift": 1e-3,
-    "gyroscope_misalignment": 0.01, "gyroscope_nonorthogonality": 0.01, "gyroscope_gain": 0.02,
-    "gyroscope_g_sensitivity": 1e-3, "gyroscope_bias": 0.01,
-}
+SIZES = TERM_TEST_SIZES
 
 
 def random_rotations(rng, k):

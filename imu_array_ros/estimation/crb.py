@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imu_array_ros.model.kinematics import quadratic_monomials_jacobian, skew
+from imu_array_ros.model.kinematics import quadratic_monomials_jacobian
 from imu_array_ros.model.sensor_model import LinearArrayModel
 
 __all__ = ["jacobian_rows", "fisher_information", "crb", "square_array_omega_information"]

@@ -14,7 +14,7 @@ import numpy as np
 from imu_array_ros.model.forward import SensorModel
 from imu_array_ros.model.terms import REGISTRY, term_names
 
-__all__ = ["DEFAULT_ERROR_SCALES", "perturb"]
+__all__ = ["DEFAULT_ERROR_SCALES", "TERM_TEST_SIZES", "perturb"]
 
 #: Default 1-sigma sizes of seeded errors: positions per carlsson2017 Sec. IV
 #: (sigma_r = 1 mm would be the paper's pessimistic case; 0.1 mm is PCB placement,
@@ -26,6 +26,17 @@ DEFAULT_ERROR_SCALES = {
     "accelerometer_misalignment": np.deg2rad(0.5),
     "accelerometer_bias": 0.3,
     "gyroscope_bias": np.deg2rad(1.0),
+}
+
+#: A clearly visible 1-sigma size of every registered term (SI units of its parameters),
+#: used by the Jacobian tests and the per-term Monte Carlo to exercise each term away from
+#: identity; a new term must be added here (test_sensor_terms checks the registry against it).
+TERM_TEST_SIZES = {
+    "position": 0.01, "axis_offsets": 2e-3, "time_offset": 2e-3,
+    "accelerometer_misalignment": 0.01, "accelerometer_nonorthogonality": 0.01, "accelerometer_nonlinearity": 1e-3,
+    "accelerometer_gain": 0.02, "accelerometer_bias": 0.3, "bias_drift": 1e-3,
+    "gyroscope_misalignment": 0.01, "gyroscope_nonorthogonality": 0.01, "gyroscope_gain": 0.02,
+    "gyroscope_g_sensitivity": 1e-3, "gyroscope_bias": 0.01,
 }
 
 
