@@ -15,10 +15,12 @@ Writes benchmarks/results/real_data_terms.md (and the fitted descriptions to
 benchmarks/results/real_data_terms/exp_N.yaml, for inspection).
 
     python benchmarks/real_data_terms.py
+    python benchmarks/real_data_terms.py --without time_offset   # -> real_data_terms_without_time_offset.md
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -51,19 +53,24 @@ def nis(samples, model: SensorModel, desc) -> tuple[float, float]:
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--without", default="", help="comma-separated standard terms to leave out")
+    args = ap.parse_args()
+    without = [t for t in args.without.split(",") if t]
+    terms = tuple(t for t in STANDARD if t not in without)
+    tag = "real_data_terms" + "".join(f"_without_{t}" for t in without)
     desc = load_description(REPO / "config" / "mimu4444bt_corners.yaml")
     nominal = SensorModel.from_description(desc)
     paths = sorted(DATA.glob("exp_*.bin"))
     captures = {p.stem: import_capture(p, desc)[0] for p in paths}
     fits, lines = {}, []
-    (OUT / "real_data_terms").mkdir(exist_ok=True)
+    (OUT / tag).mkdir(exist_ok=True)
     for name, samples in captures.items():
         t0 = time.perf_counter()
-        fit = fit_terms(samples.stamps, samples.accel, samples.gyro, nominal, STANDARD)
+        fit = fit_terms(samples.stamps, samples.accel, samples.gyro, nominal, terms)
         dt = time.perf_counter() - t0
         fits[name] = fit
-        save_description(fit.model.to_description(desc, names=STANDARD, stds=fit.std),
-                         OUT / "real_data_terms" / f"{name}.yaml")
+        save_description(fit.model.to_description(desc, names=terms, stds=fit.std), OUT / tag / f"{name}.yaml")
         line = (f"| {name} | {len(samples)} | {fit.samples_used} | {fit.iterations} | {fit.converged} | "
                 f"{fit.nis_before:.3g} | {fit.nis_after:.3g} | {dt:.1f} |")
         lines.append(line)
@@ -77,7 +84,7 @@ def main() -> None:
 
     text = machine_header("Standard sensor-model terms fitted to the real MIMU4444BT captures")
     text += ("Terms fitted jointly with the motion on each whole capture (static poses and twisting): "
-             + ", ".join(f"`{t}`" for t in STANDARD) + ". Start: `config/mimu4444bt_corners.yaml`. "
+             + ", ".join(f"`{t}`" for t in terms) + ". Start: `config/mimu4444bt_corners.yaml`. "
              "Gauge: the engine's default (reference imu_1; see `held`).\n\n"
              "## Fits\n\nNIS per degree of freedom of the joint fit, before (nominal terms, motion fitted) and after.\n\n"
              "| capture | samples | used | iterations | converged | NIS/dof before | after | seconds |\n"
@@ -102,13 +109,14 @@ def main() -> None:
              "| term | unit | RMS change from nominal | RMS spread across captures | median reported std "
              "| median spread / std |\n|---|---|---|---|---|---|\n")
     per_imu = ""
-    for term in STANDARD:
+    for term in terms:
         vals = np.stack([fits[n].model.terms[term].values for n in names])  # (6, K, P)
         stds = np.stack([fits[n].std[term] for n in names])
         change = vals - nominal.terms[term].values
         spread = vals.std(axis=0, ddof=1)
-        med_std = np.nanmedian(stds, axis=0)
-        ok = np.isfinite(med_std) & (med_std > 0)
+        held = ~np.isfinite(stds).any(axis=0)
+        med_std = np.nanmedian(np.where(held, 1.0, stds), axis=0)
+        ok = ~held & (med_std > 0)
         unit = type(nominal.terms[term]).fields[0].unit
         text += (f"| {term} | {unit} | {np.sqrt(np.mean(change[:, ok] ** 2)):.3g} | {np.sqrt(np.mean(spread[ok] ** 2)):.3g} "
                  f"| {np.median(med_std[ok]):.3g} | {np.median(spread[ok] / med_std[ok]):.3g} |\n")
@@ -121,8 +129,8 @@ def main() -> None:
         per_imu += (f"\n### {term}\n\nmean over captures ± spread (σ: median reported std)\n\n| IMU | "
                     + " | ".join(pnames) + " |\n|---|" + "---|" * len(pnames) + "\n" + "\n".join(rows) + "\n")
     text += "\n## Per IMU\n" + per_imu
-    (OUT / "real_data_terms.md").write_text(text)
-    print(f"wrote {OUT / 'real_data_terms.md'}")
+    (OUT / f"{tag}.md").write_text(text)
+    print(f"wrote {OUT / f'{tag}.md'}")
 
 
 if __name__ == "__main__":
