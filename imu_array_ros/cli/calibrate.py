@@ -38,22 +38,20 @@ def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibr
                   imus: str | None = None, reference: str | None = None, max_iterations: int = 50,
                   force: bool = False, quiet: bool = False) -> int:
     """Fit the sensor-model ``terms`` (comma-separated registry names) to ``recording``; write ``out``."""
-    from imu_array_ros.cli.commands import _check_fusable, _load_array
-    from imu_array_ros.estimation.fit_terms import fit_terms
+    from imu_array_ros.cli.commands import check_fusable, load_array
+    from imu_array_ros.estimation.fit_terms import check_terms, fit_terms
     from imu_array_ros.io.rosbag.recording import read_imu_recording
     from imu_array_ros.model.description import save_description
     from imu_array_ros.model.forward import SensorModel
-    from imu_array_ros.model.terms import REGISTRY, term_names
+    from imu_array_ros.model.terms import REGISTRY
 
-    free = parse_list(terms)
-    if not free:
-        raise CalibrationError(f"--terms: name at least one term (known: {', '.join(term_names())})")
-    unknown = [t for t in free if t not in REGISTRY]
-    if unknown:
-        raise CalibrationError(f"--terms: unknown term {unknown[0]!r} (known: {', '.join(term_names())})")
+    try:  # before reading anything
+        free = check_terms(parse_list(terms))
+    except CalibrationError as err:
+        raise CalibrationError(f"--terms: {err}") from None
     out = check_output(out, [recording, array, calibration], "yaml", force)
-    desc, source = _load_array(array, calibration)
-    _check_fusable(desc, source)
+    desc, source = load_array(array, calibration)
+    check_fusable(desc, source)
     imu_list = parse_list(imus)
     for name in (imu_list or []) + ([reference] if reference else []):
         desc.index(name)  # a one-line error naming the unknown IMU

@@ -35,7 +35,7 @@ MAX_STAMP_NS = (2**31) * 10**9 - 1
 MAX_SIMULATED_SAMPLES = 10**8
 
 
-def _load_array(array: Path, calibration: Path | None) -> tuple[ArrayDescription, Path]:
+def load_array(array: Path, calibration: Path | None) -> tuple[ArrayDescription, Path]:
     """The description to fuse with, and the file its values (and geometry) came from."""
     desc = load_description(array)
     if calibration is None:
@@ -49,7 +49,7 @@ def _load_array(array: Path, calibration: Path | None) -> tuple[ArrayDescription
     return cal.with_imus([by_name[n] for n in desc.names]), Path(calibration)
 
 
-def _check_fusable(desc: ArrayDescription, source: Path) -> None:
+def check_fusable(desc: ArrayDescription, source: Path) -> None:
     """skog2016 Sec. II-D, with the error naming the description file."""
     check_identifiable(desc.positions, len(desc.imus), where=str(source))
 
@@ -65,8 +65,8 @@ def _read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet
     from imu_array_ros.io.rosbag.recording import read_imu_recording
     from imu_array_ros.model.forward import SensorModel
 
-    desc, source = _load_array(array, calibration)
-    _check_fusable(desc, source)
+    desc, source = load_array(array, calibration)
+    check_fusable(desc, source)
     fusion = ModelFusion(SensorModel.from_description(desc), acc_range=desc.accelerometer_range,
                          gyro_range=desc.gyroscope_range)
     samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
@@ -153,7 +153,7 @@ def simulate(
                             "(int32 seconds of a ROS time stamp)")
 
     desc = load_description(array)
-    _check_fusable(desc, Path(array))
+    check_fusable(desc, Path(array))
     rng = np.random.default_rng(seed)
     true_desc = load_description(true_array) if true_array else desc
     if true_array and true_desc.names != desc.names:

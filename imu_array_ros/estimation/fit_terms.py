@@ -101,7 +101,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.terms import REGISTRY, term_names
 
-__all__ = ["FitResult", "fit_terms", "GAUGE_ORDER"]
+__all__ = ["FitResult", "fit_terms", "check_terms", "GAUGE_ORDER"]
 
 #: terms whose reference-IMU parameters are tried first to fix a gauge freedom (frame-defining ones)
 GAUGE_ORDER = ("position", "accelerometer_misalignment", "accelerometer_gain", "accelerometer_bias", "time_offset")
@@ -189,7 +189,7 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     squared normalised residuals / 2.  Raises :class:`CalibrationError` (one
     line) when the problem cannot be solved or identified.
     """
-    free = _check_free(free)
+    free = check_terms(free)
     if gauge not in ("reference", "mean"):
         raise CalibrationError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
     fit = _imu_indexes(model, imus, "imus")
@@ -211,12 +211,13 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
 # --------------------------------------------------------------------------- input checks
 
 
-def _check_free(free: Sequence[str]) -> tuple[str, ...]:
+def check_terms(free: Sequence[str]) -> tuple[str, ...]:
+    """``free`` as a tuple of known registry names without repeats; CalibrationError otherwise."""
     if isinstance(free, str):
         free = [free]
     out = tuple(dict.fromkeys(free))
     if not out:
-        raise CalibrationError("no free terms to fit (free is empty)")
+        raise CalibrationError(f"no free terms to fit: name at least one term (known: {', '.join(term_names())})")
     unknown = [n for n in out if n not in REGISTRY]
     if unknown:
         raise CalibrationError(f"unknown term {unknown[0]!r} in free (known: {', '.join(term_names())})")

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from imu_array_ros.errors import FusionError
 from imu_array_ros.estimation.ml_fusion import FusionConfig, FusionStats, MLFusion
 from imu_array_ros.model.forward import SensorModel, motion_context
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
@@ -87,8 +88,6 @@ def fuse_model(samples: ImuSamples, model: SensorModel, config: FusionConfig | N
                **kwargs) -> tuple[FusedSamples, FusionStats]:
     """Fuse a whole :class:`ImuSamples` batch with every term of ``model`` (see module docstring)."""
     if tuple(samples.names) != tuple(model.names):
-        from imu_array_ros.errors import FusionError
-
         raise FusionError(f"fusion: samples are for IMUs {list(samples.names)[:4]}..., "
                           f"model for {list(model.names)[:4]}...")
     return ModelFusion(model, config, **kwargs).fuse(samples.stamps, samples.accel, samples.gyro)

@@ -23,7 +23,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from imu_array_ros.model.saturation import CLIP_RELATIVE_TOLERANCE, unsaturated
+from imu_array_ros.model.saturation import unsaturated
 from imu_array_ros.model.terms import REGISTRY, SENSORS, MotionContext, Term, term_names
 
 __all__ = ["SensorModel", "ModelJacobians", "motion_context", "motion_derivative"]
@@ -78,7 +78,7 @@ class SensorModel:
     (K, 3) white-noise standard deviations; terms: registry name -> :class:`Term`;
     acc_clip, gyro_clip: magnitude the raw readings clip at (inf: never);
     acc_clip_tolerance, gyro_clip_tolerance: a reading with |y| >= clip - tolerance
-    is saturated (None: ``CLIP_RELATIVE_TOLERANCE * clip``; half an LSB when quantised).
+    is saturated (None: :func:`~imu_array_ros.model.saturation.clip_tolerance`; half an LSB when quantised).
     """
 
     names: tuple[str, ...]
@@ -103,22 +103,16 @@ class SensorModel:
 
     def acc_unsaturated(self, values: np.ndarray) -> np.ndarray:
         """Raw accelerometer readings (any shape) that are finite and not clipped."""
-        return unsaturated(values, self.acc_clip, self._tolerance(self.acc_clip, self.acc_clip_tolerance))
+        return unsaturated(values, self.acc_clip, self.acc_clip_tolerance)
 
     def gyro_unsaturated(self, values: np.ndarray) -> np.ndarray:
         """Raw gyroscope readings (any shape) that are finite and not clipped."""
-        return unsaturated(values, self.gyro_clip, self._tolerance(self.gyro_clip, self.gyro_clip_tolerance))
+        return unsaturated(values, self.gyro_clip, self.gyro_clip_tolerance)
 
     def valid(self, accel: np.ndarray, gyro: np.ndarray) -> np.ndarray:
         """(N, K, 6) True for the axes that carry information (finite, not saturated),
         rows [acc x, y, z, gyro x, y, z] as in :class:`ModelJacobians`."""
         return np.concatenate([self.acc_unsaturated(accel), self.gyro_unsaturated(gyro)], axis=-1)
-
-    @staticmethod
-    def _tolerance(clip: float, tol: float | None) -> float:
-        if not np.isfinite(clip):
-            return 0.0
-        return CLIP_RELATIVE_TOLERANCE * clip if tol is None else tol
 
     @property
     def std(self) -> np.ndarray:

@@ -34,7 +34,7 @@ import numpy as np
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.forward import SensorModel, motion_context
 from imu_array_ros.model.kinematics import centripetal_matrix, euler_matrix
-from imu_array_ros.model.saturation import CLIP_RELATIVE_TOLERANCE, unsaturated
+from imu_array_ros.model.saturation import CLIP_RELATIVE_TOLERANCE, clip_tolerance, unsaturated
 from imu_array_ros.model.terms.triad import nonorthogonality_matrix
 
 __all__ = ["LinearArrayModel", "nonorthogonality_matrix", "linear_design", "CLIP_RELATIVE_TOLERANCE", "unsaturated"]
@@ -79,10 +79,7 @@ class LinearArrayModel:
         for sensor in ("acc", "gyro"):
             clip = getattr(self, f"{sensor}_clip")
             clip = float(getattr(self, f"{sensor}_range") if clip is None else clip)
-            tol = getattr(self, f"{sensor}_clip_tolerance")
-            if tol is None:
-                tol = CLIP_RELATIVE_TOLERANCE * clip if np.isfinite(clip) else 0.0  # inf: never clips
-            tol = float(tol)
+            tol = clip_tolerance(clip, getattr(self, f"{sensor}_clip_tolerance"))
             if not (clip > 0 and np.isfinite(tol) and 0 <= tol < clip):
                 raise ValueError(f"{sensor}: need clip > 0 and 0 <= tolerance < clip, got {clip!r}, {tol!r}")
             object.__setattr__(self, f"{sensor}_clip", clip)
