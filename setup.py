@@ -14,6 +14,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -25,6 +26,7 @@ setup(
         "rosbags>=0.10",
         "lz4>=4.0",
         "zstandard>=0.21",
+        "pyserial>=3.5",
     ],
     zip_safe=True,
     maintainer="imu_array_ros maintainers",
@@ -35,6 +37,8 @@ setup(
     entry_points={
         "console_scripts": [
             "imu-array = imu_array_ros.cli:main",
+            "driver_node = imu_array_ros.nodes.driver_node:main",
+            "fusion_node = imu_array_ros.nodes.fusion_node:main",
         ],
     },
 )

@@ -60,15 +60,13 @@ def _read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet
     Returns (description, ModelFusion, ImuSamples, ReadStats, FusedSamples, FusionStats);
     the fusion carries every term of the description (``fusion.model``).
     """
-    from imu_array_ros.estimation.model_fusion import ModelFusion
+    from imu_array_ros.estimation.live import build_fusion
     from imu_array_ros.estimation.stream import fuse_chunked
     from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.forward import SensorModel
 
     desc, source = load_array(array, calibration)
     check_fusable(desc, source)
-    fusion = ModelFusion(SensorModel.from_description(desc), acc_range=desc.accelerometer_range,
-                         gyro_range=desc.gyroscope_range)
+    fusion = build_fusion(desc)  # the fusion node builds the same object
     samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
     fused, stats = fuse_chunked(fusion, samples, Progress("fusing", quiet))
     return desc, fusion, samples, rstats, fused, stats

@@ -41,6 +41,7 @@ from imu_array_ros.io.rosbag.cdr_columns import (
 )
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.errors import RecordingError
+from imu_array_ros.io.messages import NO_ORIENTATION, fused_payloads, raw_imu_payloads
 from imu_array_ros.io.rosbag.mcap_recording import McapRecording
 from imu_array_ros.io.rosbag.mcap_writer import ChannelData, write_recording
 from imu_array_ros.io.rosbag.topic_columns import check_topic, list_topics, read_topics
@@ -60,8 +61,6 @@ __all__ = [
 IMU_TYPE = IMU_LAYOUT.type_name
 ACCEL_TYPE = ACCEL_LAYOUT.type_name
 
-#: orientation_covariance of a message without orientation (REP-145).
-NO_ORIENTATION = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
 
 #: A topic's stamps "do not match" when more than this fraction of its samples
 #: has no other IMU's message at the same stamp.
@@ -206,23 +205,9 @@ def _stamp_error(path, err: ValueError) -> RecordingError:
 
 
 def _imu_channels(samples: ImuSamples, description: ArrayDescription, topic_prefix: str) -> list[ChannelData]:
-    gyro_cov = np.diag(np.full(3, float(description.gyroscope_noise_std) ** 2)).reshape(9)
-    acc_cov = np.diag(np.full(3, float(description.accelerometer_noise_std) ** 2)).reshape(9)
-    present = samples.present
     channels = []
-    for k, name in enumerate(samples.names):
-        rows = present[:, k]
-        stamps = samples.stamps[rows]
-        payload = encode_imu(
-            stamps,
-            name,
-            angular_velocity=samples.gyro[rows, k],
-            linear_acceleration=samples.accel[rows, k],
-            angular_velocity_covariance=gyro_cov,
-            linear_acceleration_covariance=acc_cov,
-            orientation_covariance=NO_ORIENTATION,
-        )
-        channels.append(ChannelData(imu_topic(name, topic_prefix), IMU_TYPE, stamps, payload))
+    for name, (rows, payload) in zip(samples.names, raw_imu_payloads(samples, description)):
+        channels.append(ChannelData(imu_topic(name, topic_prefix), IMU_TYPE, samples.stamps[rows], payload))
     return channels
 
 
@@ -380,27 +365,8 @@ def write_fused_recording(
     """
     prefix = _prefix(topic_prefix)
     stamps = np.asarray(fused.stamps, dtype=np.int64).reshape(-1)
-    n = len(stamps)
-    cov = np.asarray(fused.covariance, dtype=float).reshape(n, 9, 9)
-    w, wd, f = slice(0, 3), slice(3, 6), slice(6, 9)
-    accel_cov = np.empty((n, 6, 6))
-    accel_cov[:, :3, :3] = cov[:, f, f]
-    accel_cov[:, :3, 3:] = cov[:, f, wd]
-    accel_cov[:, 3:, :3] = cov[:, wd, f]
-    accel_cov[:, 3:, 3:] = cov[:, wd, wd]
     try:
-        imu = encode_imu(
-            stamps,
-            frame_id,
-            angular_velocity=fused.omega,
-            angular_velocity_covariance=cov[:, w, w].reshape(n, 9),
-            linear_acceleration=fused.specific_force,
-            linear_acceleration_covariance=cov[:, f, f].reshape(n, 9),
-            orientation_covariance=NO_ORIENTATION,
-        )
-        acc = encode_accel_with_covariance_stamped(
-            stamps, frame_id, linear=fused.specific_force, angular=fused.omega_dot, covariance=accel_cov.reshape(n, 36)
-        )
+        imu, acc = fused_payloads(fused, frame_id)
     except ValueError as err:
         raise _stamp_error(path, err) from None
     write_recording(

@@ -1,0 +1,208 @@
+"""The serialized messages of the live topics and of recordings: one module for both.
+
+The driver node, the fusion node and the recording writer all build their
+``sensor_msgs/msg/Imu`` and ``geometry_msgs/msg/AccelWithCovarianceStamped``
+payloads here, column-wise over whole batches (:mod:`imu_array_ros.io.rosbag.cdr_columns`),
+and the fusion node and the readers decode them here.  The nodes publish and
+subscribe the CDR bytes as they are (rclpy ``publish(bytes)`` and
+``create_subscription(..., raw=True)``): no per-message Python object is ever
+built, and a message on a live topic is byte for byte the message a recording
+holds (a test checks this against rclpy's own serializer).
+
+Topics and fields (the recording contract, :mod:`imu_array_ros.io.rosbag.recording`):
+
+``<prefix>/<name>/data_raw``  one Imu per IMU per array sample
+    the IMU's own sensor frame, ``frame_id = <frame_prefix><name>``, the same stamp on
+    every IMU of one sample, ``angular_velocity_covariance = diag(gyroscope_noise_std^2)``,
+    ``linear_acceleration_covariance = diag(accelerometer_noise_std^2)``, orientation
+    zero with ``orientation_covariance[0] = -1`` (REP-145).
+``<prefix>/fused/imu``, ``<prefix>/fused/accel``  the fusion output
+    Imu: omega and specific force with their 3x3 CRB blocks;
+    AccelWithCovarianceStamped: linear = specific force, angular = omega_dot,
+    6x6 CRB in ROS order [linear, angular].  Frame: the array frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from imu_array_ros.io.rosbag.cdr_columns import (
+    IMU_LAYOUT,
+    decode_accel_with_covariance_stamped,
+    decode_imu,
+    encode_accel_with_covariance_stamped,
+    encode_imu,
+)
+from imu_array_ros.model.description import ArrayDescription
+from imu_array_ros.model.samples import FusedSamples, ImuSamples
+
+__all__ = [
+    "NO_ORIENTATION",
+    "raw_covariances",
+    "raw_imu_payloads",
+    "fused_payloads",
+    "RawBatch",
+    "decode_raw_imu",
+    "decode_fused",
+    "concat_payloads",
+]
+
+#: orientation_covariance of a message without orientation (REP-145).
+NO_ORIENTATION = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
+
+_W, _WD, _F = slice(0, 3), slice(3, 6), slice(6, 9)
+
+
+def raw_covariances(description: ArrayDescription) -> tuple[np.ndarray, np.ndarray]:
+    """(accelerometer, gyroscope) covariance of one raw Imu message, each (9,) row-major."""
+    acc = np.diag(np.full(3, float(description.accelerometer_noise_std) ** 2)).reshape(9)
+    gyr = np.diag(np.full(3, float(description.gyroscope_noise_std) ** 2)).reshape(9)
+    return acc, gyr
+
+
+def raw_imu_payloads(
+    samples: ImuSamples, description: ArrayDescription, frame_prefix: str = ""
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Raw Imu payloads of a batch, per IMU in ``samples.names`` order.
+
+    Returns, for every IMU k, ``(rows, payloads)``: the indices (m_k,) of the
+    samples where IMU k is present (finite) and their CDR payloads (m_k, L_k) uint8.
+    Raises ValueError for a stamp outside ``builtin_interfaces/Time``.
+    """
+    acc_cov, gyr_cov = raw_covariances(description)
+    present = samples.present
+    out = []
+    for k, name in enumerate(samples.names):
+        rows = np.flatnonzero(present[:, k])
+        payload = encode_imu(
+            samples.stamps[rows],
+            frame_prefix + name,
+            angular_velocity=samples.gyro[rows, k],
+            linear_acceleration=samples.accel[rows, k],
+            angular_velocity_covariance=gyr_cov,
+            linear_acceleration_covariance=acc_cov,
+            orientation_covariance=NO_ORIENTATION,
+        )
+        out.append((rows, payload))
+    return out
+
+
+def fused_payloads(fused: FusedSamples, frame_id: str) -> tuple[np.ndarray, np.ndarray]:
+    """Fusion output as (Imu payloads (N, L1), AccelWithCovarianceStamped payloads (N, L2)).
+
+    ``fused.covariance`` (N, 9, 9) in parameter order [omega, omega_dot,
+    specific_force]; the Imu carries the omega and specific-force 3x3 blocks,
+    the Accel message the 6x6 block of [specific_force, omega_dot].
+    """
+    stamps = np.asarray(fused.stamps, dtype=np.int64).reshape(-1)
+    n = len(stamps)
+    cov = np.asarray(fused.covariance, dtype=float).reshape(n, 9, 9)
+    accel_cov = np.empty((n, 6, 6))
+    accel_cov[:, :3, :3] = cov[:, _F, _F]
+    accel_cov[:, :3, 3:] = cov[:, _F, _WD]
+    accel_cov[:, 3:, :3] = cov[:, _WD, _F]
+    accel_cov[:, 3:, 3:] = cov[:, _WD, _WD]
+    imu = encode_imu(
+        stamps,
+        frame_id,
+        angular_velocity=fused.omega,
+        angular_velocity_covariance=cov[:, _W, _W].reshape(n, 9),
+        linear_acceleration=fused.specific_force,
+        linear_acceleration_covariance=cov[:, _F, _F].reshape(n, 9),
+        orientation_covariance=NO_ORIENTATION,
+    )
+    acc = encode_accel_with_covariance_stamped(
+        stamps, frame_id, linear=fused.specific_force, angular=fused.omega_dot, covariance=accel_cov.reshape(n, 36)
+    )
+    return imu, acc
+
+
+def concat_payloads(payloads: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Many serialized messages -> (buffer (S,) uint8, offsets (M,), lengths (M,)) for the decoders."""
+    lengths = np.fromiter((len(p) for p in payloads), dtype=np.int64, count=len(payloads))
+    offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]]) if len(lengths) else lengths
+    buf = np.frombuffer(b"".join(payloads), dtype=np.uint8)
+    return buf, offsets.astype(np.int64), lengths
+
+
+@dataclass
+class RawBatch:
+    """Raw Imu messages decoded column-wise.
+
+    stamps (M,) int64 ns; accel, gyro (M, 3) sensor frame; ``decodable`` (M,) --
+    little-endian CDR of the Imu layout; ``frame_ok`` (M,) -- frame_id equals the
+    expected one; ``finite`` (M,) -- every value finite.  A message is usable when
+    all three hold.
+    """
+
+    stamps: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray
+    decodable: np.ndarray
+    frame_ok: np.ndarray
+    finite: np.ndarray
+
+    @property
+    def usable(self) -> np.ndarray:
+        return self.decodable & self.frame_ok & self.finite
+
+
+def decode_raw_imu(payloads: Sequence[bytes], imu_index: np.ndarray, frame_ids: Sequence[str]) -> RawBatch:
+    """Decode raw Imu payloads of several IMUs at once.
+
+    payloads : M serialized messages; imu_index (M,) int: which IMU's topic each came
+    from; frame_ids : the expected ``header.frame_id`` of every IMU (index ->
+    str).  One gather per field over the whole batch, one comparison per IMU.
+    """
+    imu_index = np.asarray(imu_index, dtype=np.int64).reshape(-1)
+    buf, offsets, lengths = concat_payloads(payloads)
+    dec = decode_imu(buf, offsets, lengths, ("angular_velocity", "linear_acceleration"))
+    frame_ok = np.zeros(len(offsets), dtype=bool)
+    if len(offsets):
+        # frame_id bytes start at payload[16]; its length field (incl. NUL) at payload[12:16]
+        for k in np.unique(imu_index[dec.valid]):
+            fid = frame_ids[k].encode("utf-8")
+            sel = np.flatnonzero((imu_index == k) & dec.valid)
+            # valid payloads have the exact length the layout implies for their frame_id length
+            ok = lengths[sel] == IMU_LAYOUT.payload_length(len(fid) + 1)
+            sel, rest = sel[ok], sel[~ok]
+            if fid and len(sel):
+                window = np.lib.stride_tricks.sliding_window_view(buf, len(fid))[offsets[sel] + 16]
+                good = (window == np.frombuffer(fid, dtype=np.uint8)).all(axis=1)
+            else:
+                good = np.ones(len(sel), dtype=bool)
+            frame_ok[sel] = good
+            frame_ok[rest] = False
+    accel, gyro = dec.fields["linear_acceleration"], dec.fields["angular_velocity"]
+    finite = np.isfinite(accel).all(axis=1) & np.isfinite(gyro).all(axis=1)
+    return RawBatch(dec.stamps, accel, gyro, dec.valid, frame_ok, finite & dec.valid)
+
+
+def decode_fused(imu_payloads: Sequence[bytes], accel_payloads: Sequence[bytes]) -> FusedSamples:
+    """Fused output back from pairs of (Imu, Accel) payloads of the same stamps, in order.
+
+    covariance (N, 9, 9): the blocks the messages carry; the omega/omega_dot and
+    omega/specific-force cross blocks are not transmitted and are NaN.
+    Raises ValueError when the two lists differ in length or stamps.
+    """
+    if len(imu_payloads) != len(accel_payloads):
+        raise ValueError(f"{len(imu_payloads)} fused Imu messages but {len(accel_payloads)} Accel messages")
+    imu = decode_imu(*concat_payloads(imu_payloads))
+    acc = decode_accel_with_covariance_stamped(*concat_payloads(accel_payloads))
+    if not (imu.valid.all() and acc.valid.all()):
+        raise ValueError("undecodable fused message")
+    if not np.array_equal(imu.stamps, acc.stamps):
+        raise ValueError("fused Imu and Accel stamps differ")
+    n = len(imu.stamps)
+    cov = np.full((n, 9, 9), np.nan)
+    c6 = acc["covariance"].reshape(n, 6, 6)
+    cov[:, _W, _W] = imu["angular_velocity_covariance"].reshape(n, 3, 3)
+    cov[:, _F, _F] = c6[:, :3, :3]
+    cov[:, _F, _WD] = c6[:, :3, 3:]
+    cov[:, _WD, _F] = c6[:, 3:, :3]
+    cov[:, _WD, _WD] = c6[:, 3:, 3:]
+    return FusedSamples(stamps=imu.stamps, omega=imu["angular_velocity"], omega_dot=acc["angular"],
+                        specific_force=imu["linear_acceleration"], covariance=cov)

@@ -1,0 +1,132 @@
+"""driver_node: one ``sensor_msgs/Imu`` per IMU per array sample, from an OpenShoe
+serial array (``mode: serial``) or a recording (``mode: replay``).
+
+Topics: ``<topic_prefix>/<name>/data_raw`` for every IMU of ``array_config``
+(recording contract, :mod:`imu_array_ros.io.messages`), ``/diagnostics``.
+Parameters: :data:`imu_array_ros.nodes.parameters.DRIVER_PARAMS`.
+The serial protocol, reconnection and the device clock live in
+:mod:`imu_array_ros.io.openshoe.serial_link`; replay timing in
+:mod:`imu_array_ros.io.replay`; this file only moves bytes.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import Imu
+
+from imu_array_ros.io.messages import raw_imu_payloads
+from imu_array_ros.io.rosbag.recording import imu_topic
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.nodes.parameters import DRIVER_PARAMS, declare
+from imu_array_ros.nodes.runtime import ERROR, OK, WARN, DiagnosticsPublisher, qos, run
+
+__all__ = ["DriverNode", "main"]
+
+
+class DriverNode(Node):
+    def __init__(self) -> None:
+        super().__init__("imu_array_driver")
+        p = self.p = declare(self, DRIVER_PARAMS)
+        self.desc = load_description(p.array_config)
+        flat_out = p.mode == "replay" and p.rate == 0  # as fast as possible without loss: DDS flow control
+        q = qos(p.reliable or flat_out, keep_all=flat_out)
+        self.pubs = [self.create_publisher(Imu, imu_topic(n, p.topic_prefix), q) for n in self.desc.names]
+        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: {p.mode}", p.port if p.mode == "serial" else p.bag)
+        self.published = 0
+        self.finished = False
+        self._last_diag = (time.monotonic(), 0)
+        if p.mode == "replay":
+            from imu_array_ros.io.replay import Replay
+
+            if not p.bag:
+                from imu_array_ros.errors import ConfigError
+
+                raise ConfigError("parameter 'bag' is required in replay mode")
+            self.source = Replay(p.bag, self.desc, rate=p.rate, loop=p.loop, topic_prefix=p.topic_prefix)
+            self.link = None
+            self._start = None
+            self.get_logger().info(f"replaying {p.bag}: {len(self.source.samples)} samples at rate {p.rate:g}")
+        else:
+            from imu_array_ros.io.openshoe.serial_link import SerialArrayLink
+
+            self.source = None
+            self.link = SerialArrayLink(p.port, len(self.desc.names), baud=p.baud, imu_mask=p.imu_mask or None,
+                                        rate_divider=p.rate_divider, now=self._now)
+            self.get_logger().info(f"streaming {len(self.desc.names)} IMUs from {p.port}")
+        self.create_timer(p.poll_period, self._tick)
+        self.create_timer(1.0, self._diagnose)
+
+    def _now(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def _tick(self) -> None:
+        if self.link is not None:
+            batch = self.link.poll()
+            samples = ImuSamples(batch.stamps_ns, batch.accel, batch.gyro, self.desc.names)
+        else:
+            samples = self._replay_step()
+            if samples is None:
+                return
+        self._publish(samples)
+
+    def _replay_step(self) -> ImuSamples | None:
+        p, src = self.p, self.source
+        if self._start is None:
+            if any(pub.get_subscription_count() < p.wait_for_subscribers for pub in self.pubs):
+                return None
+            self._start = self._now()
+        if src.done:
+            if p.exit_at_end and self._acknowledged():
+                self.get_logger().info(f"replay finished: {self.published} samples published")
+                self.finished = True
+            return None
+        return src.due(self._now() - self._start, self._start if p.restamp else None)
+
+    def _acknowledged(self) -> bool:
+        from rclpy.duration import Duration
+
+        return all(pub.wait_for_all_acked(Duration(seconds=5.0)) for pub in self.pubs)
+
+    def _publish(self, samples: ImuSamples) -> None:
+        if not len(samples):
+            return
+        per_imu = raw_imu_payloads(samples, self.desc, self.p.frame_prefix)
+        # sample-major order: the subscriber completes array samples one after another
+        rows = np.concatenate([r for r, _ in per_imu])
+        which = np.concatenate([np.full(len(r), k) for k, (r, _) in enumerate(per_imu)])
+        pos = np.concatenate([np.arange(len(r)) for r, _ in per_imu])
+        for i in np.lexsort((which, rows)):
+            self.pubs[which[i]].publish(per_imu[which[i]][1][pos[i]].tobytes())
+        self.published += len(samples)
+
+    def _diagnose(self) -> None:
+        t, n = time.monotonic(), self.published
+        rate = (n - self._last_diag[1]) / max(t - self._last_diag[0], 1e-9)
+        self._last_diag = (t, n)
+        values = {"samples_published": n, "sample_rate_hz": rate}
+        if self.link is not None:
+            st = self.link.stats
+            values.update(st.as_dict() if hasattr(st, "as_dict") else dict(st.__dict__))
+            level = OK if st.state == "streaming" else (WARN if st.state != "failed" else ERROR)
+            message = f"{st.state}; {st.packets} packets, {st.bad_checksums} bad checksums, {st.reconnects} reconnects"
+        else:
+            values.update(bad_messages=self.source.read_stats.bad_messages,
+                          incomplete_samples=self.source.read_stats.incomplete_samples)
+            level, message = OK, ("finished" if self.source.done else "replaying")
+        self.diagnostics.publish(level, message, values)
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+
+
+def main(args=None) -> int:
+    return run(DriverNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,150 @@
+"""fusion_node: ML fusion of the array's raw Imu topics into angular velocity,
+angular acceleration and specific force with their Cramér-Rao covariance.
+
+Subscribes ``<topic_prefix>/<name>/data_raw`` for every IMU of the description;
+publishes ``<topic_prefix>/fused/imu`` (Imu) and ``<topic_prefix>/fused/accel``
+(AccelWithCovarianceStamped), exactly as ``imu-array fuse`` writes them, and
+``/diagnostics``.  Parameters: :data:`imu_array_ros.nodes.parameters.FUSION_PARAMS`.
+All the work is :class:`imu_array_ros.estimation.live.LiveFusion`; the
+subscriptions take the serialized messages (``raw=True``) and only queue them.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from geometry_msgs.msg import AccelWithCovarianceStamped
+from rclpy.node import Node
+from sensor_msgs.msg import Imu
+
+from imu_array_ros.cli.commands import load_array
+from imu_array_ros.errors import ImuArrayError
+from imu_array_ros.estimation.live import LiveFusion
+from imu_array_ros.io.rosbag.recording import imu_topic
+from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, run
+
+__all__ = ["FusionNode", "main", "NIS_WARN_RATIO"]
+
+#: NIS ratio above which the diagnostics say the model no longer fits (WARN).
+NIS_WARN_RATIO = 3.0
+
+
+def _file_id(path: str):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size, st.st_ino
+
+
+class FusionNode(Node):
+    def __init__(self) -> None:
+        super().__init__("imu_array_fusion")
+        p = self.p = declare(self, FUSION_PARAMS)
+        cal = p.calibration_file or None
+        self._cal_id = _file_id(cal) if cal else None
+        desc, source = load_array(Path(p.array_config), Path(cal) if self._cal_id else None)
+        self.core = LiveFusion(desc, frame_prefix=p.frame_prefix, sync_timeout_s=p.sync_timeout, max_batch=p.max_batch)
+        self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}")
+        self._queue: list = []
+        self._index: list = []
+        q = qos(p.reliable)
+        for k, name in enumerate(desc.names):  # reliable input: keep every message until taken
+            self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self._receiver(k),
+                                     qos(p.reliable, keep_all=True), raw=True)
+        out = f"{p.topic_prefix.rstrip('/')}/fused"
+        self.pub_imu = self.create_publisher(Imu, out + "/imu", q)
+        self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, out + "/accel", q)
+        self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
+        self._reported: dict[str, int] = {}
+        self._foreign: set[str] = set()
+        self.create_timer(p.period, self._step)
+        self.create_timer(1.0, self._diagnose)
+        if cal:
+            self.create_timer(p.watch_period, self._watch)
+
+    def _receiver(self, k: int):
+        queue, index = self._queue, self._index
+
+        def receive(payload: bytes) -> None:
+            queue.append(payload)
+            index.append(k)
+
+        return receive
+
+    def _now(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def _step(self) -> None:
+        now = self._now()
+        if self._queue:
+            payloads, index = self._queue[:], self._index[:]
+            del self._queue[:], self._index[:]
+            self.core.add(payloads, index, now)
+        for batch in self.core.step(now):
+            for imu, acc in zip(batch.imu_payloads, batch.accel_payloads):
+                self.pub_imu.publish(imu.tobytes())
+                self.pub_accel.publish(acc.tobytes())
+            self.core.record_latency(self._now(), batch.fused.stamps)
+        self._log_rejections()
+
+    def _log_rejections(self) -> None:
+        counts = {**self.core.inputs.__dict__, **self.core.assembler.stats.as_dict()}
+        for kind in ("undecodable", "wrong_frame_id", "non_finite", "duplicate", "backwards", "late"):
+            if counts[kind] and kind not in self._reported:
+                self.get_logger().warning(f"skipping {kind.replace('_', ' ')} messages (counted in /diagnostics)")
+                self._reported[kind] = counts[kind]
+
+    def _watch(self) -> None:
+        path = self.p.calibration_file
+        now_id = _file_id(path)
+        if now_id is None or now_id == self._cal_id:
+            return
+        self._cal_id = now_id
+        try:
+            desc, _ = load_array(Path(self.p.array_config), Path(path))
+            self.core.set_description(desc)
+        except ImuArrayError as err:
+            self.get_logger().error(f"calibration not reloaded, keeping the one in use: {err}")
+            return
+        self.get_logger().info(f"reloaded calibration {path}")
+
+    def _diagnose(self) -> None:
+        s = self.core.summary(self._now())
+        known = {imu_topic(n, self.p.topic_prefix) for n in self.core.names}
+        prefix = self.p.topic_prefix.rstrip("/") + "/"
+        for topic, _ in self.get_topic_names_and_types():
+            if topic.startswith(prefix) and topic.endswith("/data_raw") and topic not in known | self._foreign:
+                self._foreign.add(topic)
+                self.get_logger().warning(f"ignoring {topic}: its IMU is not in {self.p.array_config}")
+        values = {"input_rate_msgs": s.input_rate, "fused_rate_hz": s.fused_rate, "nis_ratio": s.nis_ratio,
+                  "nis_samples": s.nis_samples, "latency_p50_s": s.latency_p50, "latency_p99_s": s.latency_p99,
+                  "unknown_imu_topics": len(self._foreign), **s.counts}
+        if s.nis_ratio > NIS_WARN_RATIO:
+            level, msg = WARN, f"model does not fit: NIS ratio {s.nis_ratio:.3g} over the last second"
+        elif s.fused_rate == 0:
+            level, msg = WARN, "no fused samples in the last second"
+        else:
+            level, msg = OK, f"fusing at {s.fused_rate:.1f} Hz, NIS ratio {s.nis_ratio:.3g}"
+        self.diagnostics.publish(level, msg, values)
+
+    def close(self) -> None:
+        """Fuse and publish what is still buffered, if the context is still up."""
+        try:
+            self._step()
+            for batch in self.core.step(self._now(), flush=True):
+                for imu, acc in zip(batch.imu_payloads, batch.accel_payloads):
+                    self.pub_imu.publish(imu.tobytes())
+                    self.pub_accel.publish(acc.tobytes())
+        except Exception:  # noqa: BLE001 - shutting down: the context may already be gone
+            pass
+
+
+def main(args=None) -> int:
+    return run(FusionNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,112 @@
+"""Every node parameter, declared in one place with its descriptor, and checked at start.
+
+A node calls :func:`declare` with its table; a value of the wrong type, outside
+its range or not among its choices stops the node with one line naming the
+parameter (:class:`~imu_array_ros.errors.ConfigError`), before anything opens.
+The tables are also the source of the parameter tables in the README and of the
+example files ``config/<node>.params.yaml`` (a test checks they agree).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any
+
+from imu_array_ros.errors import ConfigError
+
+__all__ = ["Param", "DRIVER_PARAMS", "FUSION_PARAMS", "declare", "NODE_PARAMS"]
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: name, default (its type is the parameter's type), description,
+    optional numeric range [low, high], optional choices, required (non-empty string)."""
+
+    name: str
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple = ()
+    required: bool = False
+    read_only: bool = True
+
+
+_COMMON = (
+    Param("array_config", "", "array description YAML (IMU names, positions, noise)", required=True),
+    Param("topic_prefix", "/imu_array", "topics are <topic_prefix>/<imu name>/data_raw and <topic_prefix>/fused/..."),
+    Param("frame_prefix", "", "raw messages carry header.frame_id = <frame_prefix><imu name>"),
+    Param("reliable", False, "reliable QoS (publishers keep the last 1000, subscribers keep all) instead of the "
+          "sensor-data profile (best effort, depth 5)"),
+)
+
+DRIVER_PARAMS = _COMMON + (
+    Param("mode", "serial", "'serial': an OpenShoe array on 'port'; 'replay': the recording 'bag'",
+          choices=("serial", "replay")),
+    Param("port", "/dev/ttyUSB0", "serial port of the array (or the path 'imu-array fake-device' prints)"),
+    Param("baud", 115200, "serial baud rate (ignored by USB/Bluetooth virtual ports)", 1200, 4_000_000),
+    Param("imu_mask", 0, "IMUs to stream, bit k = IMU k; 0 = the lowest K bits for the K IMUs of array_config",
+          0, 2**32 - 1),
+    Param("rate_divider", 5, "OpenShoe output rate 1000 Hz / 2**(d-1): 1 = 1 kHz ... 5 = 62.5 Hz ... 7", 1, 7),
+    Param("bag", "", "replay: recording to play (rosbag2 directory or .mcap file)"),
+    Param("rate", 1.0, "replay speed factor; 0 = as fast as possible without loss (reliable, keep-all QoS)",
+          0.0, 1000.0),
+    Param("loop", False, "replay: start again at the end (stamps keep increasing)"),
+    Param("restamp", False, "replay: stamp samples with the time they are published instead of the recorded time"),
+    Param("wait_for_subscribers", 0, "replay: wait until every IMU topic has this many subscribers", 0, 1000),
+    Param("exit_at_end", False, "replay: exit when the recording has been played (and acknowledged)"),
+    Param("poll_period", 0.002, "seconds between reads of the port / replay steps", 0.0005, 1.0),
+)
+
+FUSION_PARAMS = _COMMON + (
+    Param("calibration_file", "", "calibrated description YAML; used instead of array_config's values when "
+          "present, and reloaded whenever it changes on disk", read_only=True),
+    Param("sync_timeout", 0.05, "seconds an array sample waits for missing IMUs before it is fused without them",
+          0.0, 10.0),
+    Param("max_batch", 1000, "most samples per fusion call", 1, 1_000_000),
+    Param("period", 0.005, "seconds between fusion steps", 0.0005, 1.0),
+    Param("watch_period", 0.5, "seconds between checks of calibration_file", 0.05, 60.0),
+)
+
+NODE_PARAMS = {"driver_node": DRIVER_PARAMS, "fusion_node": FUSION_PARAMS}
+
+
+def _range_text(p: Param) -> str:
+    return f"in [{p.low:g}, {p.high:g}]"
+
+
+def declare(node, params: tuple[Param, ...]) -> SimpleNamespace:
+    """Declare ``params`` on an rclpy node with descriptors; return the checked values.
+
+    Raises ConfigError (one line naming the parameter) for a wrong type, a value
+    out of range or not among the choices, or a missing required value.
+    """
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+    values = {}
+    for p in params:
+        desc = ParameterDescriptor(description=p.description, read_only=p.read_only)
+        if p.choices:
+            desc.additional_constraints = "one of: " + ", ".join(p.choices)
+        if p.low is not None and isinstance(p.default, float):
+            desc.floating_point_range = [FloatingPointRange(from_value=float(p.low), to_value=float(p.high))]
+        elif p.low is not None and isinstance(p.default, int) and not isinstance(p.default, bool):
+            desc.integer_range = [IntegerRange(from_value=int(p.low), to_value=int(p.high))]
+        try:
+            value = node.declare_parameter(p.name, p.default, desc).value
+        except InvalidParameterTypeException as err:
+            raise ConfigError(f"parameter '{p.name}': expected {type(p.default).__name__} ({err})") from None
+        except InvalidParameterValueException:
+            raise ConfigError(f"parameter '{p.name}': must be {_range_text(p)}") from None
+        if isinstance(p.default, float) and isinstance(value, int):
+            value = float(value)
+        if p.choices and value not in p.choices:
+            raise ConfigError(f"parameter '{p.name}': {value!r} is not one of {', '.join(p.choices)}")
+        if p.low is not None and not (p.low <= value <= p.high):
+            raise ConfigError(f"parameter '{p.name}': {value!r} is not {_range_text(p)}")
+        if p.required and not value:
+            raise ConfigError(f"parameter '{p.name}' is required ({p.description})")
+        values[p.name] = value
+    return SimpleNamespace(**values)

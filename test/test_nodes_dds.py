@@ -1,0 +1,210 @@
+"""The nodes as separate processes over real DDS (own ROS_DOMAIN_ID, localhost only)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ARRAY32, REPO
+from imu_array_ros.io.rosbag.recording import read_fused_recording
+
+BIN = Path(sys.executable).parent
+BAG = REPO / "bags" / "twist32_sample"
+
+
+@pytest.fixture
+def ros_env(monkeypatch):
+    """A DDS domain of this test's own; Fast DDS shared-memory files of killed processes removed."""
+    domain = 100 + (os.getpid() * 7 + int(time.time() * 1000)) % 130
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        monkeypatch.setenv(key, env[key])
+    procs: list[subprocess.Popen] = []
+
+    def start(*cmd, **kw):
+        p = subprocess.Popen([str(c) for c in cmd], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, **kw)
+        procs.append(p)
+        return p
+
+    yield start
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def _wait_line(proc, text, timeout=30.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        line = proc.stdout.readline()
+        if text in line:
+            return
+        if not line and proc.poll() is not None:
+            break
+    raise AssertionError(f"no {text!r} from {proc.args[:3]}: {proc.stderr.read() if proc.poll() is not None else ''}")
+
+
+def _stop(proc, timeout=15.0):
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=timeout)
+    return proc.returncode, out, err
+
+
+def test_replay_through_fusion_node_equals_offline_fuse(ros_env, tmp_path):
+    from imu_array_ros.cli import main as cli
+
+    offline = tmp_path / "offline.mcap"
+    assert cli(["fuse", str(BAG), "--array", str(ARRAY32), "--out", str(offline), "--quiet"]) == 0
+    want = read_fused_recording(offline)
+
+    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "reliable:=true",
+                     "-p", "sync_timeout:=2.0")
+    probe = ros_env(sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
+                    "--count", len(want), "--timeout", 90, "--reliable")
+    _wait_line(probe, "ready")
+    driver = ros_env(BIN / "driver_node", "--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "mode:=replay",
+                     "-p", f"bag:={BAG}", "-p", "rate:=1.0", "-p", "reliable:=true", "-p", "wait_for_subscribers:=1",
+                     "-p", "exit_at_end:=true")
+    assert probe.wait(120) == 0, probe.stderr.read()
+    assert driver.wait(30) == 0, driver.stderr.read()
+    got = np.load(tmp_path / "got.npz")
+    # every sample, in order, none lost; the numbers of `imu-array fuse` (up to rounding)
+    np.testing.assert_array_equal(got["stamps"], want.stamps)
+    for name in ("omega", "omega_dot", "specific_force"):
+        np.testing.assert_allclose(got[name], getattr(want, name), rtol=1e-9, atol=1e-9)
+    both = np.isfinite(got["covariance"]) & np.isfinite(want.covariance)
+    np.testing.assert_allclose(got["covariance"][both], want.covariance[both], rtol=1e-9, atol=1e-15)
+    code, _, err = _stop(fusion)
+    assert code == 0 and "Traceback" not in err, err
+    diags = json.loads(str(got["diagnostics"]))
+    assert any(k.startswith("imu_array_fusion") for k in diags), diags.keys()
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["-p", "array_config:=/nonexistent/array.yaml"], "/nonexistent/array.yaml"),
+    (["-p", f"array_config:={ARRAY32}", "-p", "sync_timeout:=-1.0"], "'sync_timeout'"),
+    (["-p", f"array_config:={ARRAY32}", "-p", "max_batch:=fast"], "'max_batch'"),
+    ([], "'array_config' is required"),
+])
+def test_fusion_node_bad_parameters_one_line(ros_env, args, fragment):
+    proc = ros_env(BIN / "fusion_node", "--ros-args", *args)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2, (out, err)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("fusion_node: error: ") and fragment in lines[0], err
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["-p", f"array_config:={ARRAY32}", "-p", "mode:=tape"], "'mode'"),
+    (["-p", f"array_config:={ARRAY32}", "-p", "mode:=replay"], "'bag'"),
+    (["-p", f"array_config:={ARRAY32}", "-p", "mode:=replay", "-p", "bag:=/nonexistent.mcap"], "/nonexistent.mcap"),
+])
+def test_driver_node_bad_parameters_one_line(ros_env, args, fragment):
+    proc = ros_env(BIN / "driver_node", "--ros-args", *args)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2, (out, err)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("driver_node: error: ") and fragment in lines[0], err
+
+
+def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_path):
+    """Bad messages of every kind are skipped and counted; publishing goes on; a new
+    calibration file is picked up, a malformed one rejected with the old one kept."""
+    import rclpy
+    from rclpy.experimental import EventsExecutor
+    from sensor_msgs.msg import Imu
+
+    from imu_array_ros.estimation.live import build_fusion
+    from imu_array_ros.io.messages import decode_fused, raw_imu_payloads
+    from imu_array_ros.io.rosbag.cdr_columns import encode_imu
+    from imu_array_ros.io.rosbag.recording import imu_topic, read_imu_recording
+    from imu_array_ros.model.description import load_description, save_description
+    from imu_array_ros.nodes.runtime import qos
+
+    desc = load_description(ARRAY32)
+    samples, _ = read_imu_recording(BAG, desc)
+    cal = tmp_path / "cal.yaml"
+    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "reliable:=true",
+                     "-p", f"calibration_file:={cal}", "-p", "watch_period:=0.1", "-p", "sync_timeout:=0.5")
+    rclpy.init()
+    try:
+        node = rclpy.create_node("bad_input_source")
+        q = qos(True)
+        pubs = [node.create_publisher(Imu, imu_topic(n), q) for n in desc.names]
+        stranger = node.create_publisher(Imu, "/imu_array/not_in_array/data_raw", q)
+        got_imu, got_acc = [], []
+        from geometry_msgs.msg import AccelWithCovarianceStamped
+        node.create_subscription(Imu, "/imu_array/fused/imu", got_imu.append, qos(True, True), raw=True)
+        node.create_subscription(AccelWithCovarianceStamped, "/imu_array/fused/accel", got_acc.append,
+                                 qos(True, True), raw=True)
+        ex = EventsExecutor()
+        ex.add_node(node)
+
+        def spin_until(cond, timeout=30.0):
+            end = time.monotonic() + timeout
+            while time.monotonic() < end and not cond():
+                ex.spin_once(timeout_sec=0.02)
+            return cond()
+
+        assert spin_until(lambda: all(p.get_subscription_count() for p in pubs) and node.count_publishers(
+            "/imu_array/fused/imu")), "fusion node never subscribed"
+
+        def send(lo, hi, extra=()):
+            """Samples lo..hi-1 at about 1 kHz, as a driver would (a burst of thousands of
+            messages makes DDS retransmit some topics seconds later)."""
+            per_imu = raw_imu_payloads(samples.select(slice(lo, hi)), desc)
+            for i in range(hi - lo):
+                for pub, (_, payload) in zip(pubs, per_imu):
+                    pub.publish(payload[i].tobytes())
+                time.sleep(0.001)
+            for pub, data in extra:
+                pub.publish(data)
+
+        first = samples.select(slice(0, 1))
+        nan = encode_imu(first.stamps, desc.names[3], angular_velocity=[np.nan, 0, 0], linear_acceleration=[0, 0, 9.8])
+        wrong = encode_imu(first.stamps, "someone_else", angular_velocity=[0, 0, 0], linear_acceleration=[0, 0, 9.8])
+        bad = [(pubs[3], nan[0].tobytes()), (pubs[4], wrong[0].tobytes()), (stranger, wrong[0].tobytes())]
+        send(0, 100, bad)
+        send(50, 60)  # old stamps again: backwards
+        assert spin_until(lambda: len(got_acc) >= 100), (len(got_acc), _stop(fusion))
+        # a calibration appears: positions moved by 1 mm
+        moved = desc.with_imus([imu.__class__(**{**imu.__dict__, "position": imu.position + 0.001})
+                                for imu in desc.imus])
+        save_description(moved, cal)
+        time.sleep(0.6)
+        send(100, 200)
+        assert spin_until(lambda: len(got_acc) >= 200), (len(got_acc), _stop(fusion))
+        cal.write_text("imus: [this is not a description\n")  # malformed: rejected, moved one kept
+        time.sleep(0.6)
+        send(200, 300)
+        assert spin_until(lambda: len(got_acc) >= 300), (len(got_acc), _stop(fusion))
+        fused = decode_fused(got_imu[:300], got_acc[:300])
+        np.testing.assert_array_equal(fused.stamps, samples.stamps[:300])
+        old, _ = build_fusion(desc).fuse(samples.stamps[:100], samples.accel[:100], samples.gyro[:100])
+        new, _ = build_fusion(moved).fuse(
+            samples.stamps[100:300], samples.accel[100:300], samples.gyro[100:300])
+        np.testing.assert_allclose(fused.specific_force[:100], old.specific_force, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(fused.specific_force[100:], new.specific_force, rtol=1e-9, atol=1e-9)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    code, _, err = _stop(fusion)
+    assert code == 0, err
+    for text in ("non finite", "wrong frame id", "backwards", "not_in_array", "reloaded calibration",
+                 "calibration not reloaded"):
+        assert text in err, (text, err)
+    assert "Traceback" not in err
