@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from imu_array_ros import __version__
-from imu_array_ros.cli import calibrate, commands
+from imu_array_ros.cli import calibrate, commands, fake_device
 from imu_array_ros.errors import ImuArrayError
 
 __all__ = [
@@ -213,6 +213,38 @@ def build_parser() -> argparse.ArgumentParser:
                          "seconds since the epoch (default: the capture ends at the file's modification time)")
     _common(sp, force=_FORCE_RECORDING)
     sp.set_defaults(func=commands.import_openshoe)
+
+    sp = sub.add_parser("fake-device", help="simulated OpenShoe array on a pseudo-terminal (no hardware needed)")
+    sp.add_argument("--array", required=True, type=Path,
+                    help="array description YAML: the number of IMUs per packet (and the sensor model when simulating)")
+    sp.add_argument("--capture", type=Path,
+                    help="raw capture to replay byte for byte (e.g. exp_1.bin; IMU order = capture order); "
+                         "default: simulated hand twisting")
+    sp.add_argument("--duration", type=positive_float, help="simulated seconds, > 0 (default 60)")
+    sp.add_argument("--rate", type=fake_device.openshoe_rate, metavar="HZ",
+                    help="simulated sample rate: 1000, 500, 250, 125, 62.5, 31.25 or 15.625 Hz (default 1000; "
+                         "the host's rate divider decimates it)")
+    sp.add_argument("--seed", type=non_negative_int, help="seed of the simulated motion and noise and of the "
+                                                          "faults, >= 0 (default 0)")
+    sp.add_argument("--link", type=Path, metavar="PATH",
+                    help="symlink to create for the port (default: in a new temporary directory); an existing PATH "
+                         "is replaced only if it is a symlink to a pseudo-terminal")
+    sp.add_argument("--speed", type=non_negative_float, default=1.0,
+                    help="playback speed, x real time, >= 0; 0 = as fast as the port is read (default 1)")
+    sp.add_argument("--loop", action="store_true", help="replay the data forever (default: stop at its end)")
+    sp.add_argument("--garbage-every", type=non_negative_int, default=0, metavar="N",
+                    help="insert random bytes after every N-th packet (default 0: never)")
+    sp.add_argument("--bit-error-rate", type=fake_device.probability, default=0.0, metavar="P",
+                    help="probability of flipping each bit, 0 <= P < 1 (default 0)")
+    sp.add_argument("--drop-byte-rate", type=fake_device.probability, default=0.0, metavar="P",
+                    help="probability of losing each byte, 0 <= P < 1 (default 0)")
+    sp.add_argument("--unplug-at", type=positive_float, metavar="SECONDS",
+                    help="simulate unplugging this many seconds after the port appears (the host must reconnect "
+                         "and send the start command again)")
+    sp.add_argument("--unplug-duration", type=non_negative_float, default=1.0, metavar="SECONDS",
+                    help="seconds the device stays unplugged, >= 0 (default 1)")
+    sp.add_argument("-q", "--quiet", action="store_true", help="only the port path on stdout (errors still appear)")
+    sp.set_defaults(func=fake_device.fake_device)
 
     sp = sub.add_parser("residuals", help="how well the model explains a recording (normalised residuals)")
     sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")

@@ -17,12 +17,13 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
+from imu_array_ros.errors import ConfigError
 from imu_array_ros.io.messages import raw_imu_payloads
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.nodes.parameters import DRIVER_PARAMS, declare
-from imu_array_ros.nodes.runtime import ERROR, OK, WARN, DiagnosticsPublisher, qos, run
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, run
 
 __all__ = ["DriverNode", "main"]
 
@@ -38,24 +39,25 @@ class DriverNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: {p.mode}", p.port if p.mode == "serial" else p.bag)
         self.published = 0
         self.finished = False
+        self._start = None
         self._last_diag = (time.monotonic(), 0)
         if p.mode == "replay":
             from imu_array_ros.io.replay import Replay
 
             if not p.bag:
-                from imu_array_ros.errors import ConfigError
-
                 raise ConfigError("parameter 'bag' is required in replay mode")
             self.source = Replay(p.bag, self.desc, rate=p.rate, loop=p.loop, topic_prefix=p.topic_prefix)
             self.link = None
-            self._start = None
             self.get_logger().info(f"replaying {p.bag}: {len(self.source.samples)} samples at rate {p.rate:g}")
         else:
             from imu_array_ros.io.openshoe.serial_link import SerialArrayLink
 
             self.source = None
-            self.link = SerialArrayLink(p.port, len(self.desc.names), baud=p.baud, imu_mask=p.imu_mask or None,
-                                        rate_divider=p.rate_divider, now=self._now)
+            try:
+                self.link = SerialArrayLink(p.port, len(self.desc.names), baud=p.baud, imu_mask=p.imu_mask or None,
+                                            rate_divider=p.rate_divider, now=self._now)
+            except ValueError as err:
+                raise ConfigError(f"parameter 'imu_mask': {err} (the IMUs of {p.array_config})") from None
             self.get_logger().info(f"streaming {len(self.desc.names)} IMUs from {p.port}")
         self.create_timer(p.poll_period, self._tick)
         self.create_timer(1.0, self._diagnose)
@@ -64,6 +66,8 @@ class DriverNode(Node):
         return self.get_clock().now().nanoseconds
 
     def _tick(self) -> None:
+        if self._waiting():
+            return
         if self.link is not None:
             batch = self.link.poll()
             samples = ImuSamples(batch.stamps_ns, batch.accel, batch.gyro, self.desc.names)
@@ -73,12 +77,16 @@ class DriverNode(Node):
                 return
         self._publish(samples)
 
+    def _waiting(self) -> bool:
+        """Before the first sample: wait for ``wait_for_subscribers`` on every topic."""
+        if self._start is None:
+            if any(pub.get_subscription_count() < self.p.wait_for_subscribers for pub in self.pubs):
+                return True
+            self._start = self._now()
+        return False
+
     def _replay_step(self) -> ImuSamples | None:
         p, src = self.p, self.source
-        if self._start is None:
-            if any(pub.get_subscription_count() < p.wait_for_subscribers for pub in self.pubs):
-                return None
-            self._start = self._now()
         if src.done:
             if p.exit_at_end and self._acknowledged():
                 self.get_logger().info(f"replay finished: {self.published} samples published")
@@ -110,8 +118,8 @@ class DriverNode(Node):
         values = {"samples_published": n, "sample_rate_hz": rate}
         if self.link is not None:
             st = self.link.stats
-            values.update(st.as_dict() if hasattr(st, "as_dict") else dict(st.__dict__))
-            level = OK if st.state == "streaming" else (WARN if st.state != "failed" else ERROR)
+            values.update(st.__dict__)
+            level = OK if st.state == "streaming" else WARN
             message = f"{st.state}; {st.packets} packets, {st.bad_checksums} bad checksums, {st.reconnects} reconnects"
         else:
             values.update(bad_messages=self.source.read_stats.bad_messages,

@@ -54,7 +54,8 @@ DRIVER_PARAMS = _COMMON + (
           0.0, 1000.0),
     Param("loop", False, "replay: start again at the end (stamps keep increasing)"),
     Param("restamp", False, "replay: stamp samples with the time they are published instead of the recorded time"),
-    Param("wait_for_subscribers", 0, "replay: wait until every IMU topic has this many subscribers", 0, 1000),
+    Param("wait_for_subscribers", 0, "wait until every IMU topic has this many subscribers before starting "
+          "the replay / the serial stream", 0, 1000),
     Param("exit_at_end", False, "replay: exit when the recording has been played (and acknowledged)"),
     Param("poll_period", 0.002, "seconds between reads of the port / replay steps", 0.0005, 1.0),
 )

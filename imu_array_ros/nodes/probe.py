@@ -23,6 +23,7 @@ def main(argv=None) -> int:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import AccelWithCovarianceStamped
+    from rclpy.executors import ExternalShutdownException
     from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import Imu
 
@@ -64,7 +65,7 @@ def main(argv=None) -> int:
             if not ready and node.count_publishers(base + "/imu") and node.count_publishers(base + "/accel"):
                 ready = True
                 print("ready", flush=True)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
     n = min(len(imu), len(acc))
     fused = decode_fused(imu[:n], acc[:n])

@@ -1,0 +1,141 @@
+"""``imu-array fake-device``: a simulated OpenShoe array on a pseudo-terminal, for use without hardware.
+
+Prints the port path (a symlink that stays valid across a simulated unplug)
+as the only line on stdout, so a script can read it and start the driver on
+it; progress and the final summary go to stderr (``-q`` silences them).  The
+data plays once a host sends the start command; the command runs until Ctrl-C
+or SIGTERM (exit 0, symlink removed) or, without ``--loop``, until all data
+was sent and read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from imu_array_ros.cli.progress import info
+from imu_array_ros.errors import ImuArrayError
+
+__all__ = ["fake_device", "probability", "openshoe_rate"]
+
+_DRAIN_S = 2.0  # after the last byte: how long the host may take to read what is buffered
+
+
+def probability(text: str) -> float:
+    """A number in [0, 1) (a per-bit or per-byte fault rate)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value < 1:
+        raise argparse.ArgumentTypeError(f"must lie in [0, 1), got {text!r}")
+    return value
+
+
+def openshoe_rate(text: str) -> float:
+    """A rate an OpenShoe device streams at: 1000, 500, 250, 125, 62.5, 31.25 or 15.625 Hz."""
+    from imu_array_ros.io.openshoe.protocol import output_rate_hz, rate_divider_for
+
+    try:
+        return output_rate_hz(rate_divider_for(float(text)))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err).replace(f"got {float(text)!r}", f"got {text!r}")) from None
+
+
+class _Terminated(Exception):
+    """SIGTERM, turned into an exception so the device closes cleanly."""
+
+
+def fake_device(
+    array: Path,
+    *,
+    capture: Path | None = None,
+    duration: float | None = None,
+    rate: float | None = None,
+    seed: int | None = None,
+    link: Path | None = None,
+    speed: float = 1.0,
+    loop: bool = False,
+    garbage_every: int = 0,
+    bit_error_rate: float = 0.0,
+    drop_byte_rate: float = 0.0,
+    unplug_at: float | None = None,
+    unplug_duration: float = 1.0,
+    quiet: bool = False,
+) -> int:
+    """Serve ``capture`` (or simulated hand twisting: ``duration`` s at ``rate`` Hz) as a fake device.
+
+    ``array`` gives K (IMUs per packet) and, when simulating, the sensor model.
+    ``link``: symlink to create (default in a new temporary directory); an
+    existing path is replaced only if it is a symlink to a pseudo-terminal.
+    ``seed`` seeds the simulation and the faults.  Faults and pacing as in
+    :class:`~imu_array_ros.io.openshoe.fake_device.FakeArrayDevice` (``unplug_at``:
+    seconds after the port appears).
+    """
+    from imu_array_ros.cli.commands import MAX_SIMULATED_SAMPLES
+    from imu_array_ros.io.openshoe.fake_device import FakeArrayDevice, check_link
+    from imu_array_ros.model.description import load_description
+
+    if link is not None:
+        check_link(Path(link))  # before any work
+    desc = load_description(array)
+    k = len(desc.imus)
+    if k > 32:
+        raise ImuArrayError(f"{array}: describes {k} IMUs, but the OpenShoe IMU mask selects at most 32")
+    faults = dict(link=link, speed=speed, loop=loop, garbage_every=garbage_every, bit_error_rate=bit_error_rate,
+                  drop_byte_rate=drop_byte_rate, unplug_at=unplug_at, unplug_duration=unplug_duration,
+                  seed=0 if seed is None else seed, record_packets=False)
+    if capture is not None:
+        given = [name for name, v in (("--duration", duration), ("--rate", rate)) if v is not None]
+        if given:
+            raise ImuArrayError(f"{' and '.join(given)}: only for simulated data, not with --capture")
+        device = FakeArrayDevice.from_capture(capture, k, **faults)
+        what = f"{Path(capture).name}"
+    else:
+        from imu_array_ros.simulation.simulator import simulate_twist
+
+        duration = 60.0 if duration is None else duration
+        rate = 1000.0 if rate is None else rate
+        n = int(round(duration * rate))
+        if not 1 <= n <= MAX_SIMULATED_SAMPLES:
+            raise ImuArrayError(f"--duration {duration:g} s at --rate {rate:g} Hz gives {n} samples "
+                                f"(need 1..{MAX_SIMULATED_SAMPLES})")
+        samples, _ = simulate_twist(desc, duration, rate, np.random.default_rng(faults["seed"]))
+        device = FakeArrayDevice.from_imu_samples(samples, **faults)
+        what = f"simulated twisting, {duration:g} s at {rate:g} Hz"
+    old = _on_sigterm()
+    try:
+        print(device.port, flush=True)
+        info(quiet, f"fake-device: {k} IMUs, {len(device.raw)} samples ({what}) on {device.tty} via {device.port}; "
+                    f"waiting for the start command{'' if loop else ' (stops at the end of the data)'}; Ctrl-C to stop")
+        while not device.wait_finished(0.2, drained=False):
+            pass
+        device.wait_finished(_DRAIN_S)
+    except (KeyboardInterrupt, _Terminated):
+        pass
+    finally:
+        device.close()
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
+    r = device.record
+    info(quiet, f"fake-device: sent {r.packets_sent} packets ({r.corrupted_packets} corrupted: {r.bits_flipped} "
+                f"bits flipped, {r.bytes_dropped} bytes dropped; {r.garbage_bytes} garbage bytes), "
+                f"{len(r.commands)} commands ({r.bad_commands} bad), {r.unplugs} unplugs")
+    if device.error is not None:
+        raise ImuArrayError(f"fake-device: stopped early: {device.error}")
+    return 0
+
+
+def _on_sigterm():
+    """SIGTERM -> :class:`_Terminated` in the main thread (a clean exit); the previous handler, or None."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum, frame):
+        raise _Terminated()
+
+    return signal.signal(signal.SIGTERM, handler)
