@@ -235,21 +235,30 @@ class OpenShoeFramer:
         ends = starts + L
         end_last = int(ends[-1]) if len(starts) else 0
 
+        # Every complete acknowledgement outside the packets (its verdict may still wait, below).
+        acks = self._find_acks(buf, starts, n)
         # How far we may consume.
-        if final:
-            consumed = n
-        else:
-            consumed = n
+        consumed = n
+        if not final:
             undecided_aa = np.flatnonzero(is_aa[max(last + 1, end_last) :])
             if len(undecided_aa):
                 consumed = min(consumed, max(last + 1, end_last) + int(undecided_aa[0]))
+            # an A0 in the last 3 bytes may begin an acknowledgement still incomplete,
+            # unless it lies inside a complete one
             tail0 = max(n - 3, end_last)
-            tail_a0 = np.flatnonzero(buf[tail0:] == ACK_HEADER)
+            tail_a0 = tail0 + np.flatnonzero(buf[tail0:] == ACK_HEADER)
+            if len(tail_a0) and len(acks):
+                k = np.searchsorted(acks, tail_a0, side="right") - 1
+                tail_a0 = tail_a0[~((k >= 0) & (tail_a0 < acks[np.maximum(k, 0)] + 4))]
             if len(tail_a0):
-                consumed = min(consumed, tail0 + int(tail_a0[0]))
+                consumed = min(consumed, int(tail_a0[0]))
+            # never cut through an acknowledgement: keep it whole for the next call
+            straddle = acks[(acks < consumed) & (acks + 4 > consumed)]
+            if len(straddle):
+                consumed = int(straddle[0])
+        acks = acks[acks + 4 <= consumed]
 
-        # Acknowledgements in the skipped regions, then the anchors for bad-frame alignment.
-        acks = self._find_acks(buf, starts, consumed)
+        # The anchors for bad-frame alignment.
         anchors = np.sort(np.concatenate([ends, acks + 4]))
         self._count_bad_frames(cand[~valid], starts, anchors)
 
@@ -292,7 +301,8 @@ class OpenShoeFramer:
         return ok
 
     def _find_acks(self, buf: np.ndarray, starts: np.ndarray, consumed: int) -> np.ndarray:
-        """Positions of ``A0 cmd cs cs`` (cs = 0xA0 + cmd) lying wholly outside packets."""
+        """Positions of ``A0 cmd cs cs`` (cs = 0xA0 + cmd) lying wholly outside packets and
+        wholly before ``consumed``, not overlapping each other (the earliest wins)."""
         q = np.flatnonzero(buf[: max(consumed - 3, 0)] == ACK_HEADER)
         if len(q) == 0:
             return q
@@ -305,7 +315,7 @@ class OpenShoeFramer:
             nxt = np.searchsorted(starts, q, side="right")
             next_start = np.where(nxt < len(starts), starts[np.minimum(nxt, len(starts) - 1)], np.iinfo(np.int64).max)
             q = q[(q >= prev_end) & (q + 4 <= next_start)]
-        return q
+        return _greedy_chain(q, 4)  # overlapping acknowledgements: the earliest wins
 
     def _count_bad_frames(self, rejected: np.ndarray, starts: np.ndarray, anchors: np.ndarray) -> None:
         """Count rejected ``AA`` candidates outside packets that sit where a packet was due."""
