@@ -94,31 +94,23 @@ def test_replay_through_fusion_node_equals_offline_fuse(ros_env, tmp_path):
     assert any(k.startswith("imu_array_fusion") for k in diags), diags.keys()
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["-p", "array_config:=/nonexistent/array.yaml"], "/nonexistent/array.yaml"),
-    (["-p", f"array_config:={ARRAY32}", "-p", "sync_timeout:=-1.0"], "'sync_timeout'"),
-    (["-p", f"array_config:={ARRAY32}", "-p", "max_batch:=fast"], "'max_batch'"),
-    ([], "'array_config' is required"),
+@pytest.mark.parametrize("exe, args, fragment", [
+    ("fusion_node", ["-p", "array_config:=/nonexistent/array.yaml"], "/nonexistent/array.yaml"),
+    ("fusion_node", ["-p", f"array_config:={ARRAY32}", "-p", "sync_timeout:=-1.0"], "'sync_timeout'"),
+    ("fusion_node", ["-p", f"array_config:={ARRAY32}", "-p", "max_batch:=fast"], "'max_batch'"),
+    ("fusion_node", [], "'array_config' is required"),
+    ("driver_node", ["-p", f"array_config:={ARRAY32}", "-p", "mode:=tape"], "'mode'"),
+    ("driver_node", ["-p", f"array_config:={ARRAY32}", "-p", "mode:=replay"], "'bag'"),
+    ("driver_node", ["-p", f"array_config:={ARRAY32}", "-p", "mode:=replay", "-p", "bag:=/nonexistent.mcap"],
+     "/nonexistent.mcap"),
+    ("driver_node", ["-p", f"array_config:={ARRAY32}", "-p", "imu_mask:=7"], "'imu_mask'"),
 ])
-def test_fusion_node_bad_parameters_one_line(ros_env, args, fragment):
-    proc = ros_env(BIN / "fusion_node", "--ros-args", *args)
+def test_node_bad_parameters_one_line(ros_env, exe, args, fragment):
+    proc = ros_env(BIN / exe, "--ros-args", *args)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 2, (out, err)
     lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("fusion_node: error: ") and fragment in lines[0], err
-
-
-@pytest.mark.parametrize("args, fragment", [
-    (["-p", f"array_config:={ARRAY32}", "-p", "mode:=tape"], "'mode'"),
-    (["-p", f"array_config:={ARRAY32}", "-p", "mode:=replay"], "'bag'"),
-    (["-p", f"array_config:={ARRAY32}", "-p", "mode:=replay", "-p", "bag:=/nonexistent.mcap"], "/nonexistent.mcap"),
-])
-def test_driver_node_bad_parameters_one_line(ros_env, args, fragment):
-    proc = ros_env(BIN / "driver_node", "--ros-args", *args)
-    out, err = proc.communicate(timeout=30)
-    assert proc.returncode == 2, (out, err)
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("driver_node: error: ") and fragment in lines[0], err
+    assert len(lines) == 1 and lines[0].startswith(f"{exe}: error: ") and fragment in lines[0], err
 
 
 def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_path):
