@@ -284,8 +284,8 @@ def report(args, total: dict, wall: float) -> str:
         f"| by kind | {by_kind} |\n"
         f"| bytes fuzzed (input bytes; each parsed whole and chunked) | {total['bytes']:,} |\n"
         f"| `feed` calls of the chunked parses | {total['feeds']:,} |\n"
-        f"| packets emitted (whole-buffer parses) | {total['packets']:,} |\n"
-        f"| of which damaged frames passing the checksum (corrupted / flips inputs) | {total['spurious']:,} |\n"
+        f"| packets emitted (whole-buffer parses of the inputs that pass) | {total['packets']:,} |\n"
+        f"| of which damaged bytes passing the checksum (corrupted / flips inputs) | {total['spurious']:,} |\n"
         f"| **failures** | **{fails:,}** |\n"
         f"| wall time | {wall:.0f} s ({total['inputs'] / wall:,.0f} inputs/s; CPU {total['cpu_s']:.0f} s) |\n"
     )
