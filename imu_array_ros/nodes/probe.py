@@ -67,8 +67,15 @@ def main(argv=None) -> int:
                 print("ready", flush=True)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    n = min(len(imu), len(acc))
-    fused = decode_fused(imu[:n], acc[:n])
+    # pair the two topics by stamp (one may have lost a message under overload)
+    def stamp(payload):
+        return int.from_bytes(payload[4:8], "little", signed=True) * 10**9 + int.from_bytes(payload[8:12], "little")
+
+    by_stamp = {stamp(p): p for p in acc}
+    keep = [i for i, p in enumerate(imu) if stamp(p) in by_stamp]
+    fused = decode_fused([imu[i] for i in keep], [by_stamp[stamp(imu[i])] for i in keep])
+    arrival = [arrival[i] for i in keep]
+    n = len(keep)
     import io
 
     buf = io.BytesIO()
