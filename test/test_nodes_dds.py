@@ -215,7 +215,10 @@ def test_serial_chain_with_corruption_and_unplug(ros_env, tmp_path):
     array = REPO / "config" / "mimu4444bt_corners.yaml"
     desc = load_description(array)
     samples, _ = simulate_twist(desc, 8.0, 125.0, np.random.default_rng(7))
-    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={array}", "-p", "reliable:=true")
+    # sync_timeout 2 s: on a loaded CI machine a topic can lag; a sample fused without an IMU is
+    # correct but not comparable value for value with the complete fusion below
+    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={array}", "-p", "reliable:=true",
+                     "-p", "sync_timeout:=2.0")
     probe = ros_env(sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
                     "--timeout", 30, "--reliable")
     _wait_line(probe, "ready")
@@ -242,7 +245,9 @@ def test_serial_chain_with_corruption_and_unplug(ros_env, tmp_path):
     # every published sample is one of them (matched by value), in stream order
     d = np.linalg.norm(got["omega"][:, None, :] - want.omega[None, :, :], axis=2)
     match = d.argmin(axis=1)
-    assert d[np.arange(len(match)), match].max() < 1e-9, "a published sample is not the fusion of an intact packet"
+    worst = d[np.arange(len(match)), match]
+    assert worst.max() < 1e-9, ("a published sample is not the fusion of an intact packet",
+                                np.flatnonzero(worst >= 1e-9), json.loads(str(got["diagnostics"])))
     np.testing.assert_allclose(got["specific_force"], want.specific_force[match], rtol=1e-9, atol=1e-9)
     assert np.all(np.diff(match) > 0) and np.all(np.diff(got["stamps"]) > 0)
     assert len(got["stamps"]) >= 0.9 * len(want), (len(got["stamps"]), len(want))
