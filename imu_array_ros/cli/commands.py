@@ -64,9 +64,8 @@ def _read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet
     from imu_array_ros.estimation.stream import fuse_chunked
     from imu_array_ros.io.rosbag.recording import read_imu_recording
 
-    desc, source = load_array(array, calibration)
-    check_fusable(desc, source)
-    fusion = build_fusion(desc)  # the fusion node builds the same object
+    desc, _ = load_array(array, calibration)
+    fusion = build_fusion(desc)  # checks it is fusable (naming the file); the fusion node builds the same
     samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
     fused, stats = fuse_chunked(fusion, samples, Progress("fusing", quiet))
     return desc, fusion, samples, rstats, fused, stats

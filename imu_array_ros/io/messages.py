@@ -35,12 +35,15 @@ from imu_array_ros.io.rosbag.cdr_columns import (
     decode_imu,
     encode_accel_with_covariance_stamped,
     encode_imu,
+    gather_bytes,
 )
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 
 __all__ = [
     "NO_ORIENTATION",
+    "accel_block",
+    "put_accel_block",
     "raw_covariances",
     "raw_imu_payloads",
     "fused_payloads",
@@ -53,7 +56,21 @@ __all__ = [
 #: orientation_covariance of a message without orientation (REP-145).
 NO_ORIENTATION = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
 
-_W, _WD, _F = slice(0, 3), slice(3, 6), slice(6, 9)
+_W, _F = slice(0, 3), slice(6, 9)
+#: rows/columns of the (9, 9) fusion covariance ([omega, omega_dot, specific_force]) that the
+#: Accel message's 6x6 covariance ([linear, angular] = [specific_force, omega_dot]) holds
+_ACCEL = np.r_[6:9, 3:6]
+
+
+def accel_block(cov: np.ndarray) -> np.ndarray:
+    """The Accel message's (N, 6, 6) covariance from the fusion's (N, 9, 9)."""
+    return cov[:, _ACCEL[:, None], _ACCEL]
+
+
+def put_accel_block(cov: np.ndarray, rows: np.ndarray | slice, block: np.ndarray) -> None:
+    """Write Accel covariances ``block`` (n, 6, 6) into rows ``rows`` of the fusion's (N, 9, 9) ``cov``."""
+    rows = np.arange(len(cov))[rows]
+    cov[rows[:, None, None], _ACCEL[None, :, None], _ACCEL[None, None, :]] = block
 
 
 def raw_covariances(description: ArrayDescription) -> tuple[np.ndarray, np.ndarray]:
@@ -100,11 +117,6 @@ def fused_payloads(fused: FusedSamples, frame_id: str) -> tuple[np.ndarray, np.n
     stamps = np.asarray(fused.stamps, dtype=np.int64).reshape(-1)
     n = len(stamps)
     cov = np.asarray(fused.covariance, dtype=float).reshape(n, 9, 9)
-    accel_cov = np.empty((n, 6, 6))
-    accel_cov[:, :3, :3] = cov[:, _F, _F]
-    accel_cov[:, :3, 3:] = cov[:, _F, _WD]
-    accel_cov[:, 3:, :3] = cov[:, _WD, _F]
-    accel_cov[:, 3:, 3:] = cov[:, _WD, _WD]
     imu = encode_imu(
         stamps,
         frame_id,
@@ -115,7 +127,7 @@ def fused_payloads(fused: FusedSamples, frame_id: str) -> tuple[np.ndarray, np.n
         orientation_covariance=NO_ORIENTATION,
     )
     acc = encode_accel_with_covariance_stamped(
-        stamps, frame_id, linear=fused.specific_force, angular=fused.omega_dot, covariance=accel_cov.reshape(n, 36)
+        stamps, frame_id, linear=fused.specific_force, angular=fused.omega_dot, covariance=accel_block(cov).reshape(n, 36)
     )
     return imu, acc
 
@@ -167,15 +179,12 @@ def decode_raw_imu(payloads: Sequence[bytes], imu_index: np.ndarray, frame_ids: 
             fid = frame_ids[k].encode("utf-8")
             sel = np.flatnonzero((imu_index == k) & dec.valid)
             # valid payloads have the exact length the layout implies for their frame_id length
-            ok = lengths[sel] == IMU_LAYOUT.payload_length(len(fid) + 1)
-            sel, rest = sel[ok], sel[~ok]
+            sel = sel[lengths[sel] == IMU_LAYOUT.payload_length(len(fid) + 1)]
             if fid and len(sel):
-                window = np.lib.stride_tricks.sliding_window_view(buf, len(fid))[offsets[sel] + 16]
-                good = (window == np.frombuffer(fid, dtype=np.uint8)).all(axis=1)
+                window = gather_bytes(buf, offsets[sel] + 16, len(fid))
+                frame_ok[sel] = (window == np.frombuffer(fid, dtype=np.uint8)).all(axis=1)
             else:
-                good = np.ones(len(sel), dtype=bool)
-            frame_ok[sel] = good
-            frame_ok[rest] = False
+                frame_ok[sel] = True
     accel, gyro = dec.fields["linear_acceleration"], dec.fields["angular_velocity"]
     finite = np.isfinite(accel).all(axis=1) & np.isfinite(gyro).all(axis=1)
     return RawBatch(dec.stamps, accel, gyro, dec.valid, frame_ok, finite & dec.valid)
@@ -198,11 +207,7 @@ def decode_fused(imu_payloads: Sequence[bytes], accel_payloads: Sequence[bytes])
         raise ValueError("fused Imu and Accel stamps differ")
     n = len(imu.stamps)
     cov = np.full((n, 9, 9), np.nan)
-    c6 = acc["covariance"].reshape(n, 6, 6)
     cov[:, _W, _W] = imu["angular_velocity_covariance"].reshape(n, 3, 3)
-    cov[:, _F, _F] = c6[:, :3, :3]
-    cov[:, _F, _WD] = c6[:, :3, 3:]
-    cov[:, _WD, _F] = c6[:, 3:, :3]
-    cov[:, _WD, _WD] = c6[:, 3:, 3:]
+    put_accel_block(cov, slice(None), acc["covariance"].reshape(n, 6, 6))
     return FusedSamples(stamps=imu.stamps, omega=imu["angular_velocity"], omega_dot=acc["angular"],
                         specific_force=imu["linear_acceleration"], covariance=cov)

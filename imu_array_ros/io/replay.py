@@ -44,7 +44,6 @@ class Replay:
         self._offset = (st - st[0]) if len(st) else st  # ns from the first sample
         self._next = 0  # next sample index in the current pass
         self._pass = 0
-        self.published = 0
 
     @property
     def done(self) -> bool:
@@ -54,21 +53,20 @@ class Replay:
     def due(self, elapsed_ns: int, restamp_ns: int | None = None) -> ImuSamples:
         """The samples due by ``elapsed_ns`` after the start that were not handed out yet."""
         n = len(self.samples)
-        parts = []
-        while n and not self.done:
+        parts, taken = [], 0
+        while n and not self.done and not (self.rate == 0 and taken >= self.burst):
             if self.rate == 0:
-                hi = min(self._next + self.burst - sum(len(p[0]) for p in parts), n)
+                hi = min(self._next + self.burst - taken, n)
             else:
                 local = elapsed_ns * self.rate - self._pass * self.period_ns
                 hi = int(np.searchsorted(self._offset, local, side="right"))
             if hi <= self._next:
                 break
             parts.append((np.arange(self._next, hi), self._pass))
+            taken += hi - self._next
             self._next = hi
             if self._next >= n and self.loop:
                 self._next, self._pass = 0, self._pass + 1
-            if self.rate == 0 and sum(len(p[0]) for p in parts) >= self.burst:
-                break
         if not parts:
             return self.samples.select(slice(0, 0))
         idx = np.concatenate([p[0] for p in parts])
@@ -81,5 +79,4 @@ class Replay:
             else:  # as fast as possible: stamped now, 1 ns apart
                 due = int(elapsed_ns) + np.arange(len(idx), dtype=np.int64)
             out.stamps = int(restamp_ns) + due
-        self.published += len(out)
         return out

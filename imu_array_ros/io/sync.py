@@ -27,7 +27,7 @@ to the subscription callbacks.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -53,13 +53,11 @@ class AssemblerStats:
 
 @dataclass
 class AssembledSamples:
-    """Array samples handed out: stamps (P,), accel/gyro (P, K, 3) NaN where missing,
-    arrival_ns (P,) when each sample's first message arrived."""
+    """Array samples handed out: stamps (P,), accel/gyro (P, K, 3) NaN where missing."""
 
     stamps: np.ndarray
     accel: np.ndarray
     gyro: np.ndarray
-    arrival_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -185,7 +183,7 @@ class SampleAssembler:
         return self._take(count)
 
     def _take(self, count: int) -> AssembledSamples:
-        out = AssembledSamples(self._stamps[:count], self._acc[:count], self._gyr[:count], self._first[:count])
+        out = AssembledSamples(self._stamps[:count], self._acc[:count], self._gyr[:count])
         have = self._have[:count]
         complete = have.all(axis=1)
         self.stats.complete_samples += int(complete.sum())

@@ -58,7 +58,7 @@ class FusionNode(Node):
         self.pub_imu = self.create_publisher(Imu, out + "/imu", q)
         self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, out + "/accel", q)
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
-        self._reported: dict[str, int] = {}
+        self._reported: set[str] = set()
         self._foreign: set[str] = set()
         self.create_timer(p.period, self._step)
         self.create_timer(1.0, self._diagnose)
@@ -83,19 +83,21 @@ class FusionNode(Node):
             payloads, index = self._queue[:], self._index[:]
             del self._queue[:], self._index[:]
             self.core.add(payloads, index, now)
-        for batch in self.core.step(now):
+        self._publish(self.core.step(now))
+
+    def _publish(self, batches) -> None:
+        for batch in batches:
             for imu, acc in zip(batch.imu_payloads, batch.accel_payloads):
                 self.pub_imu.publish(imu.tobytes())
                 self.pub_accel.publish(acc.tobytes())
             self.core.record_latency(self._now(), batch.fused.stamps)
-        self._log_rejections()
 
-    def _log_rejections(self) -> None:
-        counts = {**self.core.inputs.__dict__, **self.core.assembler.stats.as_dict()}
+    def _log_rejections(self, counts: dict) -> None:
+        """Once per kind of rejected message (the counts go to /diagnostics)."""
         for kind in ("undecodable", "wrong_frame_id", "non_finite", "duplicate", "backwards", "late"):
             if counts[kind] and kind not in self._reported:
                 self.get_logger().warning(f"skipping {kind.replace('_', ' ')} messages (counted in /diagnostics)")
-                self._reported[kind] = counts[kind]
+                self._reported.add(kind)
 
     def _watch(self) -> None:
         path = self.p.calibration_file
@@ -113,6 +115,7 @@ class FusionNode(Node):
 
     def _diagnose(self) -> None:
         s = self.core.summary(self._now())
+        self._log_rejections(s.counts)
         known = {imu_topic(n, self.p.topic_prefix) for n in self.core.names}
         prefix = self.p.topic_prefix.rstrip("/") + "/"
         for topic, _ in self.get_topic_names_and_types():
@@ -134,10 +137,7 @@ class FusionNode(Node):
         """Fuse and publish what is still buffered, if the context is still up."""
         try:
             self._step()
-            for batch in self.core.step(self._now(), flush=True):
-                for imu, acc in zip(batch.imu_payloads, batch.accel_payloads):
-                    self.pub_imu.publish(imu.tobytes())
-                    self.pub_accel.publish(acc.tobytes())
+            self._publish(self.core.step(self._now(), flush=True))
         except Exception:  # noqa: BLE001 - shutting down: the context may already be gone
             pass
 

@@ -28,7 +28,8 @@ def main(argv=None) -> int:
     from sensor_msgs.msg import Imu
 
     from imu_array_ros.io.atomic import atomic_write_bytes
-    from imu_array_ros.io.messages import decode_fused
+    from imu_array_ros.io.messages import concat_payloads, decode_fused
+    from imu_array_ros.io.rosbag.cdr_columns import decode_accel_with_covariance_stamped, decode_imu
     from imu_array_ros.nodes.runtime import qos
 
     ap = argparse.ArgumentParser(prog="imu_array_ros.nodes.probe")
@@ -68,12 +69,10 @@ def main(argv=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     # pair the two topics by stamp (one may have lost a message under overload)
-    def stamp(payload):
-        return int.from_bytes(payload[4:8], "little", signed=True) * 10**9 + int.from_bytes(payload[8:12], "little")
-
-    by_stamp = {stamp(p): p for p in acc}
-    keep = [i for i, p in enumerate(imu) if stamp(p) in by_stamp]
-    fused = decode_fused([imu[i] for i in keep], [by_stamp[stamp(imu[i])] for i in keep])
+    imu_stamps = decode_imu(*concat_payloads(imu), fields=()).stamps
+    acc_stamps = decode_accel_with_covariance_stamped(*concat_payloads(acc), fields=()).stamps
+    _, keep, pair = np.intersect1d(imu_stamps, acc_stamps, assume_unique=True, return_indices=True)
+    fused = decode_fused([imu[i] for i in keep], [acc[j] for j in pair])
     arrival = [arrival[i] for i in keep]
     n = len(keep)
     import io

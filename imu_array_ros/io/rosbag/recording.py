@@ -41,7 +41,7 @@ from imu_array_ros.io.rosbag.cdr_columns import (
 )
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.errors import RecordingError
-from imu_array_ros.io.messages import NO_ORIENTATION, fused_payloads, raw_imu_payloads
+from imu_array_ros.io.messages import NO_ORIENTATION, fused_payloads, put_accel_block, raw_imu_payloads
 from imu_array_ros.io.rosbag.mcap_recording import McapRecording
 from imu_array_ros.io.rosbag.mcap_writer import ChannelData, write_recording
 from imu_array_ros.io.rosbag.topic_columns import check_topic, list_topics, read_topics
@@ -398,7 +398,7 @@ def read_fused_recording(path: str | os.PathLike, *, prefix: str = "/imu_array/f
     omega_dot = np.full((n, 3), np.nan)
     force = np.full((n, 3), np.nan)
     cov = np.full((n, 9, 9), np.nan)
-    w, wd, f = slice(0, 3), slice(3, 6), slice(6, 9)
+    w, f = slice(0, 3), slice(6, 9)
     if imu is not None:
         rows, col = imu.rows, imu.fields
         omega[rows] = col["angular_velocity"]
@@ -406,13 +406,8 @@ def read_fused_recording(path: str | os.PathLike, *, prefix: str = "/imu_array/f
         cov[rows, w, w] = col["angular_velocity_covariance"].reshape(-1, 3, 3)
         cov[rows, f, f] = col["linear_acceleration_covariance"].reshape(-1, 3, 3)
     if acc is not None:
-        rows = acc.rows
-        c6 = acc.fields["covariance"].reshape(-1, 6, 6)
-        omega_dot[rows] = acc.fields["angular"]
+        omega_dot[acc.rows] = acc.fields["angular"]
         if imu is None:
-            force[rows] = acc.fields["linear"]
-        cov[rows, f, f] = c6[:, :3, :3]
-        cov[rows, f, wd] = c6[:, :3, 3:]
-        cov[rows, wd, f] = c6[:, 3:, :3]
-        cov[rows, wd, wd] = c6[:, 3:, 3:]
+            force[acc.rows] = acc.fields["linear"]
+        put_accel_block(cov, acc.rows, acc.fields["covariance"].reshape(-1, 6, 6))
     return FusedSamples(stamps=stamps, omega=omega, omega_dot=omega_dot, specific_force=force, covariance=cov)
