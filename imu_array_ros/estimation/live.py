@@ -17,7 +17,7 @@ to data happens here, ROS-free and testable without DDS:
    as ``imu-array residuals``), rates, and output latency.
 
 Same numbers as the offline command: each sample is fused on its own, so
-batching changes a value only by rounding (~1e-14 relative; a few vectorised
+batching changes a value only by rounding (within 1e-12 relative, tested; a few vectorised
 sums run in another order for another batch size), with one exception stated in
 :mod:`~imu_array_ros.estimation.model_fusion`: a time-offset term compensates with
 time derivatives of the estimate taken across neighbouring samples, which at a
