@@ -96,3 +96,74 @@ def test_motion_that_cannot_identify_the_term_is_refused(tmp_path, capsys):
                                  "--terms", "position", "--out", tmp_path / "c.yaml", "-q"), "position")
     assert "axes" in line, line
     assert not (tmp_path / "c.yaml").exists()
+
+
+# --------------------------------------------------------------------------- calibrate geometry
+
+
+@pytest.fixture(scope="module")
+def geometry_recordings(tmp_path_factory):
+    """A 3 s twist of array32 with seeded 0.5 mm position errors (imu_00 at nominal), and a still one."""
+    from imu_array_ros.cli import main
+    from imu_array_ros.model.description import save_description
+
+    d = tmp_path_factory.mktemp("geo")
+    rng = np.random.default_rng(21)
+    nominal = load_description(ARRAY32)
+    model = SensorModel.from_description(nominal)
+    pos = rng.normal(0, 5e-4, (32, 3))
+    pos[0] = 0.0
+    save_description(model.with_terms(position=model.positions + pos).to_description(nominal), d / "true.yaml")
+    for name, rate in (("twist", "900"), ("still", "0.01")):
+        assert main(["simulate", "--array", str(ARRAY32), "--true-array", str(d / "true.yaml"), "--out",
+                     str(d / name), "--duration", "3", "--rate", "200", "--rms-rate", rate, "--seed", "3",
+                     "--start-time", START, "-q"]) == 0
+    return d
+
+
+def test_geometry_writes_positions_stds_and_record_and_keeps_a_backup(geometry_recordings, capsys):
+    d = geometry_recordings
+    out = d / "geo.yaml"
+    code, stdout, err = cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", out,
+                            "--plot", d / "geo.png")
+    assert code == 0 and stdout == "", err
+    assert (d / "geo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"wrote {d / 'geo.png'}" in err
+    assert "calibrating: iteration 1" in err and "600 of 600 used" in err and f"wrote {out}" in err
+    assert "imu_00: moved   0.0000 mm" in err and "(reference)" in err
+    cal = load_description(out)
+    rec = cal.calibration
+    assert rec["reference"] == "imu_00" and rec["converged"] is True and rec["samples_used"] == 600
+    assert rec["log_likelihood_after"] > rec["log_likelihood_before"] and 0.9 < rec["nis_after"] < 1.1
+    assert set(rec["residual_rms_after"]) == set(cal.names)
+    true = load_description(d / "true.yaml").positions
+    std = np.array([imu.stds["position"] for imu in cal.imus])
+    z = (cal.positions - true)[1:] / std[1:]
+    assert np.all(np.abs(z) < 4.5) and 0.7 < np.sqrt(np.mean(z ** 2)) < 1.4, z
+    # an existing --out needs --force; with it the old file is kept as OUT.bak
+    assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", out, "-q"),
+                      str(out), "already exists (use --force")
+    old = out.read_bytes()
+    code, _, err = cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", out,
+                       "--method", "bcd", "--force")
+    assert code == 0 and f"previous {out} kept as {out}.bak" in err, err
+    assert (d / "geo.yaml.bak").read_bytes() == old
+
+
+def test_geometry_refuses_a_still_recording_and_a_worse_result_leaving_out_untouched(geometry_recordings, capsys):
+    d = geometry_recordings
+    out = d / "geo2.yaml"
+    assert cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", out, "-q")[0] == 0
+    before = out.read_bytes()
+    assert_user_error(cli(capsys, "calibrate", "geometry", d / "still", "--array", ARRAY32, "--out", out,
+                          "--force", "-q"),
+                      str(d / "still"), "too few samples with rotation: 0 of 600", "twist the array")
+    # one BCD iteration from the nominal positions fits the window worse than the file: refused
+    assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", out,
+                          "--method", "bcd", "--max-iterations", "1", "--force", "-q"),
+                      "not replaced: the calibration on file fits this window better")
+    assert out.read_bytes() == before and not (d / "geo2.yaml.bak").exists()
+    assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", d / "x.yaml",
+                          "--reference", "imu_99", "-q"), "imu_99")
+    assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", d / "x.yaml",
+                          "--start", "10", "-q"), "no samples between 10 s")
+    assert not (d / "x.yaml").exists()

@@ -1,5 +1,9 @@
 """``imu-array calibrate ...``: calibrations that write a calibrated description.
 
+``calibrate geometry`` is the on-the-fly calibration of the accelerometer
+positions (carlsson2017; :mod:`imu_array_ros.calibration.geometry`), the same
+function the calibration node's ``/calibrate_geometry`` service runs.
+
 ``calibrate fit`` is the general one: maximum likelihood of any set of sensor-model
 terms jointly with the motion (:func:`imu_array_ros.estimation.fit_terms.fit_terms`),
 written as the description schema with every fitted field, its ``_std`` (the
@@ -18,7 +22,7 @@ from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.atomic import check_output
 
-__all__ = ["calibrate_fit", "parse_list"]
+__all__ = ["calibrate_fit", "calibrate_geometry", "parse_list"]
 
 
 def parse_list(text: str | None) -> list[str] | None:
@@ -105,4 +109,68 @@ def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibr
     except OSError as err:
         raise OutputError(f"{out}: cannot write --out: {err.strerror or err}") from None
     info(quiet, f"wrote {out}")
+    return 0
+
+
+def calibrate_geometry(recording: Path, array: Path, out: Path, *, calibration: Path | None = None,
+                       reference: str | None = None, method: str | None = None, max_iterations: int | None = None,
+                       min_excitation: float | None = None, start: float | None = None,
+                       duration: float | None = None, plot: Path | None = None, force: bool = False,
+                       quiet: bool = False) -> int:
+    """Calibrate the accelerometer positions on (a window of) ``recording``; install at ``out``."""
+    from imu_array_ros.calibration import geometry
+    from imu_array_ros.cli.commands import check_fusable, load_array
+    from imu_array_ros.io.rosbag.recording import read_imu_recording
+
+    out = check_output(out, [recording, array, calibration], "yaml", force)
+    if plot is not None:
+        plot = check_output(plot, [recording, array, calibration], "png", force, option="--plot",
+                            other_outputs=[("--out", out)])
+    desc, source = load_array(array, calibration)
+    check_fusable(desc, source)
+    if reference:
+        desc.index(reference)  # a one-line error naming the unknown IMU
+    samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
+    info(quiet, f"read {rstats.samples} array samples of {len(desc.imus)} IMUs")
+    stamps = samples.stamps
+    if len(stamps) and (start is not None or duration is not None):
+        t = (stamps - stamps[0]) / 1e9
+        lo = 0.0 if start is None else start
+        keep = (t >= lo) & (t <= (lo + duration if duration is not None else np.inf))
+        if not keep.any():
+            raise CalibrationError(f"{recording}: no samples between {lo:g} s and "
+                                   f"{lo + duration if duration is not None else t[-1]:g} s "
+                                   f"(the recording spans {t[-1]:.3f} s)")
+        samples = samples.select(np.flatnonzero(keep))
+        info(quiet, f"window: {len(samples.stamps)} samples from {lo:g} s")
+
+    def progress(iteration: int, loglik: float) -> None:
+        info(quiet, f"calibrating: iteration {iteration}, log-likelihood {loglik:.10g}")
+
+    kwargs = dict(reference=reference, method=method or geometry.DEFAULT_METHOD, max_iterations=max_iterations,
+                  min_excitation=geometry.MIN_EXCITATION if min_excitation is None else min_excitation,
+                  progress=progress)
+    try:
+        result, installed = geometry.calibrate_and_write(desc, samples.stamps, samples.accel, samples.gyro, out,
+                                                         **kwargs)
+    except CalibrationError as err:
+        raise CalibrationError(f"{recording}: {err}") from None
+    dropped = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in result.dropped.items() if v) or "none"
+    info(quiet, f"samples: {result.samples_used} of {result.samples_total} used (dropped: {dropped})")
+    info(quiet, f"log-likelihood {result.loglik_before:.10g} -> {result.loglik_after:.10g}; "
+                f"NIS per degree of freedom {result.nis_before:.4g} -> {result.nis_after:.4g}")
+    change, std = result.position_change(), np.linalg.norm(result.position_std, axis=1)
+    for k, name in enumerate(result.names):
+        info(quiet, f"  {name}: moved {change[k] * 1e3:8.4f} mm, std {std[k] * 1e6:8.2f} um, "
+                    f"residual RMS {result.rms_before[k]:.4g} -> {result.rms_after[k]:.4g} m/s^2"
+                    f"{'  (reference)' if name == result.reference else ''}")
+    info(quiet, result.summary())
+    if installed.backup is not None:
+        info(quiet, f"previous {out} kept as {installed.backup}")
+    info(quiet, f"wrote {out}")
+    if plot is not None:
+        from imu_array_ros.calibration.plots import plot_geometry
+
+        plot_geometry(result, plot)
+        info(quiet, f"wrote {plot}")
     return 0

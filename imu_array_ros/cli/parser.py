@@ -280,6 +280,33 @@ def build_parser() -> argparse.ArgumentParser:
     _common(sp, force="replace an existing --out, only if it is itself a YAML mapping")
     sp.set_defaults(func=calibrate.calibrate_fit)
 
+    sp = cal.add_parser("geometry", help="accelerometer positions from hand-twisting (carlsson2017), with their "
+                                         "Cramer-Rao std; what the /calibrate_geometry service runs")
+    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
+    sp.add_argument("--array", required=True, type=Path, help="array description YAML (initial values)")
+    sp.add_argument("--calibration", type=Path,
+                    help="calibrated description (same schema) to start from instead of --array's values")
+    sp.add_argument("--reference", help="IMU whose position is held (default: the first)")
+    sp.add_argument("--method", choices=("joint", "bcd"),
+                    help="'joint': Schur-complement Gauss-Newton (default); 'bcd': block coordinate descent "
+                         "(carlsson2017 Alg. 1)")
+    sp.add_argument("--max-iterations", type=positive_int,
+                    help="iteration cap, >= 1 (default 50 joint, 500 bcd)")
+    sp.add_argument("--min-excitation", type=non_negative_float,
+                    help="samples with ||[w]x^2 + [w_dot]x|| below this (rad/s^2, >= 0) carry too little rotation "
+                         "and are dropped (default 1)")
+    sp.add_argument("--start", type=non_negative_float, metavar="SECONDS",
+                    help="window start, seconds after the first sample (default 0)")
+    sp.add_argument("--duration", type=positive_float, metavar="SECONDS", help="window length (default: to the end)")
+    sp.add_argument("--out", required=True, type=Path,
+                    help="calibrated description YAML to write (with --force an existing one is replaced only if "
+                         "the new calibration fits the window better; the old one is kept as OUT.bak)")
+    sp.add_argument("--plot", type=Path, metavar="PNG",
+                    help="also write a plot: position change per IMU with 3-sigma bars, residual RMS before/after")
+    _common(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak, unless it fits the "
+                      "window better than the new calibration; and an existing --plot PNG")
+    sp.set_defaults(func=calibrate.calibrate_geometry)
+
     sp = sub.add_parser("recover", help="salvage a truncated or damaged recording (e.g. a recorder killed mid-write)")
     sp.add_argument("recording", type=Path, help="the damaged recording: .mcap file or rosbag2 directory (only read)")
     sp.add_argument("--out", required=True, type=Path,

@@ -29,7 +29,8 @@ from imu_array_ros.io.rosbag.mcap_format import MAGIC as MCAP_MAGIC
 __all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "check_output", "OUTPUT_KINDS"]
 
 #: What :func:`check_output` knows how to recognise (and therefore may replace).
-OUTPUT_KINDS = ("recording", "yaml", "json")
+OUTPUT_KINDS = ("recording", "yaml", "json", "png")
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 _MAX_TEXT_BYTES = 64 << 20  # a YAML/JSON output larger than this is not one of ours
 
@@ -205,6 +206,8 @@ def _kind_problem(out: Path, kind: str) -> str | None:
         if _read_head(out, len(MCAP_MAGIC)) != MCAP_MAGIC:
             return "exists and is not an MCAP file (no MCAP magic)"
         return None
+    if kind == "png":
+        return None if _read_head(out, len(PNG_MAGIC)) == PNG_MAGIC else "exists and is not a PNG file"
     if out.stat().st_size > _MAX_TEXT_BYTES:
         return f"exists and is too large to be a {kind.upper()} output of this tool"
     raw = _read_head(out, _MAX_TEXT_BYTES)
@@ -241,14 +244,15 @@ def check_output(
         Every file the command reads (``None`` entries are ignored).  ``out``
         must not be one of them, contain one, or lie inside one (symbolic
         links and hard links are followed).
-    kind : ``"recording"``, ``"yaml"`` or ``"json"``
+    kind : ``"recording"``, ``"yaml"``, ``"json"`` or ``"png"``
         What is written: a recording (a bare MCAP file when ``out`` ends in
         ``.mcap``, else a rosbag2 directory), or a YAML / JSON file.
     force : bool
         Replace an existing ``out`` -- only if it is itself of ``kind``: a file
         starting with the MCAP magic; a directory with a rosbag2
         ``metadata.yaml`` holding nothing but that file and the files its
-        ``relative_file_paths`` lists; a YAML file holding a mapping; a JSON file.
+        ``relative_file_paths`` lists; a YAML file holding a mapping; a JSON file;
+        a PNG file (PNG signature).
     option : str
         The command line option that named ``out`` (for messages).
     other_outputs : (option, path) pairs

@@ -61,12 +61,12 @@ def motion_derivative(stamps, values) -> np.ndarray:
 class ModelJacobians:
     """Predictions and Jacobians of every reading, rows [acc x, y, z, gyro x, y, z] per IMU.
 
-    predicted (N, K, 6); motion (N, K, 6, 9) d y / d [omega, omega_dot, s];
+    predicted (N, K, 6); motion (N, K, 6, 9) d y / d [omega, omega_dot, s] (None when not asked for);
     params: term name -> (N, K, 6, P) d y / d theta_k (IMU k's P parameters).
     """
 
     predicted: np.ndarray
-    motion: np.ndarray
+    motion: np.ndarray | None
     params: dict[str, np.ndarray] = field(default_factory=dict)
 
 
@@ -201,17 +201,19 @@ class SensorModel:
             out.append(x)
         return out[0], out[1]
 
-    def jacobians(self, ctx: MotionContext, free: Sequence[str] = ()) -> ModelJacobians:
-        """Predictions and analytic Jacobians (motion, and the ``free`` terms' parameters)."""
+    def jacobians(self, ctx: MotionContext, free: Sequence[str] = (), *, motion: bool = True) -> ModelJacobians:
+        """Predictions and analytic Jacobians (motion, and the ``free`` terms' parameters);
+        ``motion=False``: the parameters' only (``ModelJacobians.motion`` is None), e.g. for a
+        parameter step with the motion held (the geometry calibration's block coordinate descent)."""
+        with_motion = motion
         unknown = [n for n in free if n not in self.terms]
         if unknown:
             raise KeyError(f"unknown term {unknown[0]!r} (known: {', '.join(term_names())})")
         ctx = self._prepare(ctx)
         n, k = ctx.n, self.n_imus
         predicted = np.empty((n, k, 6))
-        motion = np.zeros((n, k, 6, 9))
+        motion = np.zeros((n, k, 6, 9)) if with_motion else None
         params = {name: np.zeros((n, k, 6, self.terms[name].dim())) for name in free}
-        eye = np.broadcast_to(np.eye(3), (n, k, 3, 3))
         for s, sensor in enumerate(SENSORS):
             rows = slice(3 * s, 3 * s + 3)
             chain = self.chain(sensor, keep=free)
@@ -221,21 +223,23 @@ class SensorModel:
                 inputs.append(x)
                 x = term.apply(x, ctx, sensor)
             predicted[:, :, rows] = x
-            d = eye  # d y / d (signal after the current term)
+            d = None  # d y / d (signal after the current term); None: the identity (no product needed)
+            times = lambda a: a if d is None else d @ a  # noqa: E731
             for term, x_in in zip(reversed(chain), reversed(inputs)):
                 if term.name in params:
-                    params[term.name][:, :, rows] += d @ term.d_params(x_in, ctx, sensor)
-                dm = term.d_motion(x_in, ctx, sensor)
+                    params[term.name][:, :, rows] += times(term.d_params(x_in, ctx, sensor))
+                dm = term.d_motion(x_in, ctx, sensor) if with_motion else None
                 if dm is not None:
-                    motion[:, :, rows] += d @ dm
+                    motion[:, :, rows] += times(dm)
                 if "position" in params:
                     dp = term.d_positions(x_in, ctx, sensor)  # terms that read the positions
                     if dp is not None:
-                        params["position"][:, :, rows] += d @ dp
+                        params["position"][:, :, rows] += times(dp)
                 di = term.d_input(x_in, ctx, sensor)
                 if di is not None:
-                    d = d @ di
+                    d = times(di)
             base = 6 if sensor == "accelerometer" else 0  # R^T s or R^T omega
-            motion[:, :, rows, base:base + 3] += d @ ctx.rot_t[None]
+            if with_motion:
+                motion[:, :, rows, base:base + 3] += times(ctx.rot_t[None])
         return ModelJacobians(predicted=predicted, motion=motion, params=params)
 

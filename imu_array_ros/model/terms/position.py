@@ -22,12 +22,13 @@ class Position(Term):
     fields = (Field(("position",), (3,), "m"),)
 
     def apply(self, x, ctx: MotionContext, sensor):
-        return x + np.einsum("kji,nkj->nki", ctx.rotations, np.einsum("nij,kj->nki", ctx.lever, self.values))
+        return x + np.einsum("kji,nkj->nki", ctx.rotations, np.einsum("nij,kj->nki", ctx.lever, self.values),
+                             optimize=True)
 
     def d_params(self, x, ctx, sensor):
-        return np.einsum("kji,njl->nkil", ctx.rotations, ctx.lever)  # R^T C
+        return np.matmul(ctx.rot_t[None], ctx.lever[:, None])  # R^T C
 
     def d_motion(self, x, ctx, sensor):
         j = ctx.force_jacobian(self.values)  # (N, K, 3, 9) of s + C p; minus the s part (the chain's base)
         j[..., 6:] = 0.0
-        return np.einsum("kji,nkjl->nkil", ctx.rotations, j)
+        return np.matmul(ctx.rot_t[None], j)

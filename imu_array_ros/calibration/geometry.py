@@ -1,0 +1,444 @@
+"""Geometry calibration: the accelerometer positions from a few seconds of hand-twisting (carlsson2017).
+
+Problem (carlsson2017 eq. 1-4, with the whole sensor model): every array
+sample n has an unknown motion x_n = [omega, omega_dot, s]; accelerometer k
+reads h_k(x_n, p_k) (rotated sensor frame, calibrated intrinsics: every term
+of the :class:`~imu_array_ros.model.forward.SensorModel`), the gyroscopes read
+omega.  The positions p_k (the reference IMU's held: only relative positions
+are observable) and the motion are estimated jointly by maximum likelihood.
+
+Two solvers of the same problem:
+
+* ``"bcd"`` -- block coordinate descent, carlsson2017 Alg. 1.  Alternate
+  (a) the ML motion of every sample for the current positions, with the fusion
+  core (:class:`~imu_array_ros.estimation.model_fusion.ModelFusion`, vectorised
+  over samples) and (b) the least-squares positions for that motion.  Step (b)
+  is eq. 9 generalised to the sensor model: with the weighted position Jacobian
+  J_nk = W_k dh_k/dp_k (for the bare model J_nk = R_k^T C_n / sigma,
+  C_n = [omega]x^2 + [omega_dot]x) and the weighted residual r_nk,
+  p_k += (sum_n J_nk^T J_nk)^-1 sum_n J_nk^T r_nk, one 3x3 system per IMU (the
+  same one for every IMU when their noise is equal and isotropic and their
+  intrinsics orthogonal, as in the paper).  The readings are affine in p_k for
+  every linear term, so this is the exact minimiser of step (b), O(N).
+* ``"joint"`` -- the fitting engine (:func:`~imu_array_ros.estimation.fit_terms.fit_terms`
+  with ``free=["position"]``): Gauss-Newton on positions and motion together,
+  the motion eliminated by the Schur complement, also O(N) per iteration.
+
+Both end at the same stationary point of the likelihood; BCD converges
+linearly (its rate is set by the coupling of motion and positions), the joint
+solver quadratically, so ``"joint"`` is the default (``benchmarks/bench_geometry.py``
+compares iterations, time and likelihood).  Whichever solves it, the
+uncertainty is the Cramér-Rao bound of the joint problem (positions and every
+sample's motion unknown; carlsson2017 leaves it open) from the engine's Fisher
+information at the estimate.
+
+Samples: a sample with a missing or saturated reading is dropped (the BCD's
+shared 3x3 system assumes every axis), and so is one with too little rotation
+to carry information about the positions (||C_n||_F from the fused motion
+below ``min_excitation`` rad/s^2 or below ``NOISE_FACTOR`` times what the fused
+motion's own noise gives it -- at rest the fused omega_dot is noise).  What is left must determine the positions:
+at least ``MIN_SAMPLES`` samples (with N = 2 the paper's RMSE does not fall
+with iterations, Fig. 4), and sum_n C_n^T C_n well conditioned -- it is
+singular when every sample turns about one fixed axis (omega parallel to
+omega_dot), the positions along that axis then being invisible to the
+accelerometers.  Otherwise :class:`~imu_array_ros.errors.CalibrationError`
+names the missing motion; the engine's own identifiability test follows.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.estimation.fit_terms import fit_terms
+from imu_array_ros.estimation.model_fusion import ModelFusion
+from imu_array_ros.model.forward import SensorModel, motion_context
+
+__all__ = ["GeometryCalibration", "calibrate_geometry", "calibrate_and_write", "window_loglik", "METHODS", "DEFAULT_METHOD",
+           "MIN_SAMPLES", "MIN_EXCITATION"]
+
+METHODS = ("joint", "bcd")
+#: the solver used unless one is named (see the module docstring and benchmarks/results/geometry.md)
+DEFAULT_METHOD = "joint"
+#: fewest samples with rotation that can determine the positions
+MIN_SAMPLES = 3
+#: default lowest ||[omega]x^2 + [omega_dot]x||_F (rad/s^2) for a sample to be used
+MIN_EXCITATION = 1.0
+#: a sample's ||C_n|| must exceed this many times the part the noise of its fused motion explains
+NOISE_FACTOR = 3.0
+#: smallest eigenvalue of sum C_n^T C_n relative to its largest below which a direction counts as not
+#: excited: its positions would be >= 18x less certain than the best-determined direction's, and at the
+#: fused motion the noise of the omega_dot estimate alone gives ~1e-3 (a turn about one fixed axis
+#: measured 5.6e-4; a simulated hand twist 0.06)
+EXCITATION_RTOL = 3e-3
+#: |sin| of the angle between omega and omega_dot below which they count as parallel
+PARALLEL_SIN = 0.02
+#: BCD: converged when also the last iteration raised the log-likelihood by less than this
+LOGLIK_GAIN = 1e-3
+#: BCD: iteration cap when none is given (it converges linearly)
+BCD_MAX_ITERATIONS = 500
+#: joint solver: iteration cap when none is given
+JOINT_MAX_ITERATIONS = 50
+
+
+@dataclass
+class GeometryCalibration:
+    """The result of :func:`calibrate_geometry` (SI units).
+
+    model: the input model with the calibrated positions; initial_positions
+    (K, 3); position_std (K, 3): Cramér-Rao bound of the joint problem, 0 for
+    the reference IMU (held: exact in the chosen gauge); covariance (3K, 3K);
+    loglik_before/after: log-likelihood of the window with the motion fitted
+    (profiled out) at the initial and the calibrated positions; nis_before/after:
+    sum of squared normalised residuals per degree of freedom (~1 for a model
+    that fits); rms_before/after (K,): each accelerometer's residual RMS (m/s^2);
+    history (BCD): (iteration, log-likelihood, largest position change m,
+    positions (K, 3) at that iteration) per iteration; samples_total, samples_used, dropped: reason -> count; window_ns:
+    first and last stamp of the window; used (N,): samples used.
+    """
+
+    model: SensorModel
+    method: str
+    reference: str
+    initial_positions: np.ndarray
+    position_std: np.ndarray
+    covariance: np.ndarray = field(repr=False)
+    loglik_before: float = float("nan")
+    loglik_after: float = float("nan")
+    nis_before: float = float("nan")
+    nis_after: float = float("nan")
+    rms_before: np.ndarray = field(default=None, repr=False)
+    rms_after: np.ndarray = field(default=None, repr=False)
+    iterations: int = 0
+    converged: bool = False
+    history: list = field(default_factory=list, repr=False)
+    samples_total: int = 0
+    samples_used: int = 0
+    dropped: dict = field(default_factory=dict)
+    window_ns: tuple = (0, 0)
+    seconds: float = 0.0
+    used: np.ndarray = field(default=None, repr=False)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.model.positions
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.model.names
+
+    def position_change(self) -> np.ndarray:
+        """(K,) |calibrated - initial| per IMU, m."""
+        return np.linalg.norm(self.positions - self.initial_positions, axis=1)
+
+    def summary(self) -> str:
+        """One line: samples used, largest position change, residual RMS before -> after, worst std."""
+        change = self.position_change()
+        worst = int(np.argmax(change))
+        std = np.linalg.norm(self.position_std, axis=1)
+        wstd = int(np.argmax(std))
+        rms = lambda v: float(np.sqrt(np.mean(np.asarray(v) ** 2)))  # noqa: E731
+        return (f"{self.method}: {self.samples_used} of {self.samples_total} samples used, "
+                f"{self.iterations} iterations{'' if self.converged else ' (NOT converged)'}; "
+                f"largest position change {change[worst] * 1e3:.3f} mm ({self.names[worst]}); "
+                f"accelerometer residual RMS {rms(self.rms_before):.4g} -> {rms(self.rms_after):.4g} m/s^2; "
+                f"worst std {std[wstd] * 1e6:.1f} um ({self.names[wstd]})")
+
+    def record(self) -> dict:
+        """The ``calibration:`` block of the written description."""
+        import datetime as _dt
+
+        from imu_array_ros import __version__
+
+        f = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+        return {
+            "method": f"geometry ({self.method}): maximum likelihood of the accelerometer positions jointly with the "
+                      f"motion (carlsson2017; {'block coordinate descent, Alg. 1' if self.method == 'bcd' else 'Schur-complement Gauss-Newton'}); "
+                      "position_std = Cramer-Rao bound of the joint problem",
+            "software": f"imu_array_ros {__version__}",
+            "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "reference": self.reference,
+            "window": {"first_stamp_ns": int(self.window_ns[0]), "last_stamp_ns": int(self.window_ns[1]),
+                       "seconds": (int(self.window_ns[1]) - int(self.window_ns[0])) / 1e9},
+            "samples_total": int(self.samples_total),
+            "samples_used": int(self.samples_used),
+            "samples_dropped": {k: int(v) for k, v in self.dropped.items()},
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
+            "log_likelihood_before": f(self.loglik_before),
+            "log_likelihood_after": f(self.loglik_after),
+            "nis_before": f(self.nis_before),
+            "nis_after": f(self.nis_after),
+            "residual_rms_before": {n: f(v) for n, v in zip(self.names, self.rms_before)},
+            "residual_rms_after": {n: f(v) for n, v in zip(self.names, self.rms_after)},
+        }
+
+
+# --------------------------------------------------------------------------- public entry points
+
+
+def calibrate_geometry(stamps, accel, gyro, model: SensorModel, *, reference=None, method: str = DEFAULT_METHOD,
+                       max_iterations: int | None = None, tolerance: float = 1e-3,
+                       min_excitation: float = MIN_EXCITATION, recenter: bool = True,
+                       progress: Callable[[int, float], None] | None = None) -> GeometryCalibration:
+    """Calibrate the accelerometer positions of ``model`` on a window of array samples.
+
+    stamps (N,) int64 ns, strictly increasing; accel, gyro (N, K, 3) raw
+    readings in the sensor frames (NaN: missing).  reference: IMU (name or
+    index) whose position is held (default the first); method: "joint" or
+    "bcd"; tolerance: converged when every position step is below
+    ``tolerance`` of its standard deviation (BCD: with the motion held, and
+    the last iteration's log-likelihood gain below ``LOGLIK_GAIN``; joint: the
+    engine's test, whose last gain is then ~tolerance^2 x parameters / 2); min_excitation: rad/s^2 (see the
+    module docstring); recenter (BCD only): re-centre the common shift of the
+    positions every iteration (an exact symmetry, absorbed by the specific
+    force; False is the literal Alg. 1 with the reference held, whose common
+    mode converges by only (K-1)/K per iteration); progress(iteration,
+    log-likelihood) once per iteration.
+    Raises :class:`CalibrationError` (one line) when the window cannot
+    determine the positions.
+    """
+    t_start = time.perf_counter()
+    if method not in METHODS:
+        raise CalibrationError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    stamps, accel, gyro = _check_arrays(stamps, accel, gyro, model)
+    ref = _reference_index(model, reference)
+    used, dropped, motion = _select(stamps, accel, gyro, model, min_excitation)
+    _check_excitation(motion[used], int(used.sum()), len(stamps), dropped)
+    st, acc, gyr, mo = stamps[used], accel[used], gyro[used], motion[used]
+    before = _profile(st, acc, gyr, model)
+    if method == "joint":
+        fit = fit_terms(st, acc, gyr, model, ["position"], reference=ref, motion0=mo,
+                        max_iterations=JOINT_MAX_ITERATIONS if max_iterations is None else max_iterations,
+                        tolerance=tolerance, progress=_loglik_progress(progress, st, acc, gyr, model))
+        calibrated, iterations, converged, history = fit.model, fit.iterations, fit.converged, []
+    else:
+        calibrated, iterations, converged, history = _bcd(
+            st, acc, gyr, model, ref, BCD_MAX_ITERATIONS if max_iterations is None else max_iterations,
+            tolerance, progress, recenter)
+        # the Cramér-Rao bound at the BCD estimate: the engine's Fisher information, no iteration
+        fit = fit_terms(st, acc, gyr, calibrated, ["position"], reference=ref, max_iterations=0)
+    after = _profile(st, acc, gyr, calibrated)
+    std = np.where(np.isfinite(fit.std["position"]), fit.std["position"], 0.0)
+    dof = fit.dof
+    return GeometryCalibration(
+        model=calibrated, method=method, reference=model.names[ref], initial_positions=model.positions.copy(),
+        position_std=std, covariance=fit.covariance, loglik_before=before.loglik, loglik_after=after.loglik,
+        nis_before=2 * before.cost / dof, nis_after=2 * after.cost / dof, rms_before=before.rms,
+        rms_after=after.rms, iterations=iterations, converged=converged, history=history,
+        samples_total=len(stamps), samples_used=int(used.sum()), dropped=dropped,
+        window_ns=(int(stamps[0]), int(stamps[-1])), seconds=time.perf_counter() - t_start, used=used)
+
+
+def window_loglik(stamps, accel, gyro, model: SensorModel) -> float:
+    """Log-likelihood of a window of samples under ``model`` with every sample's motion fitted
+    (the fusion's ML estimate): how :func:`calibrate_geometry` scores positions, so a calibration
+    on file can be compared with a new one on the same samples (``result.used``)."""
+    stamps, accel, gyro = _check_arrays(stamps, accel, gyro, model)
+    return _profile(stamps, accel, gyro, model).loglik
+
+
+# --------------------------------------------------------------------------- checks and sample selection
+
+
+def _check_arrays(stamps, accel, gyro, model: SensorModel):
+    stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
+    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
+    shape = (len(stamps), model.n_imus, 3)
+    for label, arr in (("accel", accel), ("gyro", gyro)):
+        if arr.shape != shape:
+            raise CalibrationError(f"{label} has shape {arr.shape}, expected {shape} (samples, IMUs, axes)")
+    if len(stamps) == 0:
+        raise CalibrationError("no samples in the window: record (or buffer) some motion first")
+    if np.any(np.diff(stamps) <= 0):
+        raise CalibrationError("stamps must increase strictly")
+    return stamps, accel, gyro
+
+
+def _reference_index(model: SensorModel, reference) -> int:
+    if reference is None or reference == "":
+        return 0
+    if isinstance(reference, (int, np.integer)) and 0 <= int(reference) < model.n_imus:
+        return int(reference)
+    if isinstance(reference, str) and reference in model.names:
+        return model.names.index(reference)
+    raise CalibrationError(f"reference: unknown IMU {reference!r} (the array has {', '.join(model.names)})")
+
+
+def _lever(motion: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) C_n = [omega]x^2 + [omega_dot]x from (N, 9) motion."""
+    from imu_array_ros.model.kinematics import skew
+
+    w = skew(motion[:, 0:3])
+    return w @ w + skew(motion[:, 3:6])
+
+
+def _select(stamps, accel, gyro, model: SensorModel, min_excitation: float):
+    """Samples used: every reading valid, motion fused, ||C_n||_F >= min_excitation and >= NOISE_FACTOR
+    times what the fused motion's noise alone would give it.
+    Returns (used (N,), dropped reason -> count, motion (N, 9) fused, NaN where not)."""
+    n = len(stamps)
+    complete = model.valid(accel, gyro).all(axis=(1, 2))
+    motion = np.full((n, 9), np.nan)
+    fused_ok = np.zeros(n, dtype=bool)
+    noise = np.zeros(n)
+    if complete.any():
+        idx = np.flatnonzero(complete)
+        fused, _ = ModelFusion(model).fuse(stamps[idx], accel[idx], gyro[idx])
+        rows = idx[np.searchsorted(stamps[idx], fused.stamps)]
+        motion[rows] = np.concatenate([fused.omega, fused.omega_dot, fused.specific_force], axis=1)
+        fused_ok[rows] = True
+        # the part of ||C_n|| the estimate's own noise makes (||[d omega_dot]x||_F = sqrt(2) |d omega_dot|,
+        # d([w]x^2) ~ 2 |w| |d omega|): a still array's fused omega_dot is noise, not rotation
+        cov = fused.covariance
+        var_w, var_wd = np.einsum("nii->n", cov[:, 0:3, 0:3]), np.einsum("nii->n", cov[:, 3:6, 3:6])
+        noise[rows] = np.sqrt(2 * var_wd + 4 * np.sum(fused.omega ** 2, axis=1) * var_w)
+    excitation = np.linalg.norm(_lever(np.nan_to_num(motion)), axis=(1, 2))
+    low = fused_ok & (excitation < np.maximum(float(min_excitation), NOISE_FACTOR * noise))
+    used = fused_ok & ~low
+    dropped = {"missing_or_saturated": int((~complete).sum()), "motion_not_identified": int((complete & ~fused_ok).sum()),
+               "little_rotation": int(low.sum())}
+    return used, dropped, motion
+
+
+def _check_excitation(motion: np.ndarray, n_used: int, n_total: int, dropped: dict) -> None:
+    """CalibrationError naming the missing motion when the used samples cannot determine the positions."""
+    why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v)
+    if n_used < MIN_SAMPLES:
+        raise CalibrationError(
+            f"too few samples with rotation: {n_used} of {n_total} usable (need at least {MIN_SAMPLES}"
+            f"{'; dropped: ' + why if why else ''}); twist the array by hand about at least two axes for a few seconds")
+    c = _lever(motion)
+    info = np.einsum("nji,njk->ik", c, c)
+    lam, vec = np.linalg.eigh(info)
+    if lam[0] > EXCITATION_RTOL * lam[-1]:
+        return
+    axis = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
+    axis_text = "[" + " ".join(f"{a:.2f}" for a in np.round(axis, 2) + 0.0) + "]"  # + 0.0: no "-0.00"
+    w, wd = motion[:, 0:3], motion[:, 3:6]
+    nw, nwd = np.linalg.norm(w, axis=1), np.linalg.norm(wd, axis=1)
+    sin = np.linalg.norm(np.cross(w, wd), axis=1) / np.maximum(nw * nwd, 1e-300)
+    parallel = np.all((sin < PARALLEL_SIN) | (nwd < 1e-9 * np.maximum(nw ** 2, 1e-300)))
+    sv = np.linalg.svd(w / np.maximum(nw, 1e-300)[:, None], compute_uv=False)
+    one_axis = sv[1] < 0.1 * sv[0]  # omega's direction hardly changes (measured 0.05 for one fixed axis)
+    if one_axis:
+        what = f"the array turned about one axis only ({axis_text} in the array frame)"
+    elif parallel:
+        what = "omega and omega_dot are parallel in every sample"
+    else:
+        what = "the motion does not excite every direction"
+    raise CalibrationError(f"{what}: the positions along {axis_text} cannot be determined; "
+                           "rotate about at least two axes, with angular acceleration")
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+@dataclass
+class _Profile:
+    cost: float
+    loglik: float
+    rms: np.ndarray
+    motion: np.ndarray
+
+
+def _profile(stamps, accel, gyro, model: SensorModel) -> _Profile:
+    """The window under ``model`` with the motion at its ML estimate (the fusion): cost, log-likelihood,
+    per-IMU accelerometer residual RMS.  Samples the fusion cannot identify count with no residual."""
+    fused, _ = ModelFusion(model).fuse(stamps, accel, gyro)
+    rows = np.searchsorted(stamps, fused.stamps)
+    motion = np.concatenate([fused.omega, fused.omega_dot, fused.specific_force], axis=1)
+    ctx = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
+                         derivatives=True)
+    acc, gyr = model.predict(ctx)
+    y = np.concatenate([accel[rows], gyro[rows]], axis=2)
+    valid = model.valid(accel[rows], gyro[rows])
+    raw = np.where(valid, y - np.concatenate([acc, gyr], axis=2), 0.0)
+    r = raw / model.std[None]
+    cost = 0.5 * float(np.sum(r * r))
+    sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
+    loglik = float(-cost - np.sum(np.log(sigma)) - 0.5 * len(sigma) * np.log(2 * np.pi))
+    counts = np.maximum(valid[..., :3].sum(axis=(0, 2)), 1)
+    rms = np.sqrt(np.sum(raw[..., :3] ** 2, axis=(0, 2)) / counts)
+    return _Profile(cost, loglik, rms, motion)
+
+
+def _loglik_progress(progress, stamps, accel, gyro, model):
+    """The engine reports its cost; turn it into the log-likelihood the BCD reports."""
+    if progress is None:
+        return None
+    valid = model.valid(accel, gyro)
+    sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
+    const = -np.sum(np.log(sigma)) - 0.5 * len(sigma) * np.log(2 * np.pi)
+    return lambda it, cost: progress(it, float(const - cost))
+
+
+# --------------------------------------------------------------------------- block coordinate descent
+
+
+def _bcd(stamps, accel, gyro, model: SensorModel, ref: int, max_iterations: int, tolerance: float, progress,
+         recenter: bool = True):
+    """carlsson2017 Alg. 1 (see the module docstring); returns (model, iterations, converged, history)."""
+    valid = model.valid(accel, gyro)
+    y = np.concatenate([accel, gyro], axis=2)
+    w = np.where(valid, 1.0 / model.std[None], 0.0)
+    fix = np.zeros(model.n_imus, dtype=bool)
+    fix[ref] = True
+    sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
+    const = -float(np.sum(np.log(sigma))) - 0.5 * len(sigma) * np.log(2 * np.pi)
+    history, converged, iterations = [], False, 0
+    for iterations in range(max_iterations + 1):
+        fused, _ = ModelFusion(model).fuse(stamps, accel, gyro)  # (a) ML motion for the current positions
+        if len(fused) != len(stamps):
+            raise CalibrationError(f"the motion of {len(stamps) - len(fused)} samples is not identified at the "
+                                   f"current positions (iteration {iterations}); the calibration diverged")
+        ctx = motion_context(stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
+                             derivatives=True)
+        jac = model.jacobians(ctx, ("position",), motion=False)
+        r = w * np.where(valid, y - jac.predicted, 0.0)
+        jp = w[..., None] * jac.params["position"]  # (N, K, 6, 3)
+        a = np.einsum("nkri,nkrj->kij", jp, jp, optimize=True)  # (b) eq. 9: one 3x3 system per IMU
+        b = np.einsum("nkri,nkr->ki", jp, r, optimize=True)
+        step = np.linalg.solve(a, b[..., None])[..., 0]
+        step = step - step[fix] if recenter else np.where(fix[:, None], 0.0, step)
+        loglik = const - 0.5 * float(np.sum(r * r))
+        sd = np.sqrt(np.einsum("kii->ki", np.linalg.inv(a)))
+        change = float(np.max(np.abs(step)))
+        history.append((iterations, loglik, change, model.positions.copy()))
+        if progress is not None:
+            progress(iterations, loglik)
+        gain = loglik - history[-2][1] if len(history) > 1 else np.inf
+        if np.max(np.abs(step) / sd) < tolerance and gain < LOGLIK_GAIN:
+            converged = True
+            break
+        if iterations == max_iterations:
+            break
+        model = model.with_terms(position=model.positions + step)
+    return model, iterations, converged, history
+
+
+# --------------------------------------------------------------------------- calibrate and write (node and CLI)
+
+
+def calibrate_and_write(desc, stamps, accel, gyro, out, **kwargs):
+    """Calibrate the positions of description ``desc`` on a window and install the result at ``out``
+    (:func:`~imu_array_ros.calibration.output.install_calibration`: atomic, ``<out>.bak`` kept, refused
+    when the file already there has the higher log-likelihood on the same samples).  ``kwargs`` go to
+    :func:`calibrate_geometry`.  Returns (GeometryCalibration, Installed); what the node's service and
+    ``imu-array calibrate geometry`` both run."""
+    from imu_array_ros.calibration.output import geometry_description, install_calibration
+
+    model = SensorModel.from_description(desc)
+    result = calibrate_geometry(stamps, accel, gyro, model, **kwargs)
+    st, acc, gyr = (np.asarray(a)[result.used] for a in (stamps, accel, gyro))
+
+    def score(previous) -> float:
+        return window_loglik(st, acc, gyr, SensorModel.from_description(previous))
+
+    installed = install_calibration(geometry_description(desc, result), out, score=score,
+                                    new_score=result.loglik_after)
+    return result, installed
