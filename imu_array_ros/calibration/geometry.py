@@ -56,7 +56,7 @@ import numpy as np
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.estimation.fit_terms import fit_terms
 from imu_array_ros.estimation.model_fusion import ModelFusion
-from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
 
 __all__ = ["GeometryCalibration", "calibrate_geometry", "calibrate_and_write", "window_loglik", "METHODS", "DEFAULT_METHOD",
            "MIN_SAMPLES", "MIN_EXCITATION"]
@@ -79,6 +79,8 @@ EXCITATION_RTOL = 3e-3
 PARALLEL_SIN = 0.02
 #: BCD: converged when also the last iteration raised the log-likelihood by less than this
 LOGLIK_GAIN = 1e-3
+#: BCD: samples per chunk of the position step (bounds its memory: ~K x 0.6 kB per sample)
+BCD_CHUNK = 4096
 #: BCD: iteration cap when none is given (it converges linearly)
 BCD_MAX_ITERATIONS = 500
 #: joint solver: iteration cap when none is given
@@ -396,16 +398,22 @@ def _bcd(stamps, accel, gyro, model: SensorModel, ref: int, max_iterations: int,
         if len(fused) != len(stamps):
             raise CalibrationError(f"the motion of {len(stamps) - len(fused)} samples is not identified at the "
                                    f"current positions (iteration {iterations}); the calibration diverged")
-        ctx = motion_context(stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
-                             derivatives=True)
-        jac = model.jacobians(ctx, ("position",), motion=False)
-        r = w * np.where(valid, y - jac.predicted, 0.0)
-        jp = w[..., None] * jac.params["position"]  # (N, K, 6, 3)
-        a = np.einsum("nkri,nkrj->kij", jp, jp, optimize=True)  # (b) eq. 9: one 3x3 system per IMU
-        b = np.einsum("nkri,nkr->ki", jp, r, optimize=True)
+        wdd, sfd = motion_derivative(stamps, fused.omega_dot), motion_derivative(stamps, fused.specific_force)
+        a, b, cost = np.zeros((model.n_imus, 3, 3)), np.zeros((model.n_imus, 3)), 0.0
+        for lo in range(0, len(stamps), BCD_CHUNK):  # (b) eq. 9: one 3x3 system per IMU, summed by chunks
+            sel = slice(lo, lo + BCD_CHUNK)
+            ctx = motion_context(stamps[sel], fused.omega[sel], fused.omega_dot[sel], fused.specific_force[sel],
+                                 model.rotations, t0_ns=int(stamps[0]), omega_ddot=wdd[sel],
+                                 specific_force_dot=sfd[sel])
+            jac = model.jacobians(ctx, ("position",), motion=False)
+            r = w[sel] * np.where(valid[sel], y[sel] - jac.predicted, 0.0)
+            jp = w[sel][..., None] * jac.params["position"]  # (n, K, 6, 3)
+            a += np.einsum("nkri,nkrj->kij", jp, jp, optimize=True)
+            b += np.einsum("nkri,nkr->ki", jp, r, optimize=True)
+            cost += 0.5 * float(np.sum(r * r))
         step = np.linalg.solve(a, b[..., None])[..., 0]
         step = step - step[fix] if recenter else np.where(fix[:, None], 0.0, step)
-        loglik = const - 0.5 * float(np.sum(r * r))
+        loglik = const - cost
         sd = np.sqrt(np.einsum("kii->ki", np.linalg.inv(a)))
         change = float(np.max(np.abs(step)))
         history.append((iterations, loglik, change, model.positions.copy()))

@@ -188,7 +188,8 @@ class SensorModel:
 
     def _base(self, ctx: MotionContext, sensor: str) -> np.ndarray:
         v = ctx.specific_force if sensor == "accelerometer" else ctx.omega
-        return np.einsum("kji,nj->nki", ctx.rotations, v)
+        k = len(ctx.rotations)  # R_k^T v_n for all (n, k) as one matrix product: (N, 3) @ (3, 3K)
+        return (v @ ctx.rotations.transpose(1, 0, 2).reshape(3, 3 * k)).reshape(len(v), k, 3)
 
     def predict(self, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free readings (accelerometers, gyroscopes), each (N, K, 3), sensor frames, unclipped."""

@@ -22,8 +22,8 @@ class Position(Term):
     fields = (Field(("position",), (3,), "m"),)
 
     def apply(self, x, ctx: MotionContext, sensor):
-        return x + np.einsum("kji,nkj->nki", ctx.rotations, np.einsum("nij,kj->nki", ctx.lever, self.values),
-                             optimize=True)
+        lever_arm = np.matmul(ctx.lever, self.values.T).transpose(2, 0, 1)  # (K, N, 3): C_n p_k
+        return x + np.matmul(lever_arm, ctx.rotations).transpose(1, 0, 2)  # R_k^T C_n p_k
 
     def d_params(self, x, ctx, sensor):
         return np.matmul(ctx.rot_t[None], ctx.lever[:, None])  # R^T C
