@@ -54,7 +54,7 @@ from typing import Callable
 import numpy as np
 
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.estimation.fit_terms import fit_terms
+from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms
 from imu_array_ros.estimation.model_fusion import ModelFusion
 from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
 
@@ -349,21 +349,30 @@ class _Profile:
 
 
 def _profile(stamps, accel, gyro, model: SensorModel) -> _Profile:
-    """The window under ``model`` with the motion at its ML estimate (the fusion): cost, log-likelihood,
-    per-IMU accelerometer residual RMS.  Samples the fusion cannot identify count with no residual."""
+    """The window under ``model`` with the motion at its ML estimate: cost, log-likelihood, per-IMU
+    accelerometer residual RMS.  The fusion is that estimate when every term is linear; with a
+    non-linear term (time offsets, ...) it only compensates, so the engine's motion-only Gauss-Newton
+    refines it (:func:`~imu_array_ros.estimation.fit_terms.fit_motion`)."""
     fused, _ = ModelFusion(model).fuse(stamps, accel, gyro)
     rows = np.searchsorted(stamps, fused.stamps)
     motion = np.concatenate([fused.omega, fused.omega_dot, fused.specific_force], axis=1)
-    ctx = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
-                         derivatives=True)
-    acc, gyr = model.predict(ctx)
-    y = np.concatenate([accel[rows], gyro[rows]], axis=2)
-    valid = model.valid(accel[rows], gyro[rows])
-    raw = np.where(valid, y - np.concatenate([acc, gyr], axis=2), 0.0)
-    r = raw / model.std[None]
+    if model.nonlinear_terms:
+        start = np.zeros((len(stamps), 9))
+        start[rows] = motion
+        motion, loglik, r = fit_motion(stamps, accel, gyro, model, start)
+        r = np.nan_to_num(r)
+        valid = model.valid(accel, gyro)
+    else:
+        ctx = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
+                             derivatives=True)
+        acc, gyr = model.predict(ctx)
+        y = np.concatenate([accel[rows], gyro[rows]], axis=2)
+        valid = model.valid(accel[rows], gyro[rows])
+        r = np.where(valid, y - np.concatenate([acc, gyr], axis=2), 0.0) / model.std[None]
+        sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
+        loglik = float(-0.5 * np.sum(r * r) - np.sum(np.log(sigma)) - 0.5 * len(sigma) * np.log(2 * np.pi))
     cost = 0.5 * float(np.sum(r * r))
-    sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
-    loglik = float(-cost - np.sum(np.log(sigma)) - 0.5 * len(sigma) * np.log(2 * np.pi))
+    raw = r * model.std[None]
     counts = np.maximum(valid[..., :3].sum(axis=(0, 2)), 1)
     rms = np.sqrt(np.sum(raw[..., :3] ** 2, axis=(0, 2)) / counts)
     return _Profile(cost, loglik, rms, motion)

@@ -101,7 +101,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.terms import REGISTRY, term_names
 
-__all__ = ["FitResult", "fit_terms", "check_terms", "GAUGE_ORDER"]
+__all__ = ["FitResult", "fit_terms", "fit_motion", "check_terms", "GAUGE_ORDER"]
 
 #: terms whose reference-IMU parameters are tried first to fix a gauge freedom (frame-defining ones)
 GAUGE_ORDER = ("position", "accelerometer_misalignment", "accelerometer_gain", "accelerometer_bias", "time_offset")
@@ -206,6 +206,18 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     model, motion, lin, iterations, converged = _optimise(prob, model, motion, lin, gauge_fix, max_iterations,
                                                           tolerance, progress)
     return _result(prob, model, motion, lin, gauge_fix, before, dof, iterations, converged)
+
+
+def fit_motion(stamps, accel, gyro, model: SensorModel, motion0=None) -> tuple[np.ndarray, float, np.ndarray]:
+    """The ML motion of every sample with every term of ``model`` held (the engine's batched 9x9
+    Gauss-Newton, exact for the non-linear terms the fusion only compensates).
+
+    Returns (motion (N, 9), log-likelihood over the valid axes, normalised residuals (N, K, 6), NaN on
+    masked axes).  A sample whose motion is not identified keeps a ridge-regularised estimate."""
+    prob = _Problem(stamps, accel, gyro, model, ("position",), np.arange(model.n_imus))
+    motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
+    motion, lin = prob.fit_motion(model, motion)
+    return motion, _loglik(prob, lin.cost), np.where(prob.valid, lin.r, np.nan)
 
 
 # --------------------------------------------------------------------------- input checks

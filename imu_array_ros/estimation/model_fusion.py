@@ -20,7 +20,9 @@ differentiated from the estimated specific force (central differences over the
 stamps, :func:`~imu_array_ros.model.forward.motion_context`).  Terms that need no
 motion (drift, nonlinearity of the readings' own size) are exact up to the
 same second-order effect.  The first pass fuses the raw readings; ``passes``
-(default 2) further passes follow.  Saturation is decided on the raw readings.
+(default 2) further passes follow.  Saturation is decided on the raw readings:
+saturated readings are passed on uncompensated, so every pass treats them as
+saturated (their sign still starts the solver) rather than as missing.
 With no non-linear term away from identity this is exactly one linear fusion.
 
 Bias drift counts from ``t0_ns``: the first stamp the object has seen unless
@@ -71,15 +73,16 @@ class ModelFusion:
         fused, stats = self.fusion.fuse(stamps, accel, gyro)
         if not self.passes or not len(fused):
             return fused, stats
-        valid = self.model.valid(np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float))
-        acc_raw = np.where(valid[..., :3], accel, np.nan)
-        gyr_raw = np.where(valid[..., 3:], gyro, np.nan)
+        accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
+        valid = self.model.valid(accel, gyro)
         for _ in range(self.passes):
             idx = np.searchsorted(stamps, fused.stamps)
             da, dg = self.correction(fused)
-            acc, gyr = acc_raw.copy(), gyr_raw.copy()
-            acc[idx] -= da
-            gyr[idx] -= dg
+            acc, gyr = accel.copy(), gyro.copy()
+            # only the readings that carry information are compensated; saturated ones stay as read, so
+            # the fusion still sees them as saturated and takes their sign (skog2016 Sec. III)
+            acc[idx] -= np.where(valid[idx, :, :3], da, 0.0)
+            gyr[idx] -= np.where(valid[idx, :, 3:], dg, 0.0)
             fused, stats = self.fusion.fuse(stamps, acc, gyr)
         return fused, stats
 
