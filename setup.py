@@ -33,12 +33,13 @@ setup(
     maintainer_email="imu-array-ros@example.com",
     description="Inertial sensor arrays as one high-grade IMU (ROS 2 Jazzy).",
     license="Apache-2.0",
-    extras_require={"test": ["pytest", "hypothesis"]},
+    extras_require={"test": ["pytest", "hypothesis"], "plots": ["matplotlib>=3.7"]},
     entry_points={
         "console_scripts": [
             "imu-array = imu_array_ros.cli:main",
             "driver_node = imu_array_ros.nodes.driver_node:main",
             "fusion_node = imu_array_ros.nodes.fusion_node:main",
+            "calibration_node = imu_array_ros.nodes.calibration_node:main",
         ],
     },
 )

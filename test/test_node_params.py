@@ -14,7 +14,8 @@ import yaml
 from conftest import REPO
 from imu_array_ros.nodes.parameters import NODE_PARAMS
 
-NODE_NAMES = {"driver_node": "imu_array_driver", "fusion_node": "imu_array_fusion"}
+NODE_NAMES = {"driver_node": "imu_array_driver", "fusion_node": "imu_array_fusion",
+              "calibration_node": "imu_array_calibration"}
 
 
 @pytest.mark.parametrize("exe", sorted(NODE_PARAMS))

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imu_array_ros.errors import OutputError
 from imu_array_ros.io.atomic import atomic_path
 
 __all__ = ["plot_geometry"]
@@ -14,8 +15,10 @@ __all__ = ["plot_geometry"]
 def plot_geometry(result, path: str | Path) -> None:
     """PNG of a :class:`~imu_array_ros.calibration.geometry.GeometryCalibration`: per IMU the position
     change (x, y, z, mm) with its 3-sigma bar, and the accelerometer residual RMS before and after."""
-    import matplotlib
-
+    try:
+        import matplotlib
+    except ImportError:
+        raise OutputError(f"{path}: writing a plot needs matplotlib (pip install 'matplotlib>=3.7')") from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

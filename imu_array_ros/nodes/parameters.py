@@ -13,9 +13,10 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any
 
+from imu_array_ros.calibration.geometry import DEFAULT_METHOD, METHODS, MIN_EXCITATION
 from imu_array_ros.errors import ConfigError
 
-__all__ = ["Param", "DRIVER_PARAMS", "FUSION_PARAMS", "declare", "NODE_PARAMS"]
+__all__ = ["Param", "DRIVER_PARAMS", "FUSION_PARAMS", "CALIBRATION_PARAMS", "declare", "NODE_PARAMS"]
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,26 @@ FUSION_PARAMS = _COMMON + (
     Param("watch_period", 0.5, "seconds between checks of calibration_file", 0.05, 60.0),
 )
 
-NODE_PARAMS = {"driver_node": DRIVER_PARAMS, "fusion_node": FUSION_PARAMS}
+CALIBRATION_PARAMS = _COMMON + (
+    Param("output_file", "", "calibrated description YAML the service writes (atomically, the previous one kept as "
+          "<output_file>.bak; give it to fusion_node as calibration_file); if it exists and is a description of "
+          "the array, calibrations start from it", required=True),
+    Param("window", 10.0, "seconds of the latest array samples (by stamp) the calibration uses", 0.1, 600.0),
+    Param("window_samples", 0, "number of the latest array samples the calibration uses; 0 = those of 'window'",
+          0, 1_000_000),
+    Param("reference_imu", "", "IMU whose position is held (only relative positions are observable); "
+          "'' = the first IMU"),
+    Param("min_excitation", MIN_EXCITATION, "a sample is used when the Frobenius norm of [omega]x^2 + [omega_dot]x "
+          "reaches this (rad/s^2): still samples carry no information about the positions", 0.0, 1e6),
+    Param("method", DEFAULT_METHOD, "'joint': Gauss-Newton on positions and motion together; 'bcd': block "
+          "coordinate descent (carlsson2017 Alg. 1)", choices=METHODS),
+    Param("max_iterations", 0, "iteration cap of the solver; 0 = the solver's default", 0, 100_000),
+    Param("sync_timeout", 0.05, "seconds an array sample waits for missing IMUs before it is buffered without "
+          "them (the calibration skips incomplete samples)", 0.0, 10.0),
+    Param("period", 0.01, "seconds between buffering steps (decoding the queued messages)", 0.0005, 1.0),
+)
+
+NODE_PARAMS = {"driver_node": DRIVER_PARAMS, "fusion_node": FUSION_PARAMS, "calibration_node": CALIBRATION_PARAMS}
 
 
 def _range_text(p: Param) -> str:

@@ -1,0 +1,330 @@
+"""calibration_node as a process over real DDS (own ROS_DOMAIN_ID, localhost only):
+replay driver -> calibration_node (+ fusion_node) -> the /calibrate_geometry service."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ARRAY32, REPO
+
+BIN = Path(sys.executable).parent
+CAL_NODE = "imu_array_calibration"
+
+
+# --------------------------------------------------------------------------- processes and a test-side node
+
+
+@pytest.fixture
+def ros(monkeypatch, tmp_path):
+    """start(name, *cmd): a process in a DDS domain of this test's own, stdout+stderr to tmp_path/<name>.log;
+    every process still running at the end gets SIGINT (then SIGKILL)."""
+    domain = 100 + (os.getpid() * 11 + int(time.time() * 1000)) % 130
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        monkeypatch.setenv(key, env[key])
+    procs = []
+
+    def start(name, *cmd):
+        log = open(tmp_path / f"{name}.log", "w")
+        p = subprocess.Popen([str(c) for c in cmd], env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
+        p.log_path, p.log_file = tmp_path / f"{name}.log", log
+        procs.append(p)
+        return p
+
+    try:
+        yield start
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+            p.log_file.close()
+
+
+def _log(proc) -> str:
+    return proc.log_path.read_text()
+
+
+def _wait_log(proc, text, timeout=20.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if text in _log(proc):
+            return
+        if proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    raise AssertionError(f"no {text!r} from {proc.args[0]}: {_log(proc)}")
+
+
+def _stop(proc, timeout=15.0) -> tuple[int, str]:
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout)
+    return proc.returncode, _log(proc)
+
+
+class Caller:
+    """The test's own node: a /calibrate_geometry client and the calibration node's /diagnostics."""
+
+    def __init__(self):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.experimental import EventsExecutor
+        from std_srvs.srv import Trigger
+
+        rclpy.init()
+        self.node = rclpy.create_node("calibration_test_caller")
+        self.client = self.node.create_client(Trigger, "/calibrate_geometry")
+        self.diags: list[tuple[float, dict]] = []  # (arrival, status of the calibration node)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 50)
+        self.executor = EventsExecutor()
+        self.executor.add_node(self.node)
+        self._request = Trigger.Request
+
+    def _on_diag(self, msg) -> None:
+        for s in msg.status:
+            if s.name.startswith(CAL_NODE):
+                values = {kv.key: kv.value for kv in s.values}
+                self.diags.append((time.monotonic(), {"message": s.message, "level": s.level, **values}))
+
+    def spin_until(self, cond, timeout=30.0) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not cond():
+            self.executor.spin_once(timeout_sec=0.02)
+        return cond()
+
+    def window_full(self, timeout=30.0) -> dict:
+        ok = self.spin_until(lambda: self.client.service_is_ready() and self.diags
+                             and float(self.diags[-1][1]["window_fill"]) >= 1.0, timeout)
+        assert ok, ("window never filled / service never came", self.diags[-1:] or "no diagnostics")
+        return self.diags[-1][1]
+
+    def call_async(self):
+        return self.client.call_async(self._request())
+
+    def call(self, timeout=60.0):
+        future = self.call_async()
+        assert self.spin_until(future.done, timeout), "no response"
+        return future.result()
+
+    def close(self) -> None:
+        import rclpy
+
+        self.node.destroy_node()
+        rclpy.try_shutdown()
+
+
+@pytest.fixture
+def caller(ros):
+    c = Caller()
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def _simulate(tmp_path, name, *args) -> Path:
+    from imu_array_ros.cli import main as cli
+
+    out = tmp_path / name
+    assert cli(["simulate", "--array", str(ARRAY32), "--out", str(out), "--duration", "2", "--rate", "500",
+                "--start-time", "0", "--quiet", *map(str, args)]) == 0
+    return out
+
+
+def _true_array(tmp_path) -> Path:
+    """array32 with every IMU moved by ~0.5 mm per axis (seeded): what the twist recording is made of."""
+    from imu_array_ros.model.description import load_description, save_description
+
+    desc = load_description(ARRAY32)
+    rng = np.random.default_rng(5)
+    true = desc.with_imus([imu.__class__(**{**imu.__dict__, "position": imu.position + rng.normal(0, 5e-4, 3)})
+                           for imu in desc.imus])
+    save_description(true, tmp_path / "true.yaml")
+    return tmp_path / "true.yaml"
+
+
+def _driver(ros, bag, subscribers):
+    return ros("driver", BIN / "driver_node", "--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "mode:=replay",
+               "-p", f"bag:={bag}", "-p", "loop:=true", "-p", "reliable:=true",
+               "-p", f"wait_for_subscribers:={subscribers}")
+
+
+def _calibration_node(ros, out, *params):
+    args = ["-p", f"array_config:={ARRAY32}", "-p", f"output_file:={out}", "-p", "reliable:=true",
+            "-p", "sync_timeout:=2.0"]
+    for p in params:
+        args += ["-p", p]
+    return ros("calibration", BIN / "calibration_node", "--ros-args", *args)
+
+
+# --------------------------------------------------------------------------- the tests
+
+
+def test_calibration_reaches_the_fusion_node(ros, caller, tmp_path):
+    """Twist with moved IMUs -> the service writes the calibrated description, the fusion node
+    reloads it, and what it publishes from then on is the offline fusion with the calibrated
+    description -- sample for sample, and measurably not the fusion with the nominal one."""
+    from imu_array_ros.cli.commands import load_array
+    from imu_array_ros.estimation.live import build_fusion
+    from imu_array_ros.io.rosbag.recording import read_imu_recording
+    from imu_array_ros.model.description import load_description
+
+    true = _true_array(tmp_path)
+    bag = _simulate(tmp_path, "twist", "--true-array", true, "--rms-rate", 900, "--seed", 1)
+    out = tmp_path / "calibrated.yaml"
+    fusion = ros("fusion", BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY32}",
+                 "-p", "reliable:=true", "-p", f"calibration_file:={out}", "-p", "watch_period:=0.1",
+                 "-p", "sync_timeout:=5.0")  # a loaded machine can hold a topic back for seconds
+    cal = _calibration_node(ros, out, "window:=2.0")
+    _driver(ros, bag, subscribers=2)
+    caller.window_full()
+    t0 = time.monotonic()
+    response = caller.call()
+    seconds = time.monotonic() - t0
+    assert response.success, response.message
+    assert "samples used" in response.message and str(out) in response.message and "\n" not in response.message
+    print(f"\ncalibration service round trip {seconds:.2f} s: {response.message}")
+
+    nominal, got_true = load_description(ARRAY32), load_description(true)
+    calibrated = load_description(out)
+    assert calibrated.calibration and calibrated.calibration["reference"] == nominal.names[0]
+    assert all(imu.stds["position"].shape == (3,) for imu in calibrated.imus)
+    rel = lambda d: d.positions - d.positions[0]  # noqa: E731 - only relative positions are observable
+    assert np.abs(rel(calibrated) - rel(nominal)).max() > 1e-3  # they moved (by up to ~2 mm) ...
+    assert np.abs(rel(calibrated) - rel(got_true)).max() < 1e-4  # ... to where the IMUs really are
+
+    _wait_log(fusion, "reloaded calibration", timeout=10)
+    probe = ros("probe", sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
+                "--count", 300, "--timeout", 30, "--reliable")
+    assert probe.wait(45) == 0, _log(probe)
+    got = np.load(tmp_path / "got.npz")
+    fusion_diag = next((v for k, v in json.loads(str(got["diagnostics"])).items() if k.startswith("imu_array_fusion")),
+                       "no fusion diagnostics")
+    assert len(got["stamps"]) >= 300, (len(got["stamps"]), fusion_diag)
+
+    # the raw samples of those stamps: the replay loops the recording with stamps shifted by its period
+    samples, _ = read_imu_recording(bag, nominal)
+    period = samples.stamps[-1] - samples.stamps[0] + int(np.median(np.diff(samples.stamps)))
+    rows = np.searchsorted(samples.stamps, samples.stamps[0] + (got["stamps"] - samples.stamps[0]) % period)
+    np.testing.assert_array_equal((got["stamps"] - samples.stamps[rows]) % period, 0)
+    acc, gyr = samples.accel[rows], samples.gyro[rows]
+    want, _ = build_fusion(load_array(ARRAY32, out)[0]).fuse(got["stamps"], acc, gyr)
+    old, _ = build_fusion(nominal).fuse(got["stamps"], acc, gyr)
+    np.testing.assert_array_equal(want.stamps, got["stamps"])
+    for name in ("omega", "omega_dot", "specific_force"):
+        np.testing.assert_allclose(got[name], getattr(want, name), rtol=1e-9, atol=1e-9,
+                                   err_msg=f"{name}; fusion node: {fusion_diag}")
+    # not an accident: every sample tells the two descriptions apart by far more than the tolerance
+    apart = np.max(np.abs(np.concatenate([want.omega_dot - old.omega_dot,
+                                          want.specific_force - old.specific_force], axis=1)), axis=1)
+    assert apart.min() > 1e-5, apart.min()
+    print(f"calibrated vs nominal fusion, per sample: at least {apart.min():.3g} apart")
+
+    code, log = _stop(cal)
+    assert code == 0 and "Traceback" not in log and "calibration done" in log, log
+    code, log = _stop(fusion)
+    assert code == 0 and "Traceback" not in log, log
+
+
+def test_still_window_fails_and_leaves_the_file_alone(ros, caller, tmp_path):
+    """No rotation in the window: success false, the message names the missing motion, and the
+    calibration on file is not touched (bytes, mtime, no backup)."""
+    from imu_array_ros.model.description import load_description, save_description
+
+    bag = _simulate(tmp_path, "still", "--rms-rate", 0.01, "--seed", 2)
+    out = tmp_path / "calibrated.yaml"
+    desc = load_description(ARRAY32)
+    save_description(desc.with_imus([imu.__class__(**{**imu.__dict__, "position": imu.position + 1e-4})
+                                     for imu in desc.imus]), out)
+    before = (out.read_bytes(), out.stat().st_mtime_ns)
+    cal = _calibration_node(ros, out, "window:=1.0")
+    _driver(ros, bag, subscribers=1)
+    caller.window_full()
+    response = caller.call()
+    assert not response.success
+    assert "too few samples with rotation" in response.message and "twist the array" in response.message, \
+        response.message
+    assert "\n" not in response.message
+    assert (out.read_bytes(), out.stat().st_mtime_ns) == before
+    assert not (tmp_path / "calibrated.yaml.bak").exists()
+    # the diagnostics report it
+    assert caller.spin_until(lambda: caller.diags[-1][1]["calibrations_failed"] == "1", 5)
+    assert caller.diags[-1][1]["level"] == b"\x01" and "too few samples" in caller.diags[-1][1]["message"]
+    code, log = _stop(cal)
+    assert code == 0 and "Traceback" not in log and "calibration failed" in log, log
+
+
+def test_second_call_refused_while_the_window_keeps_filling(ros, caller, tmp_path):
+    """A call while a calibration runs is refused at once; meanwhile the node goes on buffering
+    (its 1 Hz diagnostics keep coming during the calibration, with samples received since it started)."""
+    bag = _simulate(tmp_path, "twist", "--rms-rate", 900, "--seed", 3)
+    out = tmp_path / "calibrated.yaml"
+    # the BCD solver on 2 s at 500 Hz: a few seconds of calibration (over 1 s on any machine)
+    cal = _calibration_node(ros, out, "window:=2.0", "method:=bcd", "max_iterations:=30")
+    _driver(ros, bag, subscribers=1)
+    caller.window_full()
+    first = caller.call_async()
+    caller.spin_until(lambda: False, 0.3)  # the first request reaches the node
+    t0 = time.monotonic()
+    second = caller.call()
+    refused_in = time.monotonic() - t0
+    assert not second.success and "already running" in second.message and refused_in < 1.0, \
+        (refused_in, second.message)
+    assert caller.spin_until(first.done, 60), "the first call never returned"
+    assert first.result().success, first.result().message
+    busy = [d for _, d in caller.diags if d["busy"] == "True"]
+    received = [int(d["samples_received_while_calibrating"]) for d in busy]
+    print(f"\nrefused in {refused_in * 1e3:.1f} ms; samples received while calibrating (after s): " + ", ".join(
+        f"{r} ({float(d['calibrating_for_s']):.1f})" for r, d in zip(received, busy)))
+    assert busy and received[-1] > 0 and all(np.diff(received) > 0), (received, first.result().message)
+    assert caller.spin_until(lambda: caller.diags[-1][1]["busy"] == "False" and
+                             caller.diags[-1][1]["calibrations_ok"] == "1", 5)
+    assert caller.diags[-1][1]["calls_refused_busy"] == "1"
+    # Ctrl-C during a calibration (from the nominal positions again, as long as the first): it is
+    # abandoned at its next iteration, nothing written, clean exit
+    out.unlink()
+    caller.call_async()
+    assert caller.spin_until(lambda: caller.diags[-1][1]["busy"] == "True", 5), "third call never started"
+    t0 = time.monotonic()
+    code, log = _stop(cal)
+    print(f"stopped during a calibration in {time.monotonic() - t0:.2f} s")
+    assert code == 0 and "Traceback" not in log and "calibration failed" in log and "shutting down" in log, log
+    assert not out.exists()
+
+
+_OUT = str(Path(tempfile.gettempdir()) / "calibration_node_bad_parameters.yaml")  # never written
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["-p", "array_config:=/nonexistent/array.yaml", "-p", f"output_file:={_OUT}"], "/nonexistent/array.yaml"),
+    (["-p", f"array_config:={ARRAY32}"], "'output_file' is required"),
+    (["-p", f"array_config:={ARRAY32}", "-p", "output_file:=/nonexistent/dir/cal.yaml"], "'output_file'"),
+    (["-p", f"array_config:={ARRAY32}", "-p", f"output_file:={_OUT}", "-p", "window:=0.0"], "'window'"),
+    (["-p", f"array_config:={ARRAY32}", "-p", f"output_file:={_OUT}", "-p", "method:=lbfgs"], "'method'"),
+    (["-p", f"array_config:={ARRAY32}", "-p", f"output_file:={_OUT}", "-p", "reference_imu:=imu_99"],
+     "'reference_imu'"),
+    (["-p", f"array_config:={ARRAY32}", "-p", f"output_file:={REPO / 'config' / 'planar4.yaml'}"],
+     "'output_file': "),  # a description of other IMUs: never replaced
+])
+def test_bad_parameters_one_line(ros, args, fragment):
+    proc = ros("calibration", BIN / "calibration_node", "--ros-args", *args)
+    proc.wait(30)
+    lines = [ln for ln in _log(proc).splitlines() if ln.strip()]
+    assert proc.returncode == 2, lines
+    assert len(lines) == 1 and lines[0].startswith("calibration_node: error: ") and fragment in lines[0], lines
