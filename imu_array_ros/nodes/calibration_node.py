@@ -39,7 +39,7 @@ from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.io.window import SampleWindow
 from imu_array_ros.model.description import load_description
 from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, run
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run
 
 __all__ = ["CalibrationNode", "main", "SERVICE"]
 
@@ -62,10 +62,9 @@ class CalibrationNode(Node):
         self.out = Path(p.output_file)
         self._check_output()
         self.window = SampleWindow(self.desc, p.frame_prefix, p.sync_timeout, p.window, p.window_samples)
-        self._queue: list = []
-        self._index: list = []
+        self.raw = RawQueue()
         for k, name in enumerate(self.desc.names):
-            self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self._receiver(k),
+            self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self.raw.receiver(k),
                                      qos(p.reliable, keep_all=True), raw=True)
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
         self.create_timer(p.period, self._step)
@@ -130,23 +129,13 @@ class CalibrationNode(Node):
 
     # ------------------------------------------------------------------ buffering (main thread)
 
-    def _receiver(self, k: int):
-        queue, index = self._queue, self._index
-
-        def receive(payload: bytes) -> None:
-            queue.append(payload)
-            index.append(k)
-
-        return receive
-
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
 
     def _step(self) -> None:
         now = self._now()
-        if self._queue:
-            payloads, index = self._queue[:], self._index[:]
-            del self._queue[:], self._index[:]
+        payloads, index = self.raw.drain()
+        if payloads:
             self.window.add(payloads, index, now)
         self.window.step(now)
 

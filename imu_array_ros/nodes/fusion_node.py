@@ -23,7 +23,7 @@ from imu_array_ros.errors import ImuArrayError
 from imu_array_ros.estimation.live import LiveFusion
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, run
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run
 
 __all__ = ["FusionNode", "main", "NIS_WARN_RATIO"]
 
@@ -48,11 +48,10 @@ class FusionNode(Node):
         desc, source = load_array(Path(p.array_config), Path(cal) if self._cal_id else None)
         self.core = LiveFusion(desc, frame_prefix=p.frame_prefix, sync_timeout_s=p.sync_timeout, max_batch=p.max_batch)
         self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}")
-        self._queue: list = []
-        self._index: list = []
+        self.raw = RawQueue()
         q = qos(p.reliable)
         for k, name in enumerate(desc.names):  # reliable input: keep every message until taken
-            self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self._receiver(k),
+            self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self.raw.receiver(k),
                                      qos(p.reliable, keep_all=True), raw=True)
         out = f"{p.topic_prefix.rstrip('/')}/fused"
         self.pub_imu = self.create_publisher(Imu, out + "/imu", q)
@@ -65,23 +64,13 @@ class FusionNode(Node):
         if cal:
             self.create_timer(p.watch_period, self._watch)
 
-    def _receiver(self, k: int):
-        queue, index = self._queue, self._index
-
-        def receive(payload: bytes) -> None:
-            queue.append(payload)
-            index.append(k)
-
-        return receive
-
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
 
     def _step(self) -> None:
         now = self._now()
-        if self._queue:
-            payloads, index = self._queue[:], self._index[:]
-            del self._queue[:], self._index[:]
+        payloads, index = self.raw.drain()
+        if payloads:
             self.core.add(payloads, index, now)
         self._publish(self.core.step(now))
 

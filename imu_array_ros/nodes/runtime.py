@@ -17,7 +17,7 @@ import sys
 
 from imu_array_ros.errors import ImuArrayError
 
-__all__ = ["run", "qos", "DiagnosticsPublisher", "OK", "WARN", "ERROR"]
+__all__ = ["run", "qos", "DiagnosticsPublisher", "RawQueue", "OK", "WARN", "ERROR"]
 
 OK, WARN, ERROR = b"\x00", b"\x01", b"\x02"
 
@@ -32,6 +32,30 @@ def qos(reliable: bool, keep_all: bool = False):
     if keep_all:
         return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class RawQueue:
+    """Serialized messages the raw (``raw=True``) subscriptions queue, drained in one batch by a timer
+    of the same executor thread; ``receiver(k)`` is the callback of IMU k's topic."""
+
+    def __init__(self) -> None:
+        self.payloads: list = []
+        self.index: list = []
+
+    def receiver(self, k: int):
+        payloads, index = self.payloads, self.index
+
+        def receive(payload: bytes) -> None:
+            payloads.append(payload)
+            index.append(k)
+
+        return receive
+
+    def drain(self) -> tuple[list, list]:
+        """(payloads, imu indexes) queued since the last call, in arrival order."""
+        payloads, index = self.payloads[:], self.index[:]
+        del self.payloads[:], self.index[:]
+        return payloads, index
 
 
 class DiagnosticsPublisher:
