@@ -40,8 +40,8 @@ from imu_array_ros.errors import ConfigError
 from imu_array_ros.estimation.ml_fusion import FusionStats
 from imu_array_ros.estimation.model_fusion import ModelFusion
 from imu_array_ros.estimation.stream import concatenate_fused
-from imu_array_ros.io.messages import decode_raw_imu, fused_payloads
-from imu_array_ros.io.sync import SampleAssembler
+from imu_array_ros.io.messages import fused_payloads
+from imu_array_ros.io.sync import InputCounts, RawIntake
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.forward import SensorModel
 from imu_array_ros.model.identifiability import check_identifiable
@@ -55,16 +55,6 @@ def build_fusion(description: ArrayDescription, t0_ns: int | None = None) -> Mod
     check_identifiable(description.positions, len(description.imus), where=str(description.source))
     return ModelFusion(SensorModel.from_description(description), acc_range=description.accelerometer_range,
                        gyro_range=description.gyroscope_range, t0_ns=t0_ns)
-
-
-@dataclass
-class InputCounts:
-    """Raw messages seen and rejected, by kind (the assembler adds duplicate/backwards/late)."""
-
-    messages: int = 0
-    undecodable: int = 0
-    wrong_frame_id: int = 0
-    non_finite: int = 0
 
 
 @dataclass
@@ -109,13 +99,12 @@ class LiveFusion:
                  max_batch: int = 1000, window_s: float = 1.0, capacity: int = 4096) -> None:
         self.description = description
         self.names = tuple(description.names)
-        self.frame_ids = [frame_prefix + n for n in self.names]
         self.fusion = build_fusion(description)
-        self.assembler = SampleAssembler(len(self.names), timeout_ns=int(round(sync_timeout_s * 1e9)),
-                                         capacity=capacity)
+        self.intake = RawIntake(self.names, frame_prefix, sync_timeout_s, capacity)
+        self.assembler = self.intake.assembler
         self.max_batch = int(max_batch)
         self.window_ns = int(round(window_s * 1e9))
-        self.inputs = InputCounts()
+        self.inputs: InputCounts = self.intake.counts
         self.fusion_stats = FusionStats()
         self._recent: deque = deque()  # (time_ns, samples, fused, ages) of recent batches
         self._arrivals: deque = deque()  # (time_ns, messages)
@@ -126,15 +115,7 @@ class LiveFusion:
         """Decode and buffer raw Imu payloads; ``imu_index[i]`` is the IMU whose topic payload i came on."""
         if not len(payloads):
             return
-        idx = np.asarray(imu_index, dtype=np.int64)
-        batch = decode_raw_imu(payloads, idx, self.frame_ids)
-        c = self.inputs
-        c.messages += len(payloads)
-        c.undecodable += int((~batch.decodable).sum())
-        c.wrong_frame_id += int((batch.decodable & ~batch.frame_ok).sum())
-        c.non_finite += int((batch.decodable & batch.frame_ok & ~batch.finite).sum())
-        use = batch.usable
-        self.assembler.add(idx[use], batch.stamps[use], batch.accel[use], batch.gyro[use], now_ns)
+        self.intake.add(payloads, imu_index, now_ns)
         self._arrivals.append((int(now_ns), len(payloads)))
 
     def set_description(self, description: ArrayDescription) -> None:

@@ -31,7 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SampleAssembler", "AssemblerStats", "AssembledSamples"]
+from imu_array_ros.io.messages import decode_raw_imu
+
+__all__ = ["SampleAssembler", "AssemblerStats", "AssembledSamples", "RawIntake", "InputCounts"]
 
 
 @dataclass
@@ -194,3 +196,41 @@ class SampleAssembler:
         self._stamps, self._acc, self._gyr = self._stamps[count:], self._acc[count:], self._gyr[count:]
         self._have, self._first = self._have[count:], self._first[count:]
         return out
+
+
+@dataclass
+class InputCounts:
+    """Raw messages seen and rejected, by kind (the assembler adds duplicate/backwards/late)."""
+
+    messages: int = 0
+    undecodable: int = 0
+    wrong_frame_id: int = 0
+    non_finite: int = 0
+
+
+class RawIntake:
+    """The live nodes' input: batches of raw ``sensor_msgs/Imu`` payloads decoded column-wise
+    (:func:`~imu_array_ros.io.messages.decode_raw_imu`), undecodable ones, a wrong ``frame_id``
+    (``frame_prefix + name`` expected) and non-finite values counted and dropped, the rest grouped
+    by stamp in a :class:`SampleAssembler`.  Used by the fusion (``LiveFusion``) and the
+    calibration node's window (``SampleWindow``)."""
+
+    def __init__(self, names, frame_prefix: str = "", sync_timeout_s: float = 0.05, capacity: int = 4096) -> None:
+        self.frame_ids = [frame_prefix + n for n in names]
+        self.assembler = SampleAssembler(len(self.frame_ids), timeout_ns=int(round(sync_timeout_s * 1e9)),
+                                         capacity=capacity)
+        self.counts = InputCounts()
+
+    def add(self, payloads, imu_index, now_ns: int) -> None:
+        """Decode, check and buffer payloads; ``imu_index[i]`` is the IMU whose topic payload i came on."""
+        if not len(payloads):
+            return
+        idx = np.asarray(imu_index, dtype=np.int64)
+        batch = decode_raw_imu(payloads, idx, self.frame_ids)
+        c = self.counts
+        c.messages += len(payloads)
+        c.undecodable += int((~batch.decodable).sum())
+        c.wrong_frame_id += int((batch.decodable & ~batch.frame_ok).sum())
+        c.non_finite += int((batch.decodable & batch.frame_ok & ~batch.finite).sum())
+        use = batch.usable
+        self.assembler.add(idx[use], batch.stamps[use], batch.accel[use], batch.gyro[use], now_ns)

@@ -6,7 +6,7 @@
    column-wise (:func:`~imu_array_ros.io.messages.decode_raw_imu`), counts and
    drops undecodable ones, wrong ``frame_id`` and non-finite values, and puts
    the rest into the stamp-keyed :class:`~imu_array_ros.io.sync.SampleAssembler`
-   -- exactly what :meth:`imu_array_ros.estimation.live.LiveFusion.add` does;
+   (:class:`~imu_array_ros.io.sync.RawIntake`, the input of :class:`~imu_array_ros.estimation.live.LiveFusion` too);
 2. :meth:`SampleWindow.step` moves the ready array samples into a ring buffer
    that keeps the latest ``window_samples`` samples, or (``window_samples`` 0)
    the samples of the last ``window_s`` seconds of stamps (the buffer grows by
@@ -28,8 +28,7 @@ from typing import Sequence
 
 import numpy as np
 
-from imu_array_ros.io.messages import decode_raw_imu
-from imu_array_ros.io.sync import SampleAssembler
+from imu_array_ros.io.sync import RawIntake
 from imu_array_ros.model.description import ArrayDescription
 
 __all__ = ["SampleWindow", "WindowCounts"]
@@ -74,9 +73,9 @@ class SampleWindow:
         if window_samples < 0 or (window_samples == 0 and not window_s > 0):
             raise ValueError("window_samples >= 1, or window_samples 0 and window_s > 0, is required")
         self.names = tuple(description.names)
-        self.frame_ids = [frame_prefix + n for n in self.names]
         k = len(self.names)
-        self.assembler = SampleAssembler(k, timeout_ns=int(round(sync_timeout_s * 1e9)), capacity=capacity)
+        self.intake = RawIntake(self.names, frame_prefix, sync_timeout_s, capacity)
+        self.assembler = self.intake.assembler
         self.window_samples = int(window_samples)
         self.window_ns = int(round(window_s * 1e9))
         self._lock = threading.Lock()
@@ -87,23 +86,12 @@ class SampleWindow:
         self._start = 0  # ring index of the oldest sample
         self._count = 0  # samples in the window
         self._received = 0
-        self._inputs = {"messages": 0, "undecodable": 0, "wrong_frame_id": 0, "non_finite": 0}
 
     # ------------------------------------------------------------------ input (executor thread)
 
     def add(self, payloads: Sequence[bytes], imu_index: Sequence[int] | np.ndarray, now_ns: int) -> None:
         """Decode and queue raw Imu payloads; ``imu_index[i]`` is the IMU whose topic payload i came on."""
-        if not len(payloads):
-            return
-        idx = np.asarray(imu_index, dtype=np.int64)
-        batch = decode_raw_imu(payloads, idx, self.frame_ids)
-        c = self._inputs
-        c["messages"] += len(payloads)
-        c["undecodable"] += int((~batch.decodable).sum())
-        c["wrong_frame_id"] += int((batch.decodable & ~batch.frame_ok).sum())
-        c["non_finite"] += int((batch.decodable & batch.frame_ok & ~batch.finite).sum())
-        use = batch.usable
-        self.assembler.add(idx[use], batch.stamps[use], batch.accel[use], batch.gyro[use], now_ns)
+        self.intake.add(payloads, imu_index, now_ns)
 
     def step(self, now_ns: int, *, flush: bool = False) -> int:
         """Move the ready samples (all pending ones with ``flush``) into the window; returns how many."""
@@ -172,6 +160,6 @@ class SampleWindow:
                 span = 0.0
             received = self._received
         fill = n / self.window_samples if self.window_samples else min(1.0, span / (self.window_ns / 1e9))
-        counts = dict(self._inputs)
+        counts = dict(self.intake.counts.__dict__)
         counts.update(self.assembler.stats.as_dict())
         return WindowCounts(buffered=n, span_s=span, fill=fill, received=received, counts=counts)
