@@ -369,8 +369,7 @@ def _profile(stamps, accel, gyro, model: SensorModel) -> _Profile:
         y = np.concatenate([accel[rows], gyro[rows]], axis=2)
         valid = model.valid(accel[rows], gyro[rows])
         r = np.where(valid, y - np.concatenate([acc, gyr], axis=2), 0.0) / model.std[None]
-        sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
-        loglik = float(-0.5 * np.sum(r * r) - np.sum(np.log(sigma)) - 0.5 * len(sigma) * np.log(2 * np.pi))
+        loglik = _loglik_constant(model, valid) - 0.5 * float(np.sum(r * r))
     cost = 0.5 * float(np.sum(r * r))
     raw = r * model.std[None]
     counts = np.maximum(valid[..., :3].sum(axis=(0, 2)), 1)
@@ -382,10 +381,14 @@ def _loglik_progress(progress, stamps, accel, gyro, model):
     """The engine reports its cost; turn it into the log-likelihood the BCD reports."""
     if progress is None:
         return None
-    valid = model.valid(accel, gyro)
+    const = _loglik_constant(model, model.valid(accel, gyro))
+    return lambda it, cost: progress(it, const - cost)
+
+
+def _loglik_constant(model: SensorModel, valid: np.ndarray) -> float:
+    """log p(y) minus the cost term: -sum log sigma - n/2 log 2 pi over the valid axes (N, K, 6)."""
     sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
-    const = -np.sum(np.log(sigma)) - 0.5 * len(sigma) * np.log(2 * np.pi)
-    return lambda it, cost: progress(it, float(const - cost))
+    return -float(np.sum(np.log(sigma))) - 0.5 * len(sigma) * np.log(2 * np.pi)
 
 
 # --------------------------------------------------------------------------- block coordinate descent
@@ -399,8 +402,7 @@ def _bcd(stamps, accel, gyro, model: SensorModel, ref: int, max_iterations: int,
     w = np.where(valid, 1.0 / model.std[None], 0.0)
     fix = np.zeros(model.n_imus, dtype=bool)
     fix[ref] = True
-    sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
-    const = -float(np.sum(np.log(sigma))) - 0.5 * len(sigma) * np.log(2 * np.pi)
+    const = _loglik_constant(model, valid)
     history, converged, iterations = [], False, 0
     for iterations in range(max_iterations + 1):
         fused, _ = ModelFusion(model).fuse(stamps, accel, gyro)  # (a) ML motion for the current positions
