@@ -443,16 +443,21 @@ def _bcd(stamps, accel, gyro, model: SensorModel, ref: int, max_iterations: int,
 # --------------------------------------------------------------------------- calibrate and write (node and CLI)
 
 
-def calibrate_and_write(desc, stamps, accel, gyro, out, **kwargs):
+def calibrate_and_write(desc, stamps, accel, gyro, out, *, before_install: Callable[[], None] | None = None,
+                        **kwargs):
     """Calibrate the positions of description ``desc`` on a window and install the result at ``out``
     (:func:`~imu_array_ros.calibration.output.install_calibration`: atomic, ``<out>.bak`` kept, refused
     when the file already there has the higher log-likelihood on the same samples).  ``kwargs`` go to
-    :func:`calibrate_geometry`.  Returns (GeometryCalibration, Installed); what the node's service and
+    :func:`calibrate_geometry`; ``before_install()`` runs after the calibration and before anything is
+    written (it may raise to abandon it, as ``progress`` may during the iterations).
+    Returns (GeometryCalibration, Installed); what the node's service and
     ``imu-array calibrate geometry`` both run."""
     from imu_array_ros.calibration.output import geometry_description, install_calibration
 
     model = SensorModel.from_description(desc)
     result = calibrate_geometry(stamps, accel, gyro, model, **kwargs)
+    if before_install is not None:
+        before_install()
     st, acc, gyr = (np.asarray(a)[result.used] for a in (stamps, accel, gyro))
 
     def score(previous) -> float:

@@ -39,7 +39,7 @@ from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.io.window import SampleWindow
 from imu_array_ros.model.description import load_description
 from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
 
 __all__ = ["CalibrationNode", "main", "SERVICE"]
 
@@ -48,7 +48,7 @@ SERVICE = "calibrate_geometry"
 
 
 class _Cancelled(Exception):
-    """The node is shutting down: the calibration stops at its next iteration."""
+    """The node is shutting down: the calibration stops at its next iteration, or before it writes."""
 
 
 class CalibrationNode(Node):
@@ -67,8 +67,8 @@ class CalibrationNode(Node):
             self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self.raw.receiver(k),
                                      qos(p.reliable, keep_all=True), raw=True)
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
-        self.create_timer(p.period, self._step)
-        self.create_timer(1.0, self._diagnose)
+        timer(self, p.period, self._step)
+        timer(self, 1.0, self._diagnose)
         # the calibration's state, shared with the service thread
         self._busy = threading.Lock()  # held while a calibration runs
         self._state = threading.Lock()  # guards the fields below
@@ -179,7 +179,7 @@ class CalibrationNode(Node):
                 return self.desc, False  # unreadable: not a calibration to start from
             raise
 
-    def _progress(self, iteration: int, loglik: float) -> None:
+    def _progress(self, iteration: int = 0, loglik: float = 0.0) -> None:
         if self._closing.is_set():
             raise _Cancelled
 
@@ -228,7 +228,8 @@ class CalibrationNode(Node):
             stamps, accel, gyro = self.window.snapshot()
             result, installed = calibrate_and_write(
                 desc, stamps, accel, gyro, self.out, reference=p.reference_imu or None, method=p.method,
-                max_iterations=p.max_iterations or None, min_excitation=p.min_excitation, progress=self._progress)
+                max_iterations=p.max_iterations or None, min_excitation=p.min_excitation, progress=self._progress,
+                before_install=self._progress)
         except _Cancelled:
             return False, "the node is shutting down; calibration abandoned, nothing written"
         except ImuArrayError as err:

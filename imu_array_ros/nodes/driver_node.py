@@ -23,7 +23,7 @@ from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.nodes.parameters import DRIVER_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, run
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, run, timer
 
 __all__ = ["DriverNode", "main"]
 
@@ -59,8 +59,8 @@ class DriverNode(Node):
             except ValueError as err:
                 raise ConfigError(f"parameter 'imu_mask': {err} (the IMUs of {p.array_config})") from None
             self.get_logger().info(f"streaming {len(self.desc.names)} IMUs from {p.port}")
-        self.create_timer(p.poll_period, self._tick)
-        self.create_timer(1.0, self._diagnose)
+        timer(self, p.poll_period, self._tick)
+        timer(self, 1.0, self._diagnose)
 
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds

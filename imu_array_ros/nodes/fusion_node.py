@@ -23,7 +23,7 @@ from imu_array_ros.errors import ImuArrayError
 from imu_array_ros.estimation.live import LiveFusion
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
 
 __all__ = ["FusionNode", "main", "NIS_WARN_RATIO"]
 
@@ -59,10 +59,10 @@ class FusionNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
         self._reported: set[str] = set()
         self._foreign: set[str] = set()
-        self.create_timer(p.period, self._step)
-        self.create_timer(1.0, self._diagnose)
+        timer(self, p.period, self._step)
+        timer(self, 1.0, self._diagnose)
         if cal:
-            self.create_timer(p.watch_period, self._watch)
+            timer(self, p.watch_period, self._watch)
 
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds

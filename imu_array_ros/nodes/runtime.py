@@ -1,7 +1,8 @@
 """What every node shares: the Jazzy-correct ``main``, QoS, /diagnostics.
 
-``run(NodeClass)``: ``rclpy.init``, build the node, spin it, and on Ctrl-C or an
-external shutdown destroy it and ``try_shutdown``.  A user mistake (a bad
+``run(NodeClass)``: ``rclpy.init``, build the node, spin it, and on Ctrl-C
+(SIGINT), SIGTERM or an external shutdown close it (its ``close()``, while the
+context is still valid), destroy it and ``try_shutdown``.  A user mistake (a bad
 parameter or file: :class:`~imu_array_ros.errors.ImuArrayError`) ends the node
 with one line ``<node>: error: ...`` and exit status 2, no traceback.
 
@@ -13,11 +14,13 @@ the message rate of the ``SingleThreadedExecutor`` on this machine; its
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 
 from imu_array_ros.errors import ImuArrayError
 
-__all__ = ["run", "qos", "DiagnosticsPublisher", "RawQueue", "OK", "WARN", "ERROR"]
+__all__ = ["run", "qos", "timer", "DiagnosticsPublisher", "RawQueue", "OK", "WARN", "ERROR"]
 
 OK, WARN, ERROR = b"\x00", b"\x01", b"\x02"
 
@@ -32,6 +35,25 @@ def qos(reliable: bool, keep_all: bool = False):
     if keep_all:
         return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def timer(node, period: float, callback):
+    """``node.create_timer(period, callback)``, except that the callback is skipped once the node's
+    context is shut down, and an exception it raises while the context goes down is dropped: on
+    Ctrl-C rclpy invalidates the context before the executor stops, and a timer firing in between
+    would otherwise log ``[FATAL] Exception in 'timers' callback`` (its publishers are gone)."""
+    context = node.context
+
+    def guarded() -> None:
+        if not context.ok():
+            return
+        try:
+            callback()
+        except Exception:
+            if context.ok():
+                raise
+
+    return node.create_timer(period, guarded)
 
 
 class RawQueue:
@@ -86,15 +108,31 @@ def run(node_class, args=None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.experimental import EventsExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     prog = os.path.basename(sys.argv[0]) or node_class.__name__
-    rclpy.init(args=args)
+    # SIGINT / SIGTERM only set a flag the spin loop reads: rclpy's own handlers invalidate the
+    # context at once and Python's raises KeyboardInterrupt inside whichever callback runs, so a
+    # Ctrl-C would log "[FATAL] Exception in ... callback" and could cut a file write or a service
+    # response short.  The node is closed and destroyed first, the context shut down last.  A second
+    # Ctrl-C interrupts as usual (KeyboardInterrupt).
+    stop = threading.Event()
+    previous = {}
+
+    def on_signal(signum, frame) -> None:
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
     node, status = None, 0
     try:
         node = node_class()
         executor = EventsExecutor()
         executor.add_node(node)
-        while rclpy.ok() and not getattr(node, "finished", False):
+        while not stop.is_set() and rclpy.ok() and not getattr(node, "finished", False):
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -102,10 +140,14 @@ def run(node_class, args=None) -> int:
         print(f"{prog}: error: {err}", file=sys.stderr)
         status = 2
     finally:
-        if node is not None:
-            close = getattr(node, "close", None)
-            if close is not None:
-                close()
-            node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            if node is not None:
+                close = getattr(node, "close", None)
+                if close is not None:
+                    close()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     return status
