@@ -9,7 +9,63 @@ import numpy as np
 from imu_array_ros.errors import OutputError
 from imu_array_ros.io.atomic import atomic_path
 
-__all__ = ["plot_geometry"]
+__all__ = ["plot_geometry", "plot_static"]
+
+
+def _pyplot(path):
+    try:
+        import matplotlib
+    except ImportError:
+        raise OutputError(f"{path}: writing a plot needs matplotlib (pip install 'matplotlib>=3.7')") from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_static(result, path: str | Path) -> None:
+    """PNG of a static calibration (an :class:`~imu_array_ros.calibration.array.ArrayCalibration` with a
+    static stage): the poses' gravity directions on the sphere (two hemispheres), the four accelerometer
+    parameters per IMU with 3-sigma bars, and the residual RMS per IMU."""
+    plt = _pyplot(path)
+    st, poses = result.static, result.poses
+    names = list(st.names)
+    k = np.arange(len(names))
+    std = st.written_std()
+    fig = plt.figure(figsize=(max(9.0, 0.4 * len(names) + 5), 8.0))
+    grid = fig.add_gridspec(3, 3)
+    d = poses.directions
+    for j, (sign, label) in enumerate(((1, "z >= 0"), (-1, "z < 0"))):
+        ax = fig.add_subplot(grid[j, 0], aspect="equal")
+        sel = (d[:, 2] >= 0) if sign > 0 else (d[:, 2] < 0)
+        ax.add_patch(plt.Circle((0, 0), 1.0, fill=False, color="0.6"))
+        ax.scatter(d[sel, 0], d[sel, 1], s=18, color="C0")
+        for i in np.flatnonzero(sel):
+            ax.annotate(str(i), d[i, :2], fontsize=6, xytext=(2, 2), textcoords="offset points")
+        ax.set_xlim(-1.1, 1.1), ax.set_ylim(-1.1, 1.1)
+        ax.set_title(f"pose directions, {label}", fontsize=9)
+    panels = (("accelerometer_gain", 1.0, "gain - 1"), ("accelerometer_bias", 1.0, "bias (m/s²)"),
+              ("accelerometer_nonorthogonality", 180 / np.pi, "non-orthogonality (°)"),
+              ("accelerometer_misalignment", 180 / np.pi, "misalignment (°)"))
+    for i, (term, scale, label) in enumerate(panels):
+        ax = fig.add_subplot(grid[i // 2, 1 + i % 2])
+        v = st.model.terms[term].values * scale - (1.0 if term == "accelerometer_gain" else 0.0)
+        e = np.nan_to_num(std.get(term, np.zeros_like(v))) * scale
+        for j, color in enumerate(("C0", "C1", "C2")):
+            ax.errorbar(k + (j - 1) * 0.2, v[:, j], yerr=3 * e[:, j], fmt="o", ms=3, color=color, capsize=2)
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        ax.set_title(label + ("" if term in st.terms else " (held)"), fontsize=9)
+        ax.set_xticks(k, names, rotation=90, fontsize=6)
+    ax = fig.add_subplot(grid[2, 1:])
+    ax.bar(k, st.residual_rms, color="C3")
+    ax.set_ylabel("residual RMS (m/s²)", fontsize=8)
+    ax.set_xticks(k, names, rotation=90, fontsize=6)
+    ax.set_title(f"static ({st.method}): {st.poses} poses, consistency {st.improvement_db:+.1f} dB, "
+                 f"NIS {st.nis_after:.3g}", fontsize=9)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
 
 
 def plot_geometry(result, path: str | Path) -> None:

@@ -22,7 +22,7 @@ from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.atomic import check_output
 
-__all__ = ["calibrate_fit", "calibrate_geometry", "parse_list"]
+__all__ = ["calibrate_fit", "calibrate_geometry", "calibrate_static", "calibrate_all", "parse_list"]
 
 
 def parse_list(text: str | None) -> list[str] | None:
@@ -174,3 +174,126 @@ def calibrate_geometry(recording: Path, array: Path, out: Path, *, calibration: 
         plot_geometry(result, plot)
         info(quiet, f"wrote {plot}")
     return 0
+
+
+def _read_recording(recording: Path, array: Path, calibration: Path | None, quiet: bool):
+    from imu_array_ros.cli.commands import check_fusable, load_array
+    from imu_array_ros.io.rosbag.recording import read_imu_recording
+
+    desc, source = load_array(array, calibration)
+    check_fusable(desc, source)
+    samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
+    info(quiet, f"read {rstats.samples} array samples of {len(desc.imus)} IMUs")
+    return desc, samples
+
+
+def _still_options(still_gyro: float | None, still_accel: float | None, still_min_duration: float | None) -> dict:
+    opts = {"gyro_threshold": still_gyro, "accel_threshold": still_accel, "min_duration_s": still_min_duration}
+    return {k: v for k, v in opts.items() if v is not None}
+
+
+def _static_table(result, quiet: bool) -> None:
+    """Per IMU: gain, bias, non-orthogonality, misalignment with their std, residual RMS."""
+    st = result.static
+    if st is None:
+        return
+    m, std = st.model.terms, st.written_std()
+    nan3 = np.full(3, np.nan)
+
+    def cell(term, k, scale, fmt):
+        if term not in st.terms:
+            return "held".rjust(10)
+        v = m[term].values[k] * scale
+        s = std[term][k] * scale if term in std else nan3
+        return " ".join(f"{a:{fmt}}" for a in v) + " +-" + f"{np.nanmax(s) if np.isfinite(s).any() else 0:.1g}"
+
+    info(quiet, "  IMU      gain [-]                    bias [m/s^2]              non-orth [deg]         "
+                "misalignment [deg]     residual RMS")
+    for k, name in enumerate(st.names):
+        if name in st.skipped:
+            info(quiet, f"  {name}: skipped (no data)")
+            continue
+        info(quiet, f"  {name}  {cell('accelerometer_gain', k, 1.0, '.4f')}  {cell('accelerometer_bias', k, 1.0, '+.3f')}"
+                    f"  {cell('accelerometer_nonorthogonality', k, 180 / np.pi, '+.2f')}"
+                    f"  {cell('accelerometer_misalignment', k, 180 / np.pi, '+.2f')}  {st.residual_rms[k]:.3g} m/s^2"
+                    f"{'  (reference)' if name == st.reference else ''}")
+
+
+def _calibrate_and_install(recording: Path, array: Path, out: Path, calibration: Path | None, plot: Path | None,
+                           force: bool, quiet: bool, **kwargs) -> int:
+    from imu_array_ros.calibration.array import array_description, calibrate_array
+    from imu_array_ros.calibration.output import install_calibration
+    from imu_array_ros.calibration.static import static_loglik
+    from imu_array_ros.model.forward import SensorModel
+
+    inputs = [recording, array, calibration]
+    out = check_output(out, inputs, "yaml", force)
+    if plot is not None:
+        plot = check_output(plot, inputs, "png", force, option="--plot", other_outputs=[("--out", out)])
+    desc, samples = _read_recording(recording, array, calibration, quiet)
+    if kwargs.get("reference"):
+        desc.index(kwargs["reference"])  # a one-line error naming the unknown IMU
+    model = SensorModel.from_description(desc)
+    try:
+        result = calibrate_array(samples.stamps, samples.accel, samples.gyro, model,
+                                 progress=lambda text: info(quiet, text), **kwargs)
+    except CalibrationError as err:
+        raise CalibrationError(f"{recording}: {err}") from None
+    _static_table(result, quiet)
+    new = array_description(desc, result)
+    score = new_score = None
+    if result.static is not None and result.moving is None:
+        # a static calibration on file is replaced only by one that fits these poses at least as well
+        p = result.poses
+        score = lambda previous: static_loglik(  # noqa: E731
+            p.accel, p.gyro, p.counts, SensorModel.from_description(previous), result.static.gravity)
+        new_score = result.static.loglik_after
+    try:
+        installed = install_calibration(new, out, score=score, new_score=new_score)
+    except CalibrationError as err:
+        raise CalibrationError(f"{recording}: {err}") from None
+    info(quiet, result.summary())
+    if installed.backup is not None:
+        info(quiet, f"previous {out} kept as {installed.backup}")
+    info(quiet, f"wrote {out}")
+    if plot is not None and result.static is not None:
+        from imu_array_ros.calibration.plots import plot_static
+
+        plot_static(result, plot)
+        info(quiet, f"wrote {plot}")
+    return 0
+
+
+def calibrate_static(recording: Path, array: Path, out: Path, *, calibration: Path | None = None,
+                     method: str = "ml", reference: str | None = None, terms: str | None = None,
+                     gravity: float | None = None, still_gyro: float | None = None, still_accel: float | None = None,
+                     still_min_duration: float | None = None, plot: Path | None = None, force: bool = False,
+                     quiet: bool = False) -> int:
+    """Static multi-pose calibration (nilsson2014 ML or rupniewski PCA) from the still poses of ``recording``."""
+    from imu_array_ros.calibration.static import STATIC_TERMS
+    from imu_array_ros.model.constants import STANDARD_GRAVITY
+
+    return _calibrate_and_install(
+        recording, array, out, calibration, plot, force, quiet, reference=reference, static_method=method,
+        static_terms=parse_list(terms) or STATIC_TERMS, moving_terms=(), gravity=gravity or STANDARD_GRAVITY,
+        still_options=_still_options(still_gyro, still_accel, still_min_duration))
+
+
+def calibrate_all(recording: Path, array: Path, out: Path, *, calibration: Path | None = None,
+                  reference: str | None = None, static_method: str = "ml", moving_terms: str | None = None,
+                  gravity: float | None = None, still_gyro: float | None = None, still_accel: float | None = None,
+                  still_min_duration: float | None = None, plot: Path | None = None, force: bool = False,
+                  quiet: bool = False) -> int:
+    """Whole-array calibration: still poses -> static stage -> moving stage, one description."""
+    from imu_array_ros.calibration.array import MOVING_TERMS
+    from imu_array_ros.model.constants import STANDARD_GRAVITY
+
+    terms = MOVING_TERMS if moving_terms is None else tuple(parse_list(moving_terms) or ())
+    if terms:
+        from imu_array_ros.estimation.fit_terms import check_terms
+
+        check_terms(terms)
+    return _calibrate_and_install(
+        recording, array, out, calibration, plot, force, quiet, reference=reference, static_method=static_method,
+        moving_terms=terms, gravity=gravity or STANDARD_GRAVITY,
+        still_options=_still_options(still_gyro, still_accel, still_min_duration))

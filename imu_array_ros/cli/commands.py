@@ -105,10 +105,14 @@ def simulate(
     out: Path,
     *,
     motion: str = "twist",
-    duration: float = 5.0,
-    rate: float = 1000.0,
+    duration: float | None = None,
+    rate: float | None = None,
     rms_rate: float = 600.0,
     angular_accel: float = 2000.0,
+    still_seconds: float | None = None,
+    transition_seconds: float | None = None,
+    tilt_std_deg: float | None = None,
+    twist_seconds: float | None = None,
     seed: int = 0,
     start_ns: int | None = None,
     true_array: Path | None = None,
@@ -121,14 +125,40 @@ def simulate(
     """Simulate a recording of ``array`` (rms_rate in deg/s, angular_accel in deg/s^2).
 
     ``start_ns``: stamp of the first sample, ns since the epoch (default: now).
+    ``duration`` (default 5 s) and ``rate`` (default 1000 Hz) for twist and random; the
+    icosahedron session (nilsson2014; ``rate`` default 100 Hz) lasts 20 ``still_seconds``
+    (default 3) + 19 ``transition_seconds`` (default 2) + ``twist_seconds`` (default 0), with
+    each rest tilted by ``tilt_std_deg`` (default 1) per axis, and rejects ``duration``.
     """
     from imu_array_ros.io.rosbag.recording import write_imu_recording
     from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.simulation.icosahedron import FACES, simulate_icosahedron
     from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
     from imu_array_ros.simulation.simulator import simulate_random, simulate_twist
 
-    if motion not in ("twist", "random"):
-        raise ImuArrayError(f"--motion must be 'twist' or 'random', not {motion!r}")
+    if motion not in ("twist", "random", "icosahedron"):
+        raise ImuArrayError(f"--motion must be 'twist', 'random' or 'icosahedron', not {motion!r}")
+    session = {"--still-seconds": still_seconds, "--transition-seconds": transition_seconds,
+               "--tilt-std-deg": tilt_std_deg, "--twist-seconds": twist_seconds}
+    if motion == "icosahedron":
+        if duration is not None:
+            raise ImuArrayError("--duration does not apply to --motion icosahedron (its length is 20 x "
+                                "--still-seconds + 19 x --transition-seconds + --twist-seconds)")
+        still_seconds = 3.0 if still_seconds is None else still_seconds
+        transition_seconds = 2.0 if transition_seconds is None else transition_seconds
+        tilt_std_deg = 1.0 if tilt_std_deg is None else tilt_std_deg
+        twist_seconds = 0.0 if twist_seconds is None else twist_seconds
+        rate = 100.0 if rate is None else rate
+        if still_seconds * rate < 1:
+            raise ImuArrayError(f"--still-seconds {still_seconds:g} at --rate {rate:g} Hz leaves a face without "
+                                f"a sample at rest")
+        duration = FACES * still_seconds + (FACES - 1) * transition_seconds + twist_seconds
+    else:
+        given = [k for k, v in session.items() if v is not None]
+        if given:
+            raise ImuArrayError(f"{given[0]} needs --motion icosahedron")
+        duration = 5.0 if duration is None else duration
+        rate = 1000.0 if rate is None else rate
     if position_error_std is not None and error_seed is None:
         raise ImuArrayError("--position-error-std needs --error-seed (it sets the size of the seeded errors)")
     inputs = [array, true_array]
@@ -137,11 +167,11 @@ def simulate(
         truth_array_out = check_output(truth_array_out, inputs, "yaml", force, option="--truth-array-out",
                                        other_outputs=[("--out", out)])
     n = int(round(duration * rate))
+    length = f"the icosahedron session ({duration:g} s)" if motion == "icosahedron" else f"--duration {duration:g} s"
     if n < 1:
-        raise ImuArrayError(f"--duration {duration:g} s at --rate {rate:g} Hz gives no sample")
+        raise ImuArrayError(f"{length} at --rate {rate:g} Hz gives no sample")
     if n > MAX_SIMULATED_SAMPLES:
-        raise ImuArrayError(f"--duration {duration:g} s at --rate {rate:g} Hz gives {n} samples, "
-                            f"more than {MAX_SIMULATED_SAMPLES}")
+        raise ImuArrayError(f"{length} at --rate {rate:g} Hz gives {n} samples, more than {MAX_SIMULATED_SAMPLES}")
     if start_ns is None:
         start_ns = time.time_ns()
     last_ns = start_ns + int(round((n - 1) * 1e9 / rate))
@@ -165,6 +195,11 @@ def simulate(
     if motion == "twist":
         samples, truth = simulate_twist(true_model, duration, rate, rng, rms_rate=np.deg2rad(rms_rate),
                                         start_ns=start_ns)
+    elif motion == "icosahedron":
+        samples, truth, _ = simulate_icosahedron(true_model, rng, rate_hz=rate, still_s=still_seconds,
+                                                 transition_s=transition_seconds,
+                                                 tilt_std=float(np.deg2rad(tilt_std_deg)), twist_s=twist_seconds,
+                                                 rms_rate=float(np.deg2rad(rms_rate)), start_ns=start_ns)
     else:
         samples, truth = simulate_random(true_model, n, np.deg2rad(rms_rate), np.deg2rad(angular_accel), rng,
                                          rate_hz=rate, start_ns=start_ns)

@@ -161,6 +161,14 @@ _FORCE_RECORDING = ("replace an existing output, only if it is itself a recordin
                     "other file is never replaced")
 
 
+def _calibration_inputs(sp: argparse.ArgumentParser) -> None:
+    """The recording, --array and --calibration of every ``calibrate`` method."""
+    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
+    sp.add_argument("--array", required=True, type=Path, help="array description YAML (initial values)")
+    sp.add_argument("--calibration", type=Path,
+                    help="calibrated description (same schema) to start from instead of --array's values")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``imu-array`` parser; each subcommand's ``func`` is the typed command to call."""
     p = _Parser(prog="imu-array", description="Inertial sensor array tools (imu_array_ros).")
@@ -171,13 +179,27 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--array", required=True, type=Path,
                     help="array description YAML (nominal; written into the recording); must be identifiable")
     sp.add_argument("--out", required=True, type=Path, help="output: directory (rosbag2) or file ending in .mcap")
-    sp.add_argument("--motion", choices=["twist", "random"], default="twist",
-                    help="twist: smooth hand twisting; random: independent samples (carlsson2017 Monte Carlo)")
-    sp.add_argument("--duration", type=positive_float, default=5.0, help="seconds, > 0 (default 5)")
-    sp.add_argument("--rate", type=sample_rate, default=1000.0,
-                    help=f"sample rate in Hz, 0 < HZ <= {MAX_RATE_HZ:g} (default 1000)")
+    sp.add_argument("--motion", choices=["twist", "random", "icosahedron"], default="twist",
+                    help="twist: smooth hand twisting; random: independent samples (carlsson2017 Monte Carlo); "
+                         "icosahedron: static calibration session, the array set down on the 20 faces of an "
+                         "icosahedron in turn (nilsson2014), optionally followed by hand twisting")
+    sp.add_argument("--duration", type=positive_float,
+                    help="seconds, > 0 (default 5); not with --motion icosahedron, whose length is "
+                         "20 x --still-seconds + 19 x --transition-seconds + --twist-seconds")
+    sp.add_argument("--rate", type=sample_rate,
+                    help=f"sample rate in Hz, 0 < HZ <= {MAX_RATE_HZ:g} (default 1000; 100 for icosahedron)")
     sp.add_argument("--rms-rate", type=positive_float, default=600.0,
-                    help="twist: RMS angular speed; random: |omega|; deg/s, > 0 (default 600)")
+                    help="twist (also icosahedron's twisting): RMS angular speed; random: |omega|; deg/s, > 0 "
+                         "(default 600)")
+    sp.add_argument("--still-seconds", type=positive_float,
+                    help="icosahedron: seconds at rest on each face, > 0 (default 3)")
+    sp.add_argument("--transition-seconds", type=positive_float,
+                    help="icosahedron: seconds of handling between faces, > 0 (default 2)")
+    sp.add_argument("--tilt-std-deg", type=non_negative_float,
+                    help="icosahedron: std of the unknown tilt of each rest per horizontal axis, degrees, >= 0 "
+                         "(default 1)")
+    sp.add_argument("--twist-seconds", type=non_negative_float,
+                    help="icosahedron: seconds of hand twisting after the last face, >= 0 (default 0)")
     sp.add_argument("--angular-accel", type=non_negative_float, default=2000.0,
                     help="random: |omega_dot| in deg/s^2, >= 0 (default 2000)")
     sp.add_argument("--seed", type=non_negative_int, default=0, help="seed of motion and noise, >= 0 (default 0)")
@@ -266,10 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("calibrate", help="calibrate the array's sensor model from a recording")
     cal = sp.add_subparsers(dest="calibration_command", required=True, metavar="METHOD")
     sp = cal.add_parser("fit", help="maximum likelihood of any sensor-model terms jointly with the motion")
-    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
-    sp.add_argument("--array", required=True, type=Path, help="array description YAML (initial values)")
-    sp.add_argument("--calibration", type=Path,
-                    help="calibrated description (same schema) to start from instead of --array's values")
+    _calibration_inputs(sp)
     sp.add_argument("--terms", required=True,
                     help="comma-separated registry names of the terms to fit, e.g. position,gyroscope_gain,time_offset")
     sp.add_argument("--imus", help="comma-separated IMU names whose parameters are fitted (default: all)")
@@ -282,10 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = cal.add_parser("geometry", help="accelerometer positions from hand-twisting (carlsson2017), with their "
                                          "Cramer-Rao std; what the /calibrate_geometry service runs")
-    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
-    sp.add_argument("--array", required=True, type=Path, help="array description YAML (initial values)")
-    sp.add_argument("--calibration", type=Path,
-                    help="calibrated description (same schema) to start from instead of --array's values")
+    _calibration_inputs(sp)
     sp.add_argument("--reference", help="IMU whose position is held (default: the first)")
     sp.add_argument("--method", choices=("joint", "bcd"),
                     help="'joint': Schur-complement Gauss-Newton (default); 'bcd': block coordinate descent "
@@ -306,6 +322,48 @@ def build_parser() -> argparse.ArgumentParser:
     _common(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak, unless it fits the "
                       "window better than the new calibration; and an existing --plot PNG")
     sp.set_defaults(func=calibrate.calibrate_geometry)
+
+    def still_options(sp) -> None:
+        sp.add_argument("--gravity", type=positive_float, metavar="M/S2",
+                        help="local gravity magnitude (default 9.80665)")
+        sp.add_argument("--still-gyro", type=positive_float, metavar="RAD/S",
+                        help="still-interval threshold on the gyroscopes' moving std (default: from the noise)")
+        sp.add_argument("--still-accel", type=positive_float, metavar="M/S2",
+                        help="still-interval threshold on the accelerometers' moving std (default: from the noise)")
+        sp.add_argument("--still-min-duration", type=positive_float, metavar="SECONDS",
+                        help="shortest still interval kept as a pose")
+
+    sp = cal.add_parser("static", help="accelerometer gain, bias, non-orthogonality and misalignment, and gyroscope "
+                                       "biases, from the still poses of a recording (nilsson2014 ML / rupniewski PCA)")
+    _calibration_inputs(sp)
+    sp.add_argument("--method", choices=("ml", "pca"), default="ml",
+                    help="'ml': maximum likelihood, robust (default); 'pca': closed form (rupniewski)")
+    sp.add_argument("--reference", help="IMU whose accelerometer axes define the array frame (default: the first)")
+    sp.add_argument("--terms", help="comma-separated subset of accelerometer_gain, accelerometer_nonorthogonality, "
+                                    "accelerometer_misalignment, accelerometer_bias, gyroscope_bias (default: all)")
+    still_options(sp)
+    sp.add_argument("--out", required=True, type=Path,
+                    help="calibrated description YAML to write (with --force an existing one is replaced only if "
+                         "the new calibration fits the poses better; the old one is kept as OUT.bak)")
+    sp.add_argument("--plot", type=Path, metavar="PNG",
+                    help="also write a plot: poses on the sphere, parameters with 3-sigma bars, residuals")
+    _common(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak, unless it fits the "
+                      "poses better than the new calibration; and an existing --plot PNG")
+    sp.set_defaults(func=calibrate.calibrate_static)
+
+    sp = cal.add_parser("all", help="the whole array from one recording: still poses -> accelerometer intrinsics "
+                                    "and gyroscope biases; moving phase -> positions, gyroscope gain and misalignment")
+    _calibration_inputs(sp)
+    sp.add_argument("--reference", help="IMU that defines the array frame and holds the gauge (default: the first)")
+    sp.add_argument("--static-method", choices=("ml", "pca"), default="ml", help="static stage method (default ml)")
+    sp.add_argument("--moving-terms",
+                    help="comma-separated terms of the moving stage (default position,gyroscope_gain,"
+                         "gyroscope_misalignment; empty: no moving stage)")
+    still_options(sp)
+    sp.add_argument("--out", required=True, type=Path, help="calibrated description YAML to write (old kept as OUT.bak)")
+    sp.add_argument("--plot", type=Path, metavar="PNG", help="also write the static stage's plot")
+    _common(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak; and an existing --plot")
+    sp.set_defaults(func=calibrate.calibrate_all)
 
     sp = sub.add_parser("recover", help="salvage a truncated or damaged recording (e.g. a recorder killed mid-write)")
     sp.add_argument("recording", type=Path, help="the damaged recording: .mcap file or rosbag2 directory (only read)")

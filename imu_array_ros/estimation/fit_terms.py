@@ -98,6 +98,7 @@ import numpy as np
 import scipy.linalg
 
 from imu_array_ros.errors import CalibrationError
+from imu_array_ros.estimation.motion_models import RigidMotion
 from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.terms import REGISTRY, term_names
 
@@ -169,7 +170,7 @@ class FitResult:
 
 def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, imus=None, reference=None,
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
-              progress: Callable[[int, float], None] | None = None) -> FitResult:
+              progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
     stamps (N,) int64 ns; accel, gyro (N, K, 3) raw readings in the sensor
@@ -186,15 +187,23 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     tolerance: converged when every parameter step is below ``tolerance``
     standard deviations and the RMS motion step below ``tolerance`` of its own;
     progress(iteration, cost): called once per iteration, cost = sum of
-    squared normalised residuals / 2.  Raises :class:`CalibrationError` (one
-    line) when the problem cannot be solved or identified.
+    squared normalised residuals / 2;
+    motion_model: how each sample's motion is parametrised
+    (:mod:`~imu_array_ros.estimation.motion_models`; default
+    :class:`~imu_array_ros.estimation.motion_models.RigidMotion`, any motion;
+    :class:`~imu_array_ros.estimation.motion_models.StaticMotion` for poses at
+    rest on gravity of known magnitude); sigma: (N, K, 6) standard deviations
+    of the readings [acc, gyro] replacing the model's noise figures (e.g. of
+    averages over still intervals, or robust reweighting).  Raises
+    :class:`CalibrationError` (one line) when the problem cannot be solved or
+    identified.
     """
     free = check_terms(free)
     if gauge not in ("reference", "mean"):
         raise CalibrationError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
     fit = _imu_indexes(model, imus, "imus")
     ref = _reference(model, fit, reference)
-    prob = _Problem(stamps, accel, gyro, model, free, fit)
+    prob = _Problem(stamps, accel, gyro, model, free, fit, motion_model=motion_model, sigma=sigma)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
     motion, lin = prob.fit_motion(model, motion)
     motion = prob.drop(~lin.ok, motion)
@@ -208,16 +217,20 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     return _result(prob, model, motion, lin, gauge_fix, before, dof, iterations, converged)
 
 
-def fit_motion(stamps, accel, gyro, model: SensorModel, motion0=None) -> tuple[np.ndarray, float, np.ndarray]:
-    """The ML motion of every sample with every term of ``model`` held (the engine's batched 9x9
-    Gauss-Newton, exact for the non-linear terms the fusion only compensates).
+def fit_motion(stamps, accel, gyro, model: SensorModel, motion0=None, *, motion_model=None,
+               sigma=None) -> tuple[np.ndarray, float, np.ndarray]:
+    """The ML motion of every sample with every term of ``model`` held (the engine's batched
+    Gauss-Newton on each sample's motion coordinates, exact for the non-linear terms the fusion only
+    compensates).  motion_model, sigma: as for :func:`fit_terms`.
 
-    Returns (motion (N, 9), log-likelihood over the valid axes, normalised residuals (N, K, 6), NaN on
-    masked axes).  A sample whose motion is not identified keeps a ridge-regularised estimate."""
-    prob = _Problem(stamps, accel, gyro, model, ("position",), np.arange(model.n_imus))
+    Returns (motion (N, 9) [omega, omega_dot, s], log-likelihood over the valid axes, normalised
+    residuals (N, K, 6), NaN on masked axes).  A sample whose motion is not identified keeps a
+    ridge-regularised estimate."""
+    prob = _Problem(stamps, accel, gyro, model, ("position",), np.arange(model.n_imus), motion_model=motion_model,
+                    sigma=sigma)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
     motion, lin = prob.fit_motion(model, motion)
-    return motion, _loglik(prob, lin.cost), np.where(prob.valid, lin.r, np.nan)
+    return prob.expand(motion), _loglik(prob, lin.cost), np.where(prob.valid, lin.r, np.nan)
 
 
 # --------------------------------------------------------------------------- input checks
@@ -292,7 +305,8 @@ class _Linearization:
 class _Problem:
     """Readings, weights and the parameter layout: fitted IMUs x free terms' parameters, IMU-major."""
 
-    def __init__(self, stamps, accel, gyro, model: SensorModel, free: tuple[str, ...], fit: np.ndarray):
+    def __init__(self, stamps, accel, gyro, model: SensorModel, free: tuple[str, ...], fit: np.ndarray, *,
+                 motion_model=None, sigma=None):
         stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
         accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
         n, k = len(stamps), model.n_imus
@@ -310,15 +324,23 @@ class _Problem:
         if not valid.any():
             raise CalibrationError("no valid samples: every reading is missing or saturated")
         self.y = np.where(valid, self.raw, 0.0)
-        self.w = valid / model.std[None]
+        if sigma is None:
+            self.w = valid / model.std[None]
+        else:
+            sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (n, k, 6))
+            if not np.all(np.isfinite(sigma[valid]) & (sigma[valid] > 0)):
+                raise CalibrationError("sigma must be positive and finite on every valid reading")
+            self.w = np.where(valid, 1.0 / np.where(valid, sigma, 1.0), 0.0)
         self.valid = valid
+        self.mm = RigidMotion() if motion_model is None else motion_model
+        self.dm = self.mm.dim
         self.used = np.ones(n, dtype=bool)
         self.sizes = [REGISTRY[t].dim() for t in free]
         self.p = sum(self.sizes)
         self.needs_derivatives = "time_offset" in free or not model.terms["time_offset"].is_identity
         if self.needs_derivatives and np.any(np.diff(stamps) <= 0):
             raise CalibrationError("stamps must increase strictly (time offsets need the motion's time derivatives)")
-        per_sample = 8 * (4 * 6 * k * (9 + self.p) + 2 * 9 * self.m + 20 * 81)
+        per_sample = 8 * (4 * 6 * k * (9 + self.p) + 2 * self.dm * self.m + 20 * 81)
         self.chunk = int(np.clip(CHUNK_BYTES // per_sample, 16, n))
 
     # ---- layout
@@ -368,21 +390,32 @@ class _Problem:
         if not bad.any():
             return motion
         t, used = self.stamps - self.t0_ns, np.flatnonzero(self.used)
-        return np.stack([np.interp(t, t[used], motion[used, i]) for i in range(9)], axis=1)
+        return np.stack([np.interp(t, t[used], motion[used, i]) for i in range(motion.shape[1])], axis=1)
 
     def check_dof(self, parameters: int) -> int:
-        """Degrees of freedom left (valid axes - 9 per sample - parameters); CalibrationError if none."""
-        dof = self.n_valid() - 9 * self.n_used() - parameters
+        """Degrees of freedom left (valid axes - motion coordinates - parameters); CalibrationError if none."""
+        dof = self.n_valid() - self.dm * self.n_used() - parameters
         if dof <= 0:
             raise CalibrationError(f"too few samples: {self.n_used()} usable samples cannot determine their motion "
                                    f"and {parameters} parameters (no degrees of freedom left); record longer")
         return dof
 
     def check_motion(self, motion0) -> np.ndarray:
+        """The motion model's coordinates of an (N, 9) initial motion [omega, omega_dot, s]."""
         motion = np.array(motion0, dtype=float)
         if motion.shape != (self.n, 9) or not np.isfinite(motion).all():
             raise CalibrationError(f"motion0 must be finite with shape {(self.n, 9)}, got {motion.shape}")
-        return motion
+        return self.mm.initial(motion)
+
+    def expand(self, z: np.ndarray, sel=slice(None)) -> np.ndarray:
+        """(n, 9) motion [omega, omega_dot, s] of the samples ``sel`` from their coordinates ``z[sel]``."""
+        return self.mm.expand(z[sel], sel)
+
+    def motion_jacobian(self, jac_motion: np.ndarray, w: np.ndarray, z: np.ndarray, sel) -> np.ndarray:
+        """(n, K, 6, dm) weighted d y / d z from the model's (n, K, 6, 9) d y / d x."""
+        jx = jac_motion * w[..., None]
+        d = self.mm.jacobian(z[sel], sel)
+        return jx if d is None else np.matmul(jx, d[:, None])
 
     # ---- evaluation
     def chunks(self):
@@ -393,7 +426,8 @@ class _Problem:
         """(omega_ddot, specific_force_dot) of the whole recording, or (None, None) when no term reads them."""
         if not self.needs_derivatives:
             return None, None
-        return motion_derivative(self.stamps, motion[:, 3:6]), motion_derivative(self.stamps, motion[:, 6:9])
+        x = self.expand(motion)
+        return motion_derivative(self.stamps, x[:, 3:6]), motion_derivative(self.stamps, x[:, 6:9])
 
     def context(self, model: SensorModel, motion: np.ndarray, derivs: tuple, lo: int, hi: int):
         return self.context_at(model, motion, derivs, slice(lo, hi))
@@ -401,7 +435,8 @@ class _Problem:
     def context_at(self, model: SensorModel, motion: np.ndarray, derivs: tuple, sel):
         """The motion context of the samples ``sel`` (slice or indexes); ``motion`` and ``derivs`` whole."""
         cut = lambda a: None if a is None else a[sel]  # noqa: E731
-        return motion_context(self.stamps[sel], motion[sel, 0:3], motion[sel, 3:6], motion[sel, 6:9],
+        x = self.expand(motion, sel)
+        return motion_context(self.stamps[sel], x[:, 0:3], x[:, 3:6], x[:, 6:9],
                               model.rotations, t0_ns=self.t0_ns, omega_ddot=cut(derivs[0]),
                               specific_force_dot=cut(derivs[1]))
 
@@ -419,14 +454,14 @@ class _Problem:
         kf, p = len(self.fit), self.p
         S, g = np.zeros((m, m)), np.zeros(m)
         cblocks, gt = np.zeros((kf, p, p)), np.zeros((kf, p))
-        linv, h = np.empty((self.n, 9, 9)), np.empty((self.n, 9))
+        linv, h = np.empty((self.n, self.dm, self.dm)), np.empty((self.n, self.dm))
         ok, r_all = np.empty(self.n, dtype=bool), np.empty_like(self.y)
         derivs = self.derivatives(motion)
         for lo, hi in self.chunks():
             jac = model.jacobians(self.context(model, motion, derivs, lo, hi), self.free if m else ())
             w = self.w[lo:hi]
             r = w * (self.y[lo:hi] - jac.predicted)
-            jx = jac.motion * w[..., None]  # (n, K, 6, 9)
+            jx = self.motion_jacobian(jac.motion, w, motion, slice(lo, hi))  # (n, K, 6, dm)
             linv[lo:hi], ok[lo:hi] = _factor(_gram(jx))
             h[lo:hi] = np.einsum("nij,nkrj,nkr->ni", linv[lo:hi], jx, r, optimize=True)
             r_all[lo:hi] = r
@@ -457,7 +492,8 @@ class _Problem:
         """
         used = np.flatnonzero(self.used)
         pick = used[::max(1, len(used) // NOISE_SAMPLES)]
-        delta = np.einsum("nji,nj->ni", lin.linv[pick], np.random.default_rng(0).normal(size=(len(pick), 9)))
+        delta = np.einsum("nji,nj->ni", lin.linv[pick],
+                          np.random.default_rng(0).normal(size=(len(pick), self.dm)))
         kf, p = len(self.fit), self.p
         info, blocks = np.zeros((self.m, self.m)), np.zeros((kf, p, p))
         for lo in range(0, len(pick), self.chunk):
@@ -469,7 +505,7 @@ class _Problem:
                 moved[sel] += sign * d
                 jac.append(model.jacobians(self.context_at(model, moved, lin.derivs, sel), self.free))
             djt = 0.5 * (self.parameter_jacobian(jac[0], w) - self.parameter_jacobian(jac[1], w))
-            jx = 0.5 * (jac[0].motion + jac[1].motion)[:, self.cols] * w[:, self.cols, :, None]
+            jx = self.motion_jacobian(0.5 * (jac[0].motion + jac[1].motion), w, motion, sel)[:, self.cols]
             dk = _per_imu(djt)
             blocks += np.matmul(dk.transpose(0, 2, 1), dk)
             gmat = _stacked_g(jx, lin.linv[sel], djt)
@@ -486,7 +522,8 @@ class _Problem:
                 jac = model.jacobians(self.context(model, motion, lin.derivs, lo, hi), self.free)
                 w = self.w[lo:hi]
                 u = np.einsum("nkrp,kp->nkr", self.parameter_jacobian(jac, w), dt)  # J_t dtheta per IMU
-                bdt = np.einsum("nkri,nkr->ni", jac.motion[:, self.cols] * w[:, self.cols, :, None], u)
+                jx = self.motion_jacobian(jac.motion, w, motion, slice(lo, hi))[:, self.cols]
+                bdt = np.einsum("nkri,nkr->ni", jx, u)
                 v[lo:hi] -= np.einsum("nij,nj->ni", lin.linv[lo:hi], bdt)
         return np.einsum("nji,nj->ni", lin.linv, v)
 
@@ -503,7 +540,7 @@ class _Problem:
             return np.linalg.solve(mat, rhs[..., None])[..., 0]
         omega = average(self.raw[..., 3:], model.gyro_std)
         s = average(self.raw[..., :3], model.acc_std)
-        return np.concatenate([omega, motion_derivative(self.stamps, omega), s], axis=1)
+        return self.mm.initial(np.concatenate([omega, motion_derivative(self.stamps, omega), s], axis=1))
 
     def fit_motion(self, model: SensorModel, motion: np.ndarray, tolerance: float = 1e-4):
         """Motion-only Gauss-Newton for fixed parameters (batched 9x9 steps), step halving per sample.
@@ -532,8 +569,8 @@ class _Problem:
 
 
 def _gram(jx: np.ndarray) -> np.ndarray:
-    """(n, K, 6, 9) -> A_n = J_x^T J_x (n, 9, 9)."""
-    j = jx.reshape(len(jx), -1, 9)
+    """(n, K, 6, d) -> A_n = J_x^T J_x (n, d, d)."""
+    j = jx.reshape(len(jx), -1, jx.shape[-1])
     return np.matmul(j.transpose(0, 2, 1), j)
 
 
@@ -549,7 +586,7 @@ def _factor(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     d = np.where(d > 0, d, 1.0)
     an = a / (d[:, :, None] * d[:, None, :])
     ok = np.linalg.eigvalsh(an)[:, 0] > MOTION_RTOL
-    an[~ok] += np.eye(9)
+    an[~ok] += np.eye(a.shape[-1])
     lower = np.linalg.cholesky(an)
     return np.linalg.inv(lower) / d[:, None, :], ok
 
@@ -573,9 +610,10 @@ def _stacked_g(jx: np.ndarray, linv: np.ndarray, jt: np.ndarray) -> np.ndarray:
     G_n,k = M_n,k^T J_t,k, one batched product over (n, k).
     """
     n, kf, _, p = jt.shape
-    mk = np.matmul(jx, linv.transpose(0, 2, 1)[:, None])  # (n, K_fit, 6, 9)
-    gk = np.matmul(mk.transpose(0, 1, 3, 2), jt)  # (n, K_fit, 9, P)
-    return gk.transpose(0, 2, 1, 3).reshape(9 * n, kf * p)
+    d = jx.shape[-1]
+    mk = np.matmul(jx, linv.transpose(0, 2, 1)[:, None])  # (n, K_fit, 6, d)
+    gk = np.matmul(mk.transpose(0, 1, 3, 2), jt)  # (n, K_fit, d, P)
+    return gk.transpose(0, 2, 1, 3).reshape(d * n, kf * p)
 
 
 # --------------------------------------------------------------------------- gauge
@@ -798,8 +836,8 @@ def _solve_damped(s: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray:
 
 def _loglik(prob: _Problem, cost: float) -> float:
     """log p(y) at a point with cost sum r^2 / 2, over the valid axes of the samples used."""
-    sigma = np.broadcast_to(prob.model0.std[None], prob.valid.shape)[prob.valid & prob.used[:, None, None]]
-    return float(-cost - np.sum(np.log(sigma)) - 0.5 * len(sigma) * np.log(2 * np.pi))
+    mask = prob.valid & prob.used[:, None, None]
+    return float(-cost + np.sum(np.log(prob.w[mask])) - 0.5 * int(mask.sum()) * np.log(2 * np.pi))
 
 
 def _result(prob: _Problem, model: SensorModel, motion: np.ndarray, lin: _Linearization, gauge: _Gauge,
@@ -817,7 +855,7 @@ def _result(prob: _Problem, model: SensorModel, motion: np.ndarray, lin: _Linear
     names = prob.parameter_names()
     mask = ~(prob.valid & prob.used[:, None, None])
     residuals = np.where(mask, np.nan, lin.r)
-    motion = np.where(prob.used[:, None], motion, np.nan)
+    motion = np.where(prob.used[:, None], prob.expand(motion), np.nan)
     return FitResult(model=model, free=prob.free, imus=tuple(model.names[k] for k in prob.fit),
                      parameter_names=names, theta=prob.values(model).reshape(-1), covariance=cov, std=std,
                      held=[names[i] for i in gauge.held], gauge=gauge.lines, gauge_directions=gauge.directions,

@@ -12,7 +12,8 @@ import numpy as np
 from imu_array_ros.model.kinematics import skew
 from imu_array_ros.model.terms.base import MotionContext, Term
 
-__all__ = ["Gain", "Nonorthogonality", "Misalignment", "Bias", "nonorthogonality_matrix"]
+__all__ = ["Gain", "Nonorthogonality", "Misalignment", "Bias", "nonorthogonality_matrix", "triad_matrix",
+           "decompose_triad"]
 
 
 def nonorthogonality_matrix(l: np.ndarray) -> np.ndarray:
@@ -27,6 +28,35 @@ def nonorthogonality_matrix(l: np.ndarray) -> np.ndarray:
     out[..., 2, 0] = l[..., 1]
     out[..., 2, 1] = l[..., 2]
     return out
+
+
+def triad_matrix(gain: np.ndarray, l: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """K L (I + [xi]x) (..., 3, 3): the linear map of a triad's gain, non-orthogonality and misalignment."""
+    gain, xi = np.asarray(gain, dtype=float), np.asarray(xi, dtype=float)
+    return gain[..., :, None] * nonorthogonality_matrix(l) @ (np.eye(3) + skew(xi))
+
+
+def decompose_triad(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(gain, l, xi), each (..., 3), with ``triad_matrix(gain, l, xi) == matrix`` (..., 3, 3); exact.
+
+    Any matrix with a non-zero leading row splits this way (9 = 3 + 3 + 3
+    parameters), in closed form row by row: row 0 of M is k_x [1, -xi_z, xi_y];
+    rows 0-1 of M (I + [xi]x)^-1 must be lower triangular, which gives xi_x;
+    then K L = M (I + [xi]x)^-1.
+    """
+    m = np.asarray(matrix, dtype=float)
+    z = -m[..., 0, 1] / m[..., 0, 0]
+    y = m[..., 0, 2] / m[..., 0, 0]
+    den = 1.0 + z * z  # [M_10, M_11] = [T_10, T_11] [[1, -z], [z, 1]]
+    t10 = (m[..., 1, 0] - m[..., 1, 1] * z) / den
+    t11 = (m[..., 1, 0] * z + m[..., 1, 1]) / den
+    x = (t10 * y - m[..., 1, 2]) / t11  # M_12 = T_10 xi_y - T_11 xi_x
+    xi = np.stack([x, y, z], axis=-1)
+    n = np.eye(3) + skew(xi)
+    kl = np.swapaxes(np.linalg.solve(np.swapaxes(n, -1, -2), np.swapaxes(m, -1, -2)), -1, -2)  # M N^-1
+    gain = np.diagonal(kl, axis1=-2, axis2=-1).copy()
+    low = kl / gain[..., :, None]
+    return gain, np.stack([low[..., 1, 0], low[..., 2, 0], low[..., 2, 1]], axis=-1), xi
 
 
 class Gain(Term):

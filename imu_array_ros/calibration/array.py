@@ -1,0 +1,182 @@
+"""Whole-array calibration from one recording: still poses, then the moving phase.
+
+``calibrate_array`` (what ``imu-array calibrate all`` runs):
+
+1. **Still poses** (:func:`~imu_array_ros.calibration.still.find_still_poses`):
+   the still intervals of the recording, averaged per IMU.
+2. **Static stage** (:func:`~imu_array_ros.calibration.static.calibrate_static`,
+   nilsson2014 ML): accelerometer gain, non-orthogonality, bias and
+   misalignment, and the gyroscope biases.  Skipped, with the reason, when the
+   recording has too few or too clustered poses.
+3. **Moving stage**: with the static result applied, the accelerometer
+   positions and the gyroscopes' gain and misalignment, jointly with every
+   sample's motion, by the fitting engine
+   (:func:`~imu_array_ros.estimation.fit_terms.fit_terms`) on the samples
+   outside the still intervals that rotate enough (the geometry calibration's
+   sample selection).  A common scale of the gyroscopes and of the positions
+   is not observable from motion alone (engine docstring: omega (1 + e),
+   positions / (1 + e)^2 read the same); the engine holds the reference IMU's
+   gyroscope gain for it.  Skipped, with the reason, when there is no such
+   motion.
+
+One description comes out with every calibrated field, its ``_std`` and a
+``calibration:`` block listing each stage, the data it used and its residuals.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.model.constants import STANDARD_GRAVITY
+from imu_array_ros.model.forward import SensorModel
+
+__all__ = ["MOVING_TERMS", "ArrayCalibration", "calibrate_array", "array_description"]
+
+#: what the moving stage fits by default
+MOVING_TERMS = ("position", "gyroscope_gain", "gyroscope_misalignment")
+
+
+@dataclass
+class ArrayCalibration:
+    """The stages of :func:`calibrate_array`: model (every stage applied), poses (StillPoses),
+    static (StaticCalibration or None), moving (FitResult or None), skipped: stage -> reason,
+    moving_samples: (used, total) of the moving stage, seconds."""
+
+    model: SensorModel
+    poses: object
+    static: object | None
+    moving: object | None
+    skipped: dict[str, str] = field(default_factory=dict)
+    moving_samples: tuple[int, int] = (0, 0)
+    moving_terms: tuple[str, ...] = ()
+    seconds: float = 0.0
+
+    def stds(self) -> dict[str, np.ndarray]:
+        """term -> (K, P) standard deviations of every calibrated field (the moving stage's CRB x
+        sqrt(max(1, NIS)) as for the static stage)."""
+        out = {}
+        if self.static is not None:
+            out.update(self.static.written_std())
+        if self.moving is not None:
+            factor = np.sqrt(max(1.0, self.moving.nis_after))
+            for t in self.moving.free:
+                out[t] = self.moving.std[t] * factor
+        return out
+
+    def summary(self) -> str:
+        parts = []
+        if self.static is not None:
+            parts.append(f"static: {self.static.summary()}")
+        if self.moving is not None:
+            m = self.moving
+            parts.append(f"moving: {self.moving_samples[0]} of {self.moving_samples[1]} samples, "
+                         f"{', '.join(m.free)}; NIS {m.nis_before:.4g} -> {m.nis_after:.4g}, {m.iterations} iterations"
+                         f"{'' if m.converged else ' (NOT converged)'}")
+        parts += [f"{stage} skipped: {why}" for stage, why in self.skipped.items()]
+        return "; ".join(parts)
+
+    def record(self) -> dict:
+        from imu_array_ros import __version__
+
+        f = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+        stages = []
+        spread = self.poses.spread() if self.poses is not None else {}
+        stages.append({"stage": "still poses", "poses": int(len(self.poses.accel)) if self.poses is not None else 0,
+                       "spread": {k: (f(v) if isinstance(v, float) else v) for k, v in spread.items()},
+                       "rejected": [{"start": int(a), "stop": int(b), "reason": r}
+                                    for a, b, r in (self.poses.rejected if self.poses is not None else [])]})
+        if self.static is not None:
+            stages.append(self.static.record())
+        if self.moving is not None:
+            m = self.moving
+            stages.append({"stage": "moving", "method": "maximum likelihood of the terms jointly with every sample's "
+                           "motion (Schur-complement Gauss-Newton); _std = Cramer-Rao bound x sqrt(max(1, NIS))",
+                           "terms": list(m.free), "samples_used": int(self.moving_samples[0]),
+                           "samples_total": int(self.moving_samples[1]), "iterations": int(m.iterations),
+                           "converged": bool(m.converged), "held": list(m.held),
+                           "log_likelihood_before": f(m.loglik_before), "log_likelihood_after": f(m.loglik_after),
+                           "nis_before": f(m.nis_before), "nis_after": f(m.nis_after)})
+        return {"method": "calibrate all: still poses -> static (accelerometer intrinsics, gyroscope biases) -> "
+                          "moving (positions, gyroscope gain and misalignment)",
+                "software": f"imu_array_ros {__version__}",
+                "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                "stages": stages, "skipped": dict(self.skipped)}
+
+
+def calibrate_array(stamps, accel, gyro, model: SensorModel, *, reference=None, static_method: str = "ml",
+                    static_terms: Sequence[str] | None = None, moving_terms: Sequence[str] = MOVING_TERMS,
+                    gravity: float = STANDARD_GRAVITY, still_options: dict | None = None,
+                    max_iterations: int = 50, progress: Callable[[str], None] | None = None) -> ArrayCalibration:
+    """Calibrate what the recording can: static stage from its still poses, moving stage from the rest.
+
+    Raises :class:`CalibrationError` only when neither stage can run (the reasons of both)."""
+    from imu_array_ros.calibration.geometry import MIN_EXCITATION, _check_excitation, _select
+    from imu_array_ros.calibration.static import MIN_POSES, STATIC_TERMS, calibrate_static
+    from imu_array_ros.calibration.still import check_poses, find_still_poses
+    from imu_array_ros.estimation.fit_terms import fit_terms
+
+    say = progress or (lambda text: None)
+    t0 = time.perf_counter()
+    stamps = np.asarray(stamps, dtype=np.int64)
+    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
+    static_terms = tuple(STATIC_TERMS if static_terms is None else static_terms)
+    skipped: dict[str, str] = {}
+    poses = find_still_poses(stamps, accel, gyro, model, **(still_options or {}))
+    say(f"still poses: {poses.summary()}")
+    current, static = model, None
+    try:
+        check_poses(poses, MIN_POSES["accelerometer_misalignment" in static_terms])
+        say(f"static stage: {static_method} on {len(poses.accel)} poses")
+        static = calibrate_static(poses.accel, poses.gyro, poses.counts, current, method=static_method,
+                                  terms=static_terms, reference=reference, gravity=gravity,
+                                  max_iterations=max_iterations)
+        current = static.model
+        say(f"static stage: {static.summary()}")
+    except CalibrationError as err:
+        skipped["static"] = str(err)
+        say(f"static stage skipped: {err}")
+    moving, used_total = None, (0, 0)
+    moving_terms = tuple(moving_terms)
+    try:
+        if not moving_terms:
+            raise CalibrationError("no moving-stage terms asked for")
+        idx = np.flatnonzero(poses.moving)
+        if len(idx) < 3:
+            raise CalibrationError(f"no moving phase: {len(idx)} samples outside the still intervals")
+        st, acc, gyr = stamps[idx], accel[idx], gyro[idx]
+        used, dropped, motion = _select(st, acc, gyr, current, MIN_EXCITATION)
+        _check_excitation(motion[used], int(used.sum()), len(idx), dropped)
+        used_total = (int(used.sum()), len(stamps))
+        say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
+        moving = fit_terms(st[used], acc[used], gyr[used], current, moving_terms, reference=reference,
+                           motion0=motion[used], max_iterations=max_iterations,
+                           progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
+        current = moving.model
+        say(f"moving stage: NIS {moving.nis_before:.4g} -> {moving.nis_after:.4g}")
+    except CalibrationError as err:
+        skipped["moving"] = str(err)
+        say(f"moving stage skipped: {err}")
+    if static is None and not moving_terms:
+        raise CalibrationError(skipped["static"])
+    if static is None and moving is None:
+        raise CalibrationError(f"nothing to calibrate: static stage: {skipped['static']}; "
+                               f"moving stage: {skipped['moving']}")
+    return ArrayCalibration(model=current, poses=poses, static=static, moving=moving, skipped=skipped,
+                            moving_samples=used_total, moving_terms=moving_terms,
+                            seconds=time.perf_counter() - t0)
+
+
+def array_description(desc, result):
+    """``desc`` with every field the calibration set (and every non-identity term), their ``_std`` and
+    the ``calibration:`` block."""
+    stds = result.stds() if hasattr(result, "stds") else result.written_std()
+    model = result.model
+    names = list(stds) + [n for n, t in model.terms.items() if n not in stds and not t.is_identity]
+    out = model.to_description(desc, names=names, stds=stds)
+    return out.with_imus(out.imus, calibration=result.record())
