@@ -173,9 +173,9 @@ def calibrate_array(stamps, accel, gyro, model: SensorModel, *, reference=None, 
 
 
 def array_description(desc, result):
-    """``desc`` with every field the calibration set (and every non-identity term), their ``_std`` and
-    the ``calibration:`` block."""
-    stds = result.stds() if hasattr(result, "stds") else result.written_std()
+    """``desc`` with every field an :class:`ArrayCalibration` set (and every non-identity term), their
+    ``_std`` and the ``calibration:`` block."""
+    stds = result.stds()
     model = result.model
     names = list(stds) + [n for n, t in model.terms.items() if n not in stds and not t.is_identity]
     out = model.to_description(desc, names=names, stds=stds)

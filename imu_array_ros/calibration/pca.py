@@ -69,7 +69,7 @@ import numpy as np
 
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
-from imu_array_ros.model.terms.triad import decompose_triad
+from imu_array_ros.model.terms.triad import triads_in_reference_frame
 
 __all__ = ["PcaResult", "ArrayPca", "ARRAY_TERMS", "pca_calibrate", "pca_array", "calibration_error",
            "upper_triangular_form"]
@@ -319,12 +319,7 @@ def pca_array(accel, model, *, reference: int | str = 0, gravity: float = STANDA
     rot = np.asarray(model.rotations, dtype=float)[kept]
     r = int(np.searchsorted(kept, ref))
     t_hat = pca.a.reshape(3, len(kept), 3).transpose(1, 2, 0)     # T_hat_k: row i = a_(3k+i)^T
-    qr_q, qr_r = np.linalg.qr((t_hat[r] @ rot[r]).T)               # LQ of T_hat_ref Rbar_ref = (Q R)^T
-    sign = np.sign(np.diag(qr_r))
-    omega = rot[r] @ (sign[:, None] * qr_q.T).T @ rot[r].T
-    m = t_hat @ omega @ rot
-    gain, l, xi = decompose_triad(m)
-    xi[r] = 0.0
+    omega, gain, l, xi = triads_in_reference_frame(t_hat, rot, r)
     bad = np.flatnonzero(~(gain > 0).all(axis=-1))
     if len(bad):
         raise CalibrationError(f"IMU {names[kept[bad[0]]]}: estimated accelerometer gains {np.round(gain[bad[0]], 4)} "

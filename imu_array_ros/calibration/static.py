@@ -51,7 +51,7 @@ from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms
 from imu_array_ros.estimation.motion_models import StaticMotion
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.forward import SensorModel
-from imu_array_ros.model.terms.triad import decompose_triad, triad_matrix
+from imu_array_ros.model.terms.triad import triad_matrix, triads_in_reference_frame
 
 __all__ = ["ACCELEROMETER_TERMS", "STATIC_TERMS", "METHODS", "StaticCalibration", "calibrate_static",
            "compensate", "consistency", "consistency_db", "static_loglik", "reframe_accelerometers",
@@ -175,11 +175,17 @@ class StaticCalibration:
 def compensate(accel: np.ndarray, model: SensorModel) -> np.ndarray:
     """(P, K, 3) forces in the array frame from static accelerometer readings (P, K, 3):
     R_k (K L (I + [xi]x))^-1 (y - b) per IMU (NaN stays NaN)."""
+    full = np.linalg.inv(_accelerometer_maps(model))  # array <- sensor
+    bias = model.terms["accelerometer_bias"].values
+    return np.einsum("kij,pkj->pki", full, np.asarray(accel, dtype=float) - bias[None])
+
+
+def _accelerometer_maps(model: SensorModel) -> np.ndarray:
+    """(K, 3, 3) each accelerometer's reading of a static specific force in the array frame:
+    K L (I + [xi]x) R_k^T (sensor <- array)."""
     t = model.terms
-    a = triad_matrix(t["accelerometer_gain"].values, t["accelerometer_nonorthogonality"].values,
-                     t["accelerometer_misalignment"].values)  # (K, 3, 3) sensor <- nominal sensor
-    full = np.linalg.inv(a @ np.swapaxes(model.rotations, 1, 2))  # array <- sensor
-    return np.einsum("kij,pkj->pki", full, np.asarray(accel, dtype=float) - t["accelerometer_bias"].values[None])
+    return triad_matrix(t["accelerometer_gain"].values, t["accelerometer_nonorthogonality"].values,
+                        t["accelerometer_misalignment"].values) @ np.swapaxes(model.rotations, 1, 2)
 
 
 def consistency(accel: np.ndarray, model: SensorModel) -> float:
@@ -209,16 +215,7 @@ def reframe_accelerometers(model: SensorModel, reference: int | str) -> SensorMo
     reference estimates.  For comparing a true (simulated) model, or calibrations with other
     references, with an estimate.  Positions and gyroscopes are left alone."""
     ref = model.names.index(reference) if isinstance(reference, str) else int(reference)
-    t = model.terms
-    a = triad_matrix(t["accelerometer_gain"].values, t["accelerometer_nonorthogonality"].values,
-                     t["accelerometer_misalignment"].values) @ np.swapaxes(model.rotations, 1, 2)
-    # rotation R (array -> new array) such that A_ref R^T R_ref is lower triangular
-    n = a[ref] @ model.rotations[ref]
-    q_t, r_t = np.linalg.qr(n.T)
-    q = (q_t * np.sign(np.diag(r_t))[None, :]).T  # n = lower @ q
-    rot_t = model.rotations[ref] @ q.T @ model.rotations[ref].T  # R^T
-    gain, l, xi = decompose_triad(a @ rot_t[None] @ model.rotations)
-    xi[ref] = 0.0
+    _, gain, l, xi = triads_in_reference_frame(_accelerometer_maps(model), model.rotations, ref)
     return model.with_terms(accelerometer_gain=gain, accelerometer_nonorthogonality=l,
                             accelerometer_misalignment=xi)
 

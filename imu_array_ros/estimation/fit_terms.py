@@ -505,7 +505,7 @@ class _Problem:
                 moved[sel] += sign * d
                 jac.append(model.jacobians(self.context_at(model, moved, lin.derivs, sel), self.free))
             djt = 0.5 * (self.parameter_jacobian(jac[0], w) - self.parameter_jacobian(jac[1], w))
-            jx = self.motion_jacobian(0.5 * (jac[0].motion + jac[1].motion), w, motion, sel)[:, self.cols]
+            jx = self.motion_jacobian(0.5 * (jac[0].motion + jac[1].motion)[:, self.cols], w[:, self.cols], motion, sel)
             dk = _per_imu(djt)
             blocks += np.matmul(dk.transpose(0, 2, 1), dk)
             gmat = _stacked_g(jx, lin.linv[sel], djt)
@@ -522,7 +522,7 @@ class _Problem:
                 jac = model.jacobians(self.context(model, motion, lin.derivs, lo, hi), self.free)
                 w = self.w[lo:hi]
                 u = np.einsum("nkrp,kp->nkr", self.parameter_jacobian(jac, w), dt)  # J_t dtheta per IMU
-                jx = self.motion_jacobian(jac.motion, w, motion, slice(lo, hi))[:, self.cols]
+                jx = self.motion_jacobian(jac.motion[:, self.cols], w[:, self.cols], motion, slice(lo, hi))
                 bdt = np.einsum("nkri,nkr->ni", jx, u)
                 v[lo:hi] -= np.einsum("nij,nj->ni", lin.linv[lo:hi], bdt)
         return np.einsum("nji,nj->ni", lin.linv, v)

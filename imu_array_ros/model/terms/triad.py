@@ -13,7 +13,7 @@ from imu_array_ros.model.kinematics import skew
 from imu_array_ros.model.terms.base import MotionContext, Term
 
 __all__ = ["Gain", "Nonorthogonality", "Misalignment", "Bias", "nonorthogonality_matrix", "triad_matrix",
-           "decompose_triad"]
+           "decompose_triad", "triads_in_reference_frame"]
 
 
 def nonorthogonality_matrix(l: np.ndarray) -> np.ndarray:
@@ -57,6 +57,26 @@ def decompose_triad(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     gain = np.diagonal(kl, axis1=-2, axis2=-1).copy()
     low = kl / gain[..., :, None]
     return gain, np.stack([low[..., 1, 0], low[..., 2, 0], low[..., 2, 1]], axis=-1), xi
+
+
+def triads_in_reference_frame(a: np.ndarray, rotations: np.ndarray, ref: int):
+    """Triads re-expressed in the array frame that triad ``ref`` defines (its misalignment 0).
+
+    a (K, 3, 3): each triad's linear map from the array frame to its readings
+    (K L (I + [xi]x) R_k^T); rotations (K, 3, 3): nominal sensor -> array.
+    Returns (omega, gain, l, xi): omega (3, 3) orthogonal with
+    a_k omega R_k = K' L' (I + [xi']x) for every k and xi'[ref] = 0, the new
+    quantities being s' = omega^T s.  omega is fixed by making the reference's
+    a_ref omega R_ref lower triangular with a positive diagonal (an LQ
+    decomposition); the split is :func:`decompose_triad`, exact.
+    """
+    rot_ref = rotations[ref]
+    q_t, r_t = np.linalg.qr((a[ref] @ rot_ref).T)  # a_ref R_ref = (Q R)^T = R^T Q^T
+    q = (q_t * np.sign(np.diag(r_t))[None, :]).T
+    omega = rot_ref @ q.T @ rot_ref.T
+    gain, l, xi = decompose_triad(a @ omega @ rotations)
+    xi[ref] = 0.0
+    return omega, gain, l, xi
 
 
 class Gain(Term):
