@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from imu_array_ros import __version__
-from imu_array_ros.cli import calibrate, commands, fake_device
+from imu_array_ros.cli import calibrate, commands, discover, fake_device
 from imu_array_ros.errors import ImuArrayError
 
 __all__ = [
@@ -364,6 +364,32 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--plot", type=Path, metavar="PNG", help="also write the static stage's plot")
     _common(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak; and an existing --plot")
     sp.set_defaults(func=calibrate.calibrate_all)
+
+    sp = sub.add_parser("discover", help="where a recording differs from the model, which physics the model "
+                                         "left out (terms found, confirmed on held-out blocks), and the fit after")
+    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
+    sp.add_argument("--array", required=True, type=Path, help="array description YAML")
+    sp.add_argument("--calibration", type=Path, help="calibrated description (same schema) to start from")
+    sp.add_argument("--report", required=True, type=Path,
+                    help="directory for report.md, report.json and the plots (created if missing)")
+    sp.add_argument("--sim", type=Path,
+                    help="your own simulated recording of the same run (same stamps and IMUs): localise "
+                         "recording - simulation instead of recording - model prediction")
+    sp.add_argument("--apply", type=Path, metavar="OUT.yaml",
+                    help="write the description extended with the found terms (not written when nothing is found)")
+    sp.add_argument("--validate", type=Path, nargs="+", metavar="REC",
+                    help="other recordings of the same array: log-likelihood and NIS with and without the findings")
+    sp.add_argument("--terms", help="comma-separated candidate terms (default: every registered term)")
+    sp.add_argument("--alpha", type=positive_float, default=0.01,
+                    help="family-wise false-finding rate per recording, in (0, 1) (default 0.01)")
+    sp.add_argument("--block", type=positive_float, default=0.5, metavar="SECONDS",
+                    help="time block of the robust test and the held-out folds, s (default 0.5)")
+    sp.add_argument("--max-findings", type=positive_int, default=8, help="cap on the findings (default 8)")
+    sp.add_argument("--no-plots", action="store_true", help="no PNG plots (report.md and report.json only)")
+    sp.add_argument("--no-empirical", action="store_true", help="do not model the unexplained residual")
+    _common(sp, force="replace an existing report in --report and an existing --apply YAML (only files of "
+                      "those kinds)")
+    sp.set_defaults(func=discover.discover_command)
 
     sp = sub.add_parser("recover", help="salvage a truncated or damaged recording (e.g. a recorder killed mid-write)")
     sp.add_argument("recording", type=Path, help="the damaged recording: .mcap file or rosbag2 directory (only read)")

@@ -102,7 +102,7 @@ from imu_array_ros.estimation.motion_models import RigidMotion
 from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.terms import REGISTRY, term_names
 
-__all__ = ["FitResult", "fit_terms", "fit_motion", "check_terms", "GAUGE_ORDER"]
+__all__ = ["FitResult", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms", "GAUGE_ORDER"]
 
 #: terms whose reference-IMU parameters are tried first to fix a gauge freedom (frame-defining ones)
 GAUGE_ORDER = ("position", "accelerometer_misalignment", "accelerometer_gain", "accelerometer_bias", "time_offset")
@@ -170,7 +170,8 @@ class FitResult:
 
 def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, imus=None, reference=None,
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
-              progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None) -> FitResult:
+              progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None,
+              only: dict | None = None) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
     stamps (N,) int64 ns; accel, gyro (N, K, 3) raw readings in the sensor
@@ -194,9 +195,12 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     :class:`~imu_array_ros.estimation.motion_models.StaticMotion` for poses at
     rest on gravity of known magnitude); sigma: (N, K, 6) standard deviations
     of the readings [acc, gyro] replacing the model's noise figures (e.g. of
-    averages over still intervals, or robust reweighting).  Raises
-    :class:`CalibrationError` (one line) when the problem cannot be solved or
-    identified.
+    averages over still intervals, or robust reweighting); only: term -> IMUs
+    (names or indexes) where that free term is fitted, the term held on the
+    other IMUs of ``imus`` (e.g. the findings of mismatch discovery: one term
+    on one IMU, another on another; default every free term on every fitted
+    IMU).  Raises :class:`CalibrationError` (one line) when the problem cannot
+    be solved or identified.
     """
     free = check_terms(free)
     if gauge not in ("reference", "mean"):
@@ -209,7 +213,7 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     motion = prob.drop(~lin.ok, motion)
     prob.check_dof(prob.m)
     lin = prob.linearize(model, motion)  # with the free parameters, at the initial point
-    gauge_fix = _Gauge.find(prob, model, motion, lin, ref, gauge)
+    gauge_fix = _Gauge.find(prob, model, motion, lin, ref, gauge, _fixed(prob, model, only))
     dof = prob.check_dof(gauge_fix.rank)
     before = lin.cost
     model, motion, lin, iterations, converged = _optimise(prob, model, motion, lin, gauge_fix, max_iterations,
@@ -233,6 +237,94 @@ def fit_motion(stamps, accel, gyro, model: SensorModel, motion0=None, *, motion_
     return prob.expand(motion), _loglik(prob, lin.cost), np.where(prob.valid, lin.r, np.nan)
 
 
+@dataclass
+class ScoreBlocks:
+    """Score and Fisher information of candidate terms, per time block and IMU, with the motion profiled out.
+
+    terms: the candidate terms; offsets: term -> first column in the per-IMU
+    parameter vector (P = sum of the terms' sizes); g (B, K, P): score
+    d loglik / d theta_k summed over block b (each IMU's parameters alone,
+    every other held); S (B, K, P, P): the information of IMU k's parameters
+    in block b with every sample's motion profiled out (the per-IMU diagonal
+    block of the engine's Schur complement; block sums add up to it);
+    counts (B,) samples per block; residuals (N, K, 6) normalised, NaN on
+    masked axes and on samples that do not identify their motion; expected (N,
+    K, 6): E[r^2] = 1 - leverage of each valid axis (leverage: what the fitted
+    motion absorbs, 9 per sample), NaN where masked; cost: sum r^2 / 2;
+    loglik: log-likelihood of the valid axes; valid_axes: their number.
+    """
+
+    terms: tuple[str, ...]
+    offsets: dict[str, int]
+    g: np.ndarray
+    S: np.ndarray
+    counts: np.ndarray
+    residuals: np.ndarray = field(repr=False)
+    expected: np.ndarray = field(repr=False)
+    cost: float = 0.0
+    loglik: float = 0.0
+    valid_axes: int = 0
+
+    def columns(self, term: str) -> slice:
+        return slice(self.offsets[term], self.offsets[term] + REGISTRY[term].dim())
+
+
+def score_blocks(stamps, accel, gyro, model: SensorModel, terms: Sequence[str], motion, blocks, *,
+                 sigma=None) -> ScoreBlocks:
+    """Score test ingredients of every term in ``terms`` on every IMU at (model, motion), by time block.
+
+    ``motion`` (N, 9): the ML motion for ``model`` (:func:`fit_motion`);
+    blocks (N,) non-decreasing block index 0..B-1 of every sample (contiguous
+    blocks).  For the parameters theta_k of one IMU, g_k = J_t,k^T r -
+    sum_n G_n,k^T h_n and S_kk = C_kk - sum_n G_n,k^T G_n,k (module docstring)
+    are the score and information of the one-step Gauss-Newton fit of theta_k
+    with every sample's motion re-estimated: g^T S^-1 g is the Rao score
+    statistic of adding the term to that IMU (chi-square under the model) and
+    g^T S^-1 g / 2 the log-likelihood it gains to first order.  Per block, so
+    that held-out blocks and a block-robust (sandwich) variance can be formed.
+    """
+    terms = check_terms(terms)
+    k = model.n_imus
+    prob = _Problem(stamps, accel, gyro, model, terms, np.arange(k), sigma=sigma)
+    blocks = np.asarray(blocks, dtype=np.int64).reshape(-1)
+    if blocks.shape != (prob.n,) or blocks.min() < 0 or np.any(np.diff(blocks) < 0):
+        raise CalibrationError("blocks must give a non-decreasing block index >= 0 for every sample")
+    z = prob.check_motion(motion)
+    derivs = prob.derivatives(z)
+    nb, p = int(blocks[-1]) + 1, prob.p
+    g, S = np.zeros((nb, k, p)), np.zeros((nb, k, p, p))
+    res, expected = np.full_like(prob.y, np.nan), np.full_like(prob.y, np.nan)
+    cost = 0.0
+    mask = np.zeros(prob.y.shape, dtype=bool)
+    edges = np.flatnonzero(np.diff(blocks)) + 1
+    for b, (lo0, hi0) in zip(blocks[np.r_[0, edges]], zip(np.r_[0, edges], np.r_[edges, prob.n])):
+        for lo in range(lo0, hi0, prob.chunk):
+            hi = min(lo + prob.chunk, hi0)
+            jac = model.jacobians(prob.context(model, z, derivs, lo, hi), terms)
+            linv, ok = _factor(_gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi))))
+            w = prob.w[lo:hi] * ok[:, None, None]  # a sample that does not identify its motion tells nothing
+            r = w * (prob.y[lo:hi] - jac.predicted)
+            jx = prob.motion_jacobian(jac.motion, w, z, slice(lo, hi))
+            h = np.einsum("nij,nkrj,nkr->ni", linv, jx, r, optimize=True)
+            jt = prob.parameter_jacobian(jac, w)
+            jk = _per_imu(jt)
+            mk = np.matmul(jx, linv.transpose(0, 2, 1)[:, None])  # (n, K, 6, 9): rows (L^-1 phi)^T
+            gk = np.matmul(mk.transpose(0, 1, 3, 2), jt)  # (n, K, 9, P) G_n,k
+            gs = gk.transpose(1, 0, 2, 3).reshape(k, -1, p)
+            S[b] += np.matmul(jk.transpose(0, 2, 1), jk) - np.matmul(gs.transpose(0, 2, 1), gs)
+            g[b] += (np.matmul(jk.transpose(0, 2, 1), r.transpose(1, 0, 2).reshape(k, -1, 1))[..., 0]
+                     - np.einsum("nkip,ni->kp", gk, h))
+            valid = prob.valid[lo:hi] & ok[:, None, None]
+            mask[lo:hi] = valid
+            res[lo:hi] = np.where(valid, r, np.nan)
+            expected[lo:hi] = np.where(valid, 1.0 - np.sum(mk * mk, axis=3), np.nan)
+            cost += 0.5 * float(np.sum(r * r))
+    loglik = float(-cost + np.sum(np.log(prob.w[mask])) - 0.5 * int(mask.sum()) * np.log(2 * np.pi))
+    offsets = {t: int(o) for t, o in zip(terms, np.cumsum([0] + prob.sizes[:-1]))}
+    return ScoreBlocks(terms, offsets, g, S, np.bincount(blocks, minlength=nb), res, expected, cost, loglik,
+                       int(mask.sum()))
+
+
 # --------------------------------------------------------------------------- input checks
 
 
@@ -247,6 +339,26 @@ def check_terms(free: Sequence[str]) -> tuple[str, ...]:
     if unknown:
         raise CalibrationError(f"unknown term {unknown[0]!r} in free (known: {', '.join(term_names())})")
     return out
+
+
+def _fixed(prob: "_Problem", model: SensorModel, only: dict | None) -> np.ndarray:
+    """(M,) True for the parameters ``only`` holds (its term not fitted on that IMU)."""
+    fixed = np.zeros(prob.m, dtype=bool)
+    if not only:
+        return fixed
+    unknown = [t for t in only if t not in prob.free]
+    if unknown:
+        raise CalibrationError(f"only: term {unknown[0]!r} is not among the free terms ({', '.join(prob.free)})")
+    offsets = dict(zip(prob.free, np.cumsum([0] + prob.sizes[:-1])))
+    for t, imus in only.items():
+        on = set(_imu_indexes(model, imus, f"only[{t!r}]").tolist())
+        for j, k in enumerate(prob.fit):
+            if k not in on:
+                lo = j * prob.p + offsets[t]
+                fixed[lo:lo + REGISTRY[t].dim()] = True
+    if fixed.all():
+        raise CalibrationError("only: no parameter left to fit")
+    return fixed
 
 
 def _imu_indexes(model: SensorModel, imus, label: str) -> np.ndarray:
@@ -634,6 +746,7 @@ class _Gauge:
     held: list[int]
     lines: list[str]
     directions: np.ndarray
+    fixed: np.ndarray | None = None
 
     @property
     def rank(self) -> int:
@@ -660,25 +773,29 @@ class _Gauge:
 
     @classmethod
     def find(cls, prob: _Problem, model: SensorModel, motion: np.ndarray, lin: _Linearization, ref: int,
-             mode: str) -> "_Gauge":
+             mode: str, fixed: np.ndarray | None = None) -> "_Gauge":
         """Null space of the scaled S at the structural point, holds, then the check that what is left is
-        identified by the motion itself (:func:`_check_excitation`); CalibrationError if anything is not."""
+        identified by the motion itself (:func:`_check_excitation`); CalibrationError if anything is not.
+        ``fixed`` (M,): parameters held from the start (``only``), outside every search."""
         structural = _structural(model)
         if structural is not model:
             lin = prob.linearize(structural, motion)
         scale = np.sqrt(lin.cdiag)
         scale = np.where(scale > 0, scale, 1.0)
-        lam, vec = np.linalg.eigh(lin.S / np.outer(scale, scale))
-        null = vec[:, lam <= NULL_RTOL * max(lam.max(), 0.0)]
+        act = np.ones(prob.m, dtype=bool) if fixed is None else ~fixed
+        lam, vec = np.linalg.eigh((lin.S / np.outer(scale, scale))[np.ix_(act, act)])
+        small = lam <= NULL_RTOL * max(lam.max(), 0.0)
+        null = np.zeros((prob.m, int(small.sum())))
+        null[act] = vec[:, small]
         names = prob.parameter_names()
         held, rest = _hold_gauge(null, prob, ref)
         if rest.shape[1]:
             raise CalibrationError(_unidentifiable_message(rest, names, prob.column_terms()))
         directions = np.linalg.qr(null / scale[:, None])[0]  # gauge freedoms in SI units
-        if mode == "reference" or not held:
-            keep = np.ones(prob.m, dtype=bool)
+        if mode == "reference" or not held or not act.all():
+            keep = act.copy()
             keep[held] = False
-            gauge = cls(keep, None, held, [f"{names[i]} held" for i in held], directions)
+            gauge = cls(keep, None, held, [f"{names[i]} held" for i in held], directions, ~act)
         else:
             basis = scipy.linalg.null_space(directions.T)
             gauge = cls(np.ones(prob.m, dtype=bool), basis, [],
@@ -846,6 +963,8 @@ def _result(prob: _Problem, model: SensorModel, motion: np.ndarray, lin: _Linear
     cov = gauge.expand_covariance(_inverse(s_z))
     std_flat = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(len(prob.fit), prob.p)
     std_flat[np.unravel_index(np.array(gauge.held, dtype=int), std_flat.shape)] = np.nan
+    if gauge.fixed is not None:
+        std_flat.reshape(-1)[gauge.fixed] = np.nan
     std, col = {}, 0
     for t, size in zip(prob.free, prob.sizes):
         full = np.full((model.n_imus, size), np.nan)

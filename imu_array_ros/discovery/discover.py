@@ -1,0 +1,466 @@
+"""Mismatch discovery: where a recording and the model's simulation of it differ, and which physics is missing.
+
+:func:`discover` runs the workflow of ``imu-array discover``:
+
+1. **Fit** the recording with the model as given: the ML motion of every
+   sample (:func:`~imu_array_ros.estimation.fit_terms.fit_motion`).
+2. **Simulate**: the model's prediction of every reading for that motion; the
+   residual recording - simulation is whitened by the noise model.  With a
+   user's own simulation of the same run (``sim``), the localisation reads
+   (recording - simulation) / (sqrt 2 sigma) instead (both are noisy).
+3. **Locate** (:mod:`.locate`): the excess over noise by IMU x axis, regime,
+   time span and frequency band, and the rigid-body test.
+4. **Explain** (:mod:`.explain`): every registered term on every IMU is a
+   candidate, tested with the fitting engine (score test with the motion
+   profiled out, block-robust test, held-out blocks, BIC); greedy selection at a
+   Bonferroni-corrected level, each finding confirmed by an exact refit
+   (:func:`~imu_array_ros.estimation.fit_terms.fit_terms` with ``only``), and
+   confounded candidates reported as indistinguishable.
+5. **Model what the library lacks** (:mod:`.empirical`): cells still in excess
+   after the findings get a sparse regression on motion features, scored on
+   held-out blocks, reported apart from the physical findings.
+6. **Show the fit improve**: log-likelihood and NIS (still / moving) before and
+   after, on the recording, on held-out blocks (the findings refitted on half of
+   the blocks, scored on the other half, both ways) and on validation recordings.
+
+Everything is computed by the same fitting engine the calibrations use, so a
+finding applied to the description (``--apply``) is a calibration result like
+any other.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+
+from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms, score_blocks
+from imu_array_ros.model.constants import STANDARD_GRAVITY
+from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.terms import REGISTRY, term_names
+
+__all__ = ["DiscoveryOptions", "Discovery", "Finding", "discover", "fit_summary"]
+
+#: held-out scale of the readings' sigma: samples of held-out blocks keep their motion but give the parameters
+#: 1e-8 of their information
+HELDOUT_SCALE = 1e4
+#: near saturation: |reading| above this share of the clip level
+NEAR_SATURATION = 0.9
+
+
+@dataclass
+class DiscoveryOptions:
+    """terms: candidate registry names (default every registered term); alpha: family-wise false-finding rate
+    per recording; block_s: time block (s) of the robust test and the held-out folds; folds: interleaved folds;
+    max_findings: cap on the greedy steps; still_threshold: |omega| (rad/s) below which a sample is still;
+    empirical: model the unexplained residual; heldout: exact held-out check of the final findings."""
+
+    terms: tuple[str, ...] | None = None
+    alpha: float = 0.01
+    block_s: float = 0.5
+    folds: int = 4
+    max_findings: int = 8
+    still_threshold: float = 0.2
+    empirical: bool = True
+    heldout: bool = True
+
+    def candidate_terms(self) -> tuple[str, ...]:
+        names = term_names() if self.terms is None else list(self.terms)
+        unknown = [t for t in names if t not in REGISTRY]
+        if unknown:
+            raise CalibrationError(f"unknown term {unknown[0]!r} (known: {', '.join(term_names())})")
+        if not names:
+            raise CalibrationError("no candidate terms")
+        return tuple(dict.fromkeys(names))
+
+
+@dataclass
+class Finding:
+    """A term found on one IMU: values (P,) and their CRB std (SI), the evidence at the step it was added."""
+
+    effect: str
+    k: int
+    sensor: str
+    values: np.ndarray
+    std: np.ndarray
+    candidate: Candidate
+    exact_delta_loglik: float
+    step: int
+
+    def to_dict(self) -> dict:
+        names = REGISTRY[self.effect].parameter_names()
+        c = self.candidate
+        return {"effect": self.effect, "sensors": [self.sensor],
+                "parameters": {n: float(v) for n, v in zip(names, self.values)},
+                "std": {n: _num(s) for n, s in zip(names, self.std)},
+                "units": {f.key: f.unit for f in REGISTRY[self.effect].fields},
+                "step": self.step,
+                "evidence": {"delta_loglik": float(self.exact_delta_loglik), "lrt_p": float(c.lrt_p),
+                             "log_lrt_p": float(c.log_p), "robust_p": float(c.robust_p),
+                             "delta_bic": float(c.delta_bic), "heldout_delta_loglik": float(c.heldout),
+                             "statistic": float(c.statistic), "dof": int(c.dof)}}
+
+
+def _num(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+@dataclass
+class FitSummary:
+    """How well a model explains a recording at its ML motion: log-likelihood and NIS by regime, (K, 6) maps."""
+
+    loglik: float
+    nis_still: float
+    nis_moving: float
+    observed: dict = field(repr=False)
+    expected: dict = field(repr=False)
+    samples: dict = field(default_factory=dict)
+
+    def ratio(self, regime: str = "all") -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.observed[regime] / self.expected[regime]
+
+    def to_dict(self) -> dict:
+        return {"nis_still": _num(self.nis_still), "nis_moving": _num(self.nis_moving),
+                "loglik": float(self.loglik), "samples": dict(self.samples)}
+
+
+def _summarise(residuals, expected, motion, loglik, still_threshold) -> FitSummary:
+    omega = np.linalg.norm(np.nan_to_num(motion[:, :3]), axis=1)
+    still = omega < still_threshold
+    obs, exp, counts = {}, {}, {}
+    r2 = np.nan_to_num(residuals) ** 2
+    e = np.nan_to_num(expected)
+    for regime, sel in (("still", still), ("moving", ~still), ("all", np.ones_like(still))):
+        obs[regime], exp[regime] = r2[sel].sum(axis=0), e[sel].sum(axis=0)
+        counts[regime] = int(sel.sum())
+
+    def nis(regime):
+        total = exp[regime].sum()
+        return float(obs[regime].sum() / total) if total > 0 else float("nan")
+    return FitSummary(float(loglik), nis("still"), nis("moving"), obs, exp, counts)
+
+
+def fit_summary(samples, model: SensorModel, *, still_threshold: float = 0.2, motion0=None):
+    """(FitSummary, motion, ScoreBlocks-like residuals/expected) of ``samples`` under ``model`` at its ML motion."""
+    motion, _, _ = fit_motion(samples.stamps, samples.accel, samples.gyro, model, motion0)
+    sb = score_blocks(samples.stamps, samples.accel, samples.gyro, model, ("accelerometer_bias",), motion,
+                      np.zeros(len(samples.stamps), dtype=np.int64))
+    return _summarise(sb.residuals, sb.expected, motion, sb.loglik, still_threshold), motion, sb
+
+
+@dataclass
+class Discovery:
+    """What :func:`discover` found; ``to_dict()`` is the report.json schema."""
+
+    names: tuple[str, ...]
+    model: SensorModel
+    baseline: FitSummary
+    after: FitSummary
+    findings: list[Finding]
+    candidates: list[Candidate]
+    indistinguishable: list[dict]
+    rejected: list[dict]
+    localization_before: object
+    localization_after: object
+    unexplained: list[dict]
+    empirical: list
+    heldout: dict
+    validation: list[dict]
+    settings: dict
+    timings: dict
+    level_per_step: list[float]
+    notes: list[str] = field(default_factory=list)
+    sim_source: str = "model"
+
+    def to_dict(self) -> dict:
+        loc = self.localization_before
+        return {
+            "baseline": self.baseline.to_dict(),
+            "localization": loc.entries() if loc is not None else [],
+            "findings": [f.to_dict() for f in self.findings],
+            "indistinguishable": self.indistinguishable,
+            "unexplained": self.unexplained,
+            "after": self.after.to_dict(),
+            "heldout": self.heldout,
+            "validation": self.validation,
+            "rejected": self.rejected,
+            "candidates": [c.to_dict() for c in self.candidates],
+            "localization_detail": {"before": loc.to_dict() if loc is not None else None,
+                                    "after": (self.localization_after.to_dict()
+                                              if self.localization_after is not None else None),
+                                    "source": self.sim_source},
+            "settings": self.settings,
+            "timings_s": self.timings,
+            "notes": self.notes,
+        }
+
+
+def _blocks(stamps: np.ndarray, block_s: float) -> np.ndarray:
+    t = (np.asarray(stamps, dtype=np.int64) - int(stamps[0])) * 1e-9
+    return np.floor(t / block_s).astype(np.int64)
+
+
+def _near_saturation(samples, model: SensorModel) -> np.ndarray:
+    acc = np.abs(np.nan_to_num(samples.accel)) >= NEAR_SATURATION * model.acc_clip
+    gyr = np.abs(np.nan_to_num(samples.gyro)) >= NEAR_SATURATION * model.gyro_clip
+    return np.concatenate([acc, gyr], axis=2)
+
+
+def _localize(residuals, expected, motion, samples, model, still_threshold):
+    from imu_array_ros.discovery.locate import localize
+
+    return localize(residuals, expected, motion, samples.stamps, model.names,
+                    near_saturation=_near_saturation(samples, model), rotations=model.rotations,
+                    positions=model.positions, acc_std=model.acc_std, still_threshold=still_threshold,
+                    gravity=STANDARD_GRAVITY)
+
+
+def _sim_residuals(samples, sim, model: SensorModel):
+    """(recording - simulation) / (sqrt 2 sigma) and its expectation 1 on the axes valid in both."""
+    if len(sim.stamps) != len(samples.stamps):
+        raise CalibrationError(f"--sim: the simulated recording has {len(sim.stamps)} samples, the recording "
+                               f"{len(samples.stamps)}; simulate the same run (same stamps)")
+    differ = np.flatnonzero(sim.stamps != samples.stamps)
+    if differ.size:
+        i = int(differ[0])
+        raise CalibrationError(f"--sim: the simulated recording's stamps do not match the recording's at "
+                               f"{differ.size} of {len(sim.stamps)} samples (first: sample {i}, "
+                               f"{int(sim.stamps[i])} vs {int(samples.stamps[i])} ns); simulate the same run")
+    if tuple(sim.names) != tuple(samples.names):
+        raise CalibrationError("--sim: the simulated recording's IMUs differ from the recording's")
+    valid = model.valid(samples.accel, samples.gyro) & model.valid(sim.accel, sim.gyro)
+    d = np.concatenate([samples.accel - sim.accel, samples.gyro - sim.gyro], axis=2) / (np.sqrt(2) * model.std)
+    return np.where(valid, d, np.nan), np.where(valid, 1.0, np.nan)
+
+
+def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = None, sim=None,
+             validate=(), progress=None) -> Discovery:
+    """The mismatch-discovery workflow (module docstring) on ``samples`` (ImuSamples) under ``model``.
+
+    sim: the user's simulated recording of the same run (ImuSamples, same stamps and IMUs) or None;
+    validate: [(label, ImuSamples)] other recordings to score the findings on; progress(text): stage lines.
+    """
+    opts = options or DiscoveryOptions()
+    say = progress or (lambda text: None)
+    if tuple(samples.names) != tuple(model.names):
+        raise CalibrationError("the recording's IMUs differ from the description's")
+    terms = opts.candidate_terms()
+    notes = []
+    stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
+    if "time_offset" in terms and np.any(np.diff(stamps) <= 0):
+        terms = tuple(t for t in terms if t != "time_offset")
+        notes.append("time_offset not tested: the stamps do not increase strictly")
+    timings, t0 = {}, time.perf_counter()
+    blocks = _blocks(stamps, opts.block_s)
+    nb = int(blocks[-1]) + 1
+    fold_of_block = np.arange(nb) % opts.folds
+    if nb < 2 * opts.folds:
+        raise CalibrationError(f"recording too short for discovery: {nb} blocks of {opts.block_s} s "
+                               f"(need at least {2 * opts.folds}); record longer")
+
+    # 1-2. fit and simulate
+    say("fitting the motion with the model as given")
+    motion, _, _ = fit_motion(stamps, accel, gyro, model)
+    say(f"scoring {len(terms)} terms x {model.n_imus} IMUs")
+    sb = score_blocks(stamps, accel, gyro, model, terms, motion, blocks)
+    baseline = _summarise(sb.residuals, sb.expected, motion, sb.loglik, opts.still_threshold)
+    timings["fit"] = time.perf_counter() - t0
+
+    # 3. locate
+    t1 = time.perf_counter()
+    if sim is not None:
+        res, exp = _sim_residuals(samples, sim, model)
+        sim_source = "recording - simulated recording (--sim), / (sqrt(2) sigma)"
+    else:
+        res, exp = sb.residuals, sb.expected
+        sim_source = "recording - model prediction at the ML motion, / sigma"
+    say("locating the excess over noise")
+    loc_before = _localize(res, exp, motion, samples, model, opts.still_threshold)
+    timings["locate"] = time.perf_counter() - t1
+
+    # 4. explain
+    t1 = time.perf_counter()
+    current, findings, all_candidates, indist, rejected, levels = model, [], [], [], [], []
+    accepted: dict[tuple[str, int], Finding] = {}
+    excluded: set[tuple[str, int]] = set()
+    loglik_current = sb.loglik
+    for step in range(1, opts.max_findings + 1):
+        cands = evaluate_candidates(sb, model.names, fold_of_block, terms=terms, exclude=set(accepted) | excluded,
+                                    step=step)
+        if not cands:
+            break
+        level = opts.alpha / len(cands)
+        levels.append(level)
+        passing = sorted((c for c in cands if c.passes(level)), key=lambda c: c.delta_bic)
+        if step == 1 or passing:
+            all_candidates += cands if step == 1 else passing
+        if not passing:
+            say(f"step {step}: no candidate passes (level {level:.2g}); done")
+            break
+        best = None
+        for c in passing:
+            say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly")
+            result = _confirm(samples, current, accepted, c, motion, level)
+            if isinstance(result, str):
+                c.note = result
+                rejected.append({"effect": c.effect, "sensors": [c.sensor], "step": step, "reason": result})
+                excluded.add((c.effect, c.k))
+                continue
+            best = c
+            break
+        if best is None:
+            break
+        fit, delta = result
+        best.accepted = True
+        for other in confounded(sb, best, passing, level):
+            indist.append({"effects": [best.effect, other["effect"]], "sensors": [best.sensor],
+                           "reason": (f"after the motion is profiled out their signatures correlate "
+                                      f"{other['correlation']:.3f}; BIC gap {other['delta_bic_gap']:.1f} "
+                                      f"(< 10) and {other['effect']} adds nothing once {best.effect} is in "
+                                      f"(score {other['added_statistic']:.3g}); reported as {best.effect}"),
+                           "correlation": other["correlation"], "delta_bic_gap": other["delta_bic_gap"]})
+            excluded.add((other["effect"], best.k))
+        current = fit.model
+        accepted[(best.effect, best.k)] = Finding(best.effect, best.k, best.sensor, np.zeros(0), np.zeros(0),
+                                                  best, delta, step)
+        for f in accepted.values():  # every finding's values and std from the latest joint fit
+            f.values = current.terms[f.effect].values[f.k].copy()
+            f.std = fit.std[f.effect][f.k].copy()
+        say(f"step {step}: found {best.effect} on {best.sensor}: log-likelihood +{delta:.4g}")
+        motion = _fill(fit.motion, motion)
+        motion, _, _ = fit_motion(stamps, accel, gyro, current, motion)
+        sb = score_blocks(stamps, accel, gyro, current, terms, motion, blocks)
+        loglik_current = sb.loglik
+    findings = sorted(accepted.values(), key=lambda f: f.step)
+    timings["explain"] = time.perf_counter() - t1
+
+    # 5-6. after, unexplained, held out
+    t1 = time.perf_counter()
+    after = _summarise(sb.residuals, sb.expected, motion, loglik_current, opts.still_threshold)
+    say("locating what is left")
+    loc_after = _localize(sb.residuals, sb.expected, motion, samples, current, opts.still_threshold)
+    unexplained, empirical = [], []
+    if opts.empirical:
+        say("modelling the unexplained residual empirically")
+        unexplained, empirical = _unexplained(loc_after, sb, motion, samples, current, blocks, fold_of_block)
+    heldout = {}
+    if opts.heldout and findings:
+        say("held-out blocks: refitting the findings on half of the blocks, scoring on the other half")
+        heldout = _heldout(samples, model, findings, blocks, opts.still_threshold)
+    validation = []
+    for label, other in validate:
+        say(f"validating on {label}")
+        validation.append(_validate(label, other, model, current, opts.still_threshold))
+    timings["after"] = time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t0
+    settings = {"terms": list(terms), "alpha": opts.alpha, "block_s": opts.block_s, "folds": opts.folds,
+                "max_findings": opts.max_findings, "still_threshold": opts.still_threshold,
+                "candidates_per_step": [int(round(opts.alpha / lv)) for lv in levels],
+                "level_per_step": levels, "samples": int(len(stamps)), "imus": list(model.names),
+                "false_finding_rate": (f"family-wise <= {opts.alpha:g} per recording (Bonferroni: each step tests "
+                                       f"its m candidates at {opts.alpha:g}/m, both the score test and the "
+                                       f"block-robust test, and needs a positive held-out gain)")}
+    return Discovery(model.names, current, baseline, after, findings, all_candidates, indist, rejected,
+                     loc_before, loc_after, unexplained, empirical, heldout, validation, settings, timings, levels,
+                     notes, sim_source)
+
+
+def _fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
+    return np.where(np.isfinite(new), new, old)
+
+
+def _only(accepted, extra=None) -> dict:
+    only: dict[str, list[int]] = {}
+    for (t, k) in list(accepted) + ([extra] if extra else []):
+        only.setdefault(t, []).append(k)
+    return only
+
+
+def _confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level: float):
+    """Exact refit of every finding so far plus ``c`` (the engine, ``only``); (FitResult, delta loglik) or a
+    reason string when the exact likelihood ratio does not confirm the candidate."""
+    only = _only(accepted, (c.effect, c.k))
+    imus = sorted({k for ks in only.values() for k in ks})
+    try:
+        fit = fit_terms(samples.stamps, samples.accel, samples.gyro, current, list(only), imus=imus,
+                        only=only, motion0=motion, max_iterations=30)
+    except CalibrationError as err:
+        return f"the exact fit failed: {err}"
+    delta = fit.loglik_after - fit.loglik_before
+    need = 0.5 * scipy.stats.chi2.isf(level, c.dof)
+    if not np.isfinite(delta) or delta < need:
+        return (f"not confirmed by the exact fit: log-likelihood gain {delta:.3g} < {need:.3g} "
+                f"(the score test's first-order gain was {c.delta_loglik:.3g})")
+    return fit, float(delta)
+
+
+def _heldout(samples, model: SensorModel, findings, blocks, still_threshold) -> dict:
+    """The findings refitted on even blocks scored on odd ones and vice versa (exact, motion re-estimated):
+    log-likelihood of the held-out samples with and without them."""
+    only = _only({(f.effect, f.k): f for f in findings})
+    imus = sorted({k for ks in only.values() for k in ks})
+    half = (blocks % 2).astype(bool)
+    base_motion, _, base_r = fit_motion(samples.stamps, samples.accel, samples.gyro, model)
+    gain, nis_b, nis_a, n_h = 0.0, [], [], 0
+    for held in (half, ~half):
+        sigma = np.broadcast_to(model.std, (len(blocks),) + model.std.shape).copy()
+        sigma[held] *= HELDOUT_SCALE
+        try:
+            fit = fit_terms(samples.stamps, samples.accel, samples.gyro, model, list(only), imus=imus, only=only,
+                            sigma=sigma, motion0=base_motion, max_iterations=30)
+        except CalibrationError as err:
+            return {"error": str(err)}
+        _, _, r = fit_motion(samples.stamps, samples.accel, samples.gyro, fit.model, _fill(fit.motion, base_motion))
+        a = np.nan_to_num(r[held]) ** 2
+        b = np.nan_to_num(base_r[held]) ** 2
+        gain += 0.5 * float(b.sum() - a.sum())
+        n_h += int(held.sum())
+        nis_b.append(b.sum())
+        nis_a.append(a.sum())
+    return {"delta_loglik": gain, "samples": n_h, "sum_r2_before": float(sum(nis_b)),
+            "sum_r2_after": float(sum(nis_a)),
+            "ratio_after_before": float(sum(nis_a) / sum(nis_b)) if sum(nis_b) > 0 else None,
+            "method": "findings refitted on the even time blocks, scored on the odd ones, and vice versa; "
+                      "the motion re-estimated in both"}
+
+
+def _validate(label, other, model: SensorModel, found: SensorModel, still_threshold) -> dict:
+    if tuple(other.names) != tuple(model.names):
+        raise CalibrationError(f"--validate {label}: its IMUs differ from the description's")
+    before, motion, _ = fit_summary(other, model, still_threshold=still_threshold)
+    after, _, _ = fit_summary(other, found, still_threshold=still_threshold, motion0=motion)
+    return {"recording": str(label), "before": before.to_dict(), "after": after.to_dict(),
+            "delta_loglik": after.loglik - before.loglik}
+
+
+def _unexplained(loc, sb, motion, samples, model, blocks, fold_of_block):
+    """Entries of the localisation after the findings, each with the empirical models of its cells."""
+    from imu_array_ros.discovery.empirical import fit_empirical, motion_features
+    from imu_array_ros.discovery.residuals import AXES
+
+    entries = loc.entries()
+    if not entries:
+        return [], []
+    cells = sorted({(model.names.index(s), AXES.index(a)) for e in entries for s in e["sensors"] for a in e["axes"]})
+    feats, fnames = motion_features(motion, samples.stamps)
+    folds = fold_of_block[blocks]
+    models = fit_empirical(sb.residuals, feats, fnames, cells, folds, std=model.std, expected=sb.expected)
+    by_cell = {(m.k, m.axis): m for m in models}
+    out = []
+    for e in entries:
+        ems = [by_cell[(model.names.index(s), a)] for s in e["sensors"] for a in e["axes"]
+               if (model.names.index(s), a) in by_cell]
+        out.append({"sensors": e["sensors"], "axes": e["axes"], "band_hz": e["band_hz"], "regime": e["regime"],
+                    "share_of_residual": e["share_of_excess"],
+                    "empirical_model": {
+                        "method": "sequentially thresholded least squares of the normalised residual on motion "
+                                  "features (SINDy-like), fitted on training folds, scored on held-out folds",
+                        "improves_heldout": any(m.improves for m in ems),
+                        "heldout_delta_loglik": float(sum(m.heldout_delta_loglik for m in ems)),
+                        "cells": [m.to_dict() for m in ems]}})
+    return out, models

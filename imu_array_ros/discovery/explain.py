@@ -1,0 +1,220 @@
+"""Explain a mismatch with the sensor model's own terms: score tests, held-out blocks, greedy selection.
+
+A *candidate* is one registered term (:data:`~imu_array_ros.model.terms.REGISTRY`)
+on one IMU, every other parameter held.  From one pass of the fitting engine
+(:func:`~imu_array_ros.estimation.fit_terms.score_blocks`) at the current
+model and its ML motion, each candidate c has, per time block b, a score g_b
+and an information S_b with every sample's motion profiled out (Schur
+complement: the part of the term's signature the motion cannot absorb).  With
+g = sum g_b, S = sum S_b (rank q on the identifiable directions):
+
+* **score (LRT) test**: T = g^T S^+ g, chi-square with q degrees of freedom
+  when the term is absent; T / 2 is the log-likelihood the term gains to first
+  order (the Rao score statistic, asymptotically the likelihood ratio);
+* **block-robust test**: the sandwich variance V = sum_b u_b u_b^T of the block
+  scores, u_b = g_b - S_b theta_hat, gives T_r = g^T V^+ g and Hotelling's
+  F = T_r (B - q) / (q (B - 1)) ~ F(q, B - q).  It stays calibrated when the
+  residual is not white within a block (a sensor with coloured noise, a
+  vibration), where the plain test would see structure everywhere;
+* **held-out blocks**: blocks are dealt to ``folds`` interleaved folds;
+  theta fitted on all folds but f (one Gauss-Newton step) must predict fold f:
+  held-out gain sum_f [g_f^T theta_-f - theta_-f^T S_f theta_-f / 2] > 0;
+* **BIC**: delta_bic = q ln(n) - T (n valid readings), negative when the term pays
+  for its parameters.
+
+Selection is greedy: at each step the candidate with the lowest BIC among
+those passing both tests at the Bonferroni level ``alpha / m`` (m candidates
+tested in that step) with a positive held-out gain is refitted exactly with the
+engine together with every finding so far (:func:`fit_terms` with ``only``),
+kept if the exact likelihood ratio confirms it, and the scores are recomputed
+at the new model.  With ``alpha`` = 0.01 the probability of any false finding
+on a recording the model already explains is at most 1 % (the first step's
+family-wise error; later steps are conditional on true findings).  Testing each
+candidate at the current estimate, the uncertainty of the findings already in
+is ignored: that makes S larger than the efficient information, so the tests
+are conservative, never liberal.
+
+Confounded candidates (time offset vs position, gain vs nonlinearity, ...)
+are told apart by the data when one explains clearly more (BIC gap >=
+``BIC_GAP``) or adds information given the other; otherwise they are reported
+together as indistinguishable, with the canonical correlation of their
+projected signatures (1: the recording cannot separate them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.special
+import scipy.stats
+
+__all__ = ["Candidate", "evaluate_candidates", "confounded", "BIC_GAP", "EIG_RTOL"]
+
+#: BIC difference (2 ln Bayes factor) below which two candidates count as explaining equally well (Kass & Raftery:
+#: >= 10 is "very strong" evidence for the better one)
+BIC_GAP = 10.0
+#: eigenvalue of a candidate's Jacobi-scaled information, relative to its largest, below which a direction is
+#: not identified by the recording (left out of the test, the test's dof drops)
+EIG_RTOL = 1e-8
+
+
+@dataclass
+class Candidate:
+    """The evidence for one term on one IMU at one step of the selection.
+
+    statistic T, dof q, lrt_p (chi-square), robust_p (block sandwich, F),
+    delta_loglik = T / 2 (first order), delta_bic = q ln(n) - T, heldout:
+    cross-validated gain in log-likelihood over the folds; theta (P,): the
+    one-step estimate (SI units of the term's parameters); blocks: blocks
+    with data.
+    """
+
+    effect: str
+    k: int
+    sensor: str
+    statistic: float
+    dof: int
+    lrt_p: float
+    robust_p: float
+    delta_loglik: float
+    delta_bic: float
+    heldout: float
+    theta: np.ndarray = field(repr=False)
+    log_p: float = 0.0
+    step: int = 0
+    accepted: bool = False
+    note: str = ""
+
+    def passes(self, level: float) -> bool:
+        return self.lrt_p < level and self.robust_p < level and self.heldout > 0.0
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "sensors": [self.sensor], "step": self.step, "accepted": self.accepted,
+                "statistic": _num(self.statistic), "dof": self.dof, "lrt_p": _num(self.lrt_p),
+                "robust_p": _num(self.robust_p), "delta_loglik": _num(self.delta_loglik),
+                "delta_bic": _num(self.delta_bic), "heldout_delta_loglik": _num(self.heldout), "note": self.note}
+
+
+def _num(x: float):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def _reduced(S: np.ndarray):
+    """Basis Q (q, r) of the identified directions of S (Jacobi-scaled eigenvalues above EIG_RTOL), or None."""
+    d = np.sqrt(np.clip(np.diag(S), 0.0, None))
+    if not np.any(d > 0):
+        return None
+    d = np.where(d > 0, d, np.inf)
+    lam, vec = np.linalg.eigh(S / np.outer(d, d))
+    keep = lam > EIG_RTOL * max(lam.max(), 0.0)
+    if not keep.any():
+        return None
+    return vec[:, keep] / d[:, None]  # columns: scaled back, so Q^T S Q = diag(lam[keep])
+
+
+def evaluate_candidates(sb, names, folds: np.ndarray, *, terms=None, exclude=(), step: int = 0) -> list[Candidate]:
+    """Every candidate (term x IMU) of ``sb`` (:class:`~imu_array_ros.estimation.fit_terms.ScoreBlocks`) not in
+    ``exclude`` ((term, k) pairs); folds (B,) fold of every block."""
+    terms = sb.terms if terms is None else terms
+    n_obs = max(sb.valid_axes, 2)
+    folds = np.asarray(folds)
+    fold_ids = np.unique(folds)
+    have = sb.counts > 0
+    out = []
+    for t in terms:
+        cols = sb.columns(t)
+        for k, name in enumerate(names):
+            if (t, k) in exclude:
+                continue
+            gb, Sb = sb.g[:, k, cols], sb.S[:, k, cols, cols]
+            c = _candidate(gb[have], Sb[have], folds[have], fold_ids)
+            if c is None:
+                continue
+            stat, q, lrt_p, log_p, robust_p, heldout, theta = c
+            out.append(Candidate(t, k, name, stat, q, lrt_p, robust_p, 0.5 * stat, q * np.log(n_obs) - stat,
+                                 heldout, theta, log_p, step))
+    return out
+
+
+def _chi2_logsf(x: float, q: int) -> float:
+    """ln P(chi^2_q > x), finite where scipy's underflows: the leading term of the incomplete gamma
+    function's asymptotic series, ln Gamma(q/2, x/2) / Gamma(q/2) ~ (q/2 - 1) ln(x/2) - x/2 - ln Gamma(q/2)."""
+    v = float(scipy.stats.chi2.logsf(x, q))
+    if np.isfinite(v):
+        return v
+    return float((q / 2 - 1) * np.log(x / 2) - x / 2 - scipy.special.gammaln(q / 2))
+
+
+def _candidate(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.ndarray):
+    S = Sb.sum(axis=0)
+    Q = _reduced(S)
+    if Q is None:
+        return None
+    q = Q.shape[1]
+    gr, Sr = gb @ Q, np.einsum("ia,bij,jc->bac", Q, Sb, Q)  # per block, reduced coordinates
+    g_, S_ = gr.sum(axis=0), Sr.sum(axis=0)
+    z = np.linalg.solve(S_, g_)
+    stat = float(g_ @ z)
+    theta = Q @ z
+    lrt_p = float(scipy.stats.chi2.sf(stat, q))
+    log_p = _chi2_logsf(stat, q)
+    # block-robust (sandwich) test: Hotelling's T^2 of the block scores around the fit
+    u = gr - np.einsum("bij,j->bi", Sr, z)
+    b = len(gb)
+    if b > q + 1:
+        v = u.T @ u
+        tr = float(g_ @ np.linalg.lstsq(v, g_, rcond=None)[0])
+        f = tr * (b - q) / (q * (b - 1))
+        robust_p = float(scipy.stats.f.sf(f, q, b - q))
+    else:
+        robust_p = float("nan")  # too few blocks: the robust test cannot pass
+    heldout = 0.0
+    for fid in fold_ids:
+        m = folds == fid
+        gf, Sf = gr[m].sum(axis=0), Sr[m].sum(axis=0)
+        th = np.linalg.lstsq(S_ - Sf, g_ - gf, rcond=None)[0]
+        heldout += float(gf @ th - 0.5 * th @ Sf @ th)
+    return stat, q, lrt_p, log_p, robust_p, heldout, theta
+
+
+def confounded(sb, best: Candidate, others: list[Candidate], level: float) -> list[dict]:
+    """Candidates on best's IMU that explain the recording as well as ``best`` and add nothing given it.
+
+    For each passing alternative a on the same IMU: its BIC is within BIC_GAP of best's, and the joint
+    score test of a given best (T_joint - T_best, chi-square with a's dof) is not significant at ``level``.
+    Returns dicts {effect, statistic gap, correlation (largest canonical correlation of the two projected
+    signatures under S), delta_bic_gap}.
+    """
+    out = []
+    for a in others:
+        if a.k != best.k or a.effect == best.effect or not a.passes(level):
+            continue
+        gap = a.delta_bic - best.delta_bic
+        if gap >= BIC_GAP:
+            continue
+        cb, ca = sb.columns(best.effect), sb.columns(a.effect)
+        idx = np.r_[np.arange(cb.start, cb.stop), np.arange(ca.start, ca.stop)]
+        S = sb.S[:, best.k][:, idx][:, :, idx].sum(axis=0)
+        g = sb.g[:, best.k, idx].sum(axis=0)
+        Q = _reduced(S)
+        joint = float(g @ Q @ np.linalg.solve(Q.T @ S @ Q, Q.T @ g)) if Q is not None else best.statistic
+        added = joint - best.statistic
+        q_add = max(1, (Q.shape[1] if Q is not None else best.dof) - best.dof)
+        if scipy.stats.chi2.sf(added, q_add) < level:
+            continue  # a explains something best does not: a separate effect, tested in a later step
+        out.append({"effect": a.effect, "delta_bic_gap": float(gap), "added_statistic": float(added),
+                    "correlation": _canonical_correlation(S, cb.stop - cb.start)})
+    return out
+
+
+def _canonical_correlation(S: np.ndarray, nb: int) -> float:
+    """Largest canonical correlation between the first nb and the remaining coordinates under the metric S."""
+    def inv_sqrt(a):
+        lam, vec = np.linalg.eigh(a)
+        keep = lam > EIG_RTOL * max(lam.max(), 1e-300)
+        return vec[:, keep] / np.sqrt(lam[keep])
+    a, b = inv_sqrt(S[:nb, :nb]), inv_sqrt(S[nb:, nb:])
+    if a.size == 0 or b.size == 0:
+        return float("nan")
+    return float(np.clip(np.linalg.svd(a.T @ S[:nb, nb:] @ b, compute_uv=False).max(), 0.0, 1.0))
