@@ -13,7 +13,6 @@ progress and summary lines go to stderr and ``quiet`` silences them.
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import time
@@ -23,7 +22,7 @@ import numpy as np
 
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import ConfigError, FusionError, ImuArrayError, OutputError
-from imu_array_ros.io.atomic import check_output
+from imu_array_ros.io.atomic import check_output, json_safe
 from imu_array_ros.model.description import ArrayDescription, load_description, save_description
 from imu_array_ros.model.identifiability import check_identifiable
 
@@ -80,17 +79,7 @@ def _write_text(path: Path, text: str, option: str) -> None:
         raise OutputError(f"{path}: cannot write {option}: {err.strerror or err}") from None
 
 
-def _json_safe(obj):
-    """JSON-ready copy: non-finite floats become ``None`` (``null``), tuples lists, numpy scalars Python."""
-    if isinstance(obj, dict):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+_json_safe = json_safe
 
 
 def _g(value: float | None) -> str:

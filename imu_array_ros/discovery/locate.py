@@ -57,6 +57,7 @@ import numpy as np
 from scipy.signal import welch
 
 from imu_array_ros.discovery.residuals import AXES
+from imu_array_ros.io.atomic import json_safe as _json
 
 __all__ = ["REGIMES", "Localization", "RigidTest", "localize", "rigid_body_test", "relative_psd"]
 
@@ -92,23 +93,6 @@ def _significant(o, e, z_threshold):
     """Bool: z > z_threshold and ratio > MIN_RATIO (False where E = 0)."""
     z, ratio = _z(o, e), _ratio(o, e)
     return (np.nan_to_num(z, nan=-np.inf) > z_threshold) & (np.nan_to_num(ratio, nan=0.0) > MIN_RATIO)
-
-
-def _json(x):
-    """Plain Python floats/lists with None for non-finite values."""
-    if isinstance(x, dict):
-        return {str(k): _json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    return x
 
 
 # --------------------------------------------------------------------------- spectra

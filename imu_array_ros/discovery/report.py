@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from imu_array_ros.discovery.residuals import AXES
-from imu_array_ros.io.atomic import atomic_write_text
+from imu_array_ros.io.atomic import atomic_write_text, json_safe
 from imu_array_ros.model.terms import REGISTRY
 
 __all__ = ["write_report", "markdown", "PLOTS"]
@@ -32,11 +32,11 @@ def write_report(d, directory: Path, *, plots: bool = True, source: str = "") ->
     """report.json, report.md and (``plots``) the PNGs of :data:`PLOTS` in ``directory``; the paths written."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    data = _clean(d.to_dict())
+    data = json_safe(d.to_dict())
     data["recording"] = source
     written = []
     path = directory / "report.json"
-    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n")
+    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
     written.append(path)
     figures = []
     if plots:
@@ -46,32 +46,6 @@ def write_report(d, directory: Path, *, plots: bool = True, source: str = "") ->
     atomic_write_text(path, markdown(d, source=source, figures=[p.name for p in figures]))
     written.append(path)
     return written
-
-
-def _clean(x):
-    """JSON-safe copy: numpy scalars and arrays to Python, non-finite floats to None."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
-
-
-def _json_default(x):
-    if isinstance(x, (np.floating, np.integer)):
-        v = x.item()
-        return None if isinstance(v, float) and not np.isfinite(v) else v
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
 def _plots(d, directory: Path) -> list[Path]:

@@ -26,7 +26,7 @@ from typing import Iterable, Iterator
 from imu_array_ros.errors import OutputError
 from imu_array_ros.io.rosbag.mcap_format import MAGIC as MCAP_MAGIC
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "check_output", "OUTPUT_KINDS"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "check_output", "json_safe", "OUTPUT_KINDS"]
 
 #: What :func:`check_output` knows how to recognise (and therefore may replace).
 OUTPUT_KINDS = ("recording", "yaml", "json", "png")
@@ -305,3 +305,19 @@ def check_output(
     if not force:
         raise OutputError(f"{out}: already exists (use --force to replace it)")
     return out
+
+
+def json_safe(obj):
+    """JSON-ready copy for strict JSON (``allow_nan=False``): non-finite floats become ``None`` (``null``),
+    tuples and numpy arrays lists, numpy scalars Python scalars, keys strings."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "tolist") and not isinstance(obj, (str, bytes)):  # numpy arrays and scalars
+        obj = obj.tolist()
+        if isinstance(obj, list):
+            return json_safe(obj)
+    if isinstance(obj, float) and not (obj == obj and abs(obj) != float("inf")):
+        return None
+    return obj
