@@ -28,7 +28,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from imu_array_ros.discovery.residuals import AXES
-from imu_array_ros.errors import OutputError
+from imu_array_ros.calibration.plots import _pyplot  # the lazy matplotlib import, one copy
 from imu_array_ros.io.atomic import atomic_path
 
 __all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "EVIDENCE_FLOOR"]
@@ -37,17 +37,6 @@ __all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "
 EVIDENCE_FLOOR = 0.1
 _NAN_COLOR = "0.82"
 _DPI = 110
-
-
-def _pyplot(path):
-    try:
-        import matplotlib
-    except ImportError:
-        raise OutputError(f"{path}: writing a plot needs matplotlib (pip install 'matplotlib>=3.7')") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _save(fig, path) -> None:
