@@ -32,16 +32,14 @@ def nominal():
 
 
 def _bias_recording(nominal, bias=(0.02, -0.01, 0.015), k=2, seed=3):
-    sc = Scenario("bias", CORNERS, seed=seed)
-    built = build(sc)  # null recording; inject by hand for exact control of the values
+    """A session (still poses, then twisting) of the nominal array with an accelerometer bias on IMU k."""
+    from imu_array_ros.simulation.icosahedron import simulate_icosahedron
+
     v = nominal.terms["accelerometer_bias"].values.copy()
     v[k] = bias
-    truth = nominal.with_terms(accelerometer_bias=v)
-    from imu_array_ros.simulation.simulator import simulate_measurements
-    from imu_array_ros.model.samples import MotionTruth
-    motion, _, _ = fit_motion(built.samples.stamps, built.samples.accel, built.samples.gyro, nominal)
-    truth_motion = MotionTruth(built.samples.stamps, motion[:, :3], motion[:, 3:6], motion[:, 6:])
-    return simulate_measurements(truth, truth_motion, np.random.default_rng(seed))
+    samples, _, _ = simulate_icosahedron(nominal.with_terms(accelerometer_bias=v), np.random.default_rng(seed),
+                                         rate_hz=100.0, still_s=0.5, transition_s=0.5, twist_s=20.0)
+    return samples
 
 
 def test_score_blocks_add_up_and_match_the_exact_fit(nominal):

@@ -265,7 +265,8 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
 
     # 1-2. fit and simulate
     say("fitting the motion with the model as given")
-    motion, _, _ = fit_motion(stamps, accel, gyro, model)
+    motion, _, base_r = fit_motion(stamps, accel, gyro, model)
+    base_motion = motion
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs")
     sb = score_blocks(stamps, accel, gyro, model, terms, motion, blocks)
     baseline = _summarise(sb.residuals, sb.expected, motion, sb.loglik, opts.still_threshold)
@@ -285,10 +286,9 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
 
     # 4. explain
     t1 = time.perf_counter()
-    current, findings, all_candidates, indist, rejected, levels = model, [], [], [], [], []
+    current, all_candidates, indist, rejected, levels = model, [], [], [], []
     accepted: dict[tuple[str, int], Finding] = {}
     excluded: set[tuple[str, int]] = set()
-    loglik_current = sb.loglik
     for step in range(1, opts.max_findings + 1):
         cands = evaluate_candidates(sb, model.names, fold_of_block, terms=terms, exclude=set(accepted) | excluded,
                                     step=step)
@@ -297,8 +297,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         level = opts.alpha / len(cands)
         levels.append(level)
         passing = sorted((c for c in cands if c.passes(level)), key=lambda c: c.delta_bic)
-        if step == 1 or passing:
-            all_candidates += cands if step == 1 else passing
+        all_candidates += cands if step == 1 else passing  # every tested candidate once, then the passing ones
         if not passing:
             say(f"step {step}: no candidate passes (level {level:.2g}); done")
             break
@@ -335,13 +334,12 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         motion = _fill(fit.motion, motion)
         motion, _, _ = fit_motion(stamps, accel, gyro, current, motion)
         sb = score_blocks(stamps, accel, gyro, current, terms, motion, blocks)
-        loglik_current = sb.loglik
     findings = sorted(accepted.values(), key=lambda f: f.step)
     timings["explain"] = time.perf_counter() - t1
 
     # 5-6. after, unexplained, held out
     t1 = time.perf_counter()
-    after = _summarise(sb.residuals, sb.expected, motion, loglik_current, opts.still_threshold)
+    after = _summarise(sb.residuals, sb.expected, motion, sb.loglik, opts.still_threshold)
     say("locating what is left")
     loc_after = _localize(sb.residuals, sb.expected, motion, samples, current, opts.still_threshold)
     unexplained, empirical = [], []
@@ -351,7 +349,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     heldout = {}
     if opts.heldout and findings:
         say("held-out blocks: refitting the findings on half of the blocks, scoring on the other half")
-        heldout = _heldout(samples, model, findings, blocks, opts.still_threshold)
+        heldout = _heldout(samples, model, findings, blocks, base_motion, base_r)
     validation = []
     for label, other in validate:
         say(f"validating on {label}")
@@ -399,13 +397,13 @@ def _confirm(samples, current: SensorModel, accepted, c: Candidate, motion, leve
     return fit, float(delta)
 
 
-def _heldout(samples, model: SensorModel, findings, blocks, still_threshold) -> dict:
+def _heldout(samples, model: SensorModel, findings, blocks, base_motion, base_r) -> dict:
     """The findings refitted on even blocks scored on odd ones and vice versa (exact, motion re-estimated):
-    log-likelihood of the held-out samples with and without them."""
+    log-likelihood of the held-out samples with and without them.  base_motion, base_r: the ML motion and
+    normalised residuals of the recording under ``model`` (the baseline of step 1)."""
     only = _only({(f.effect, f.k): f for f in findings})
     imus = sorted({k for ks in only.values() for k in ks})
     half = (blocks % 2).astype(bool)
-    base_motion, _, base_r = fit_motion(samples.stamps, samples.accel, samples.gyro, model)
     gain, nis_b, nis_a, n_h = 0.0, [], [], 0
     for held in (half, ~half):
         sigma = np.broadcast_to(model.std, (len(blocks),) + model.std.shape).copy()

@@ -199,8 +199,10 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     (names or indexes) where that free term is fitted, the term held on the
     other IMUs of ``imus`` (e.g. the findings of mismatch discovery: one term
     on one IMU, another on another; default every free term on every fitted
-    IMU).  Raises :class:`CalibrationError` (one line) when the problem cannot
-    be solved or identified.
+    IMU; with ``only``, a gauge freedom left is fixed by holding parameters as
+    with gauge="reference", whatever ``gauge`` says).  Raises
+    :class:`CalibrationError` (one line) when the problem cannot be solved or
+    identified.
     """
     free = check_terms(free)
     if gauge not in ("reference", "mean"):

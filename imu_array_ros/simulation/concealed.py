@@ -87,8 +87,6 @@ def _effect_rms(model: SensorModel, term: str, k: int, values: np.ndarray, truth
     a0, g0 = model.predict(ctx)
     v = model.terms[term].values.copy()
     v[k] = values
-    ctx = motion_context(truth.stamps, truth.omega, truth.omega_dot, truth.specific_force, model.rotations,
-                         derivatives=True)
     a1, g1 = model.with_terms(**{term: v}).predict(ctx)
     d = np.concatenate([a1 - a0, g1 - g0], axis=2)[:, k] / model.std[k]
     return float(np.sqrt(np.mean(d ** 2, axis=0)).max())
