@@ -25,13 +25,13 @@ One description comes out with every calibrated field, its ``_std`` and a
 
 from __future__ import annotations
 
-import datetime as _dt
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 
+from imu_array_ros.calibration.output import provenance
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.forward import SensorModel
@@ -82,8 +82,6 @@ class ArrayCalibration:
         return "; ".join(parts)
 
     def record(self) -> dict:
-        from imu_array_ros import __version__
-
         f = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
         stages = []
         spread = self.poses.spread() if self.poses is not None else {}
@@ -104,9 +102,7 @@ class ArrayCalibration:
                            "nis_before": f(m.nis_before), "nis_after": f(m.nis_after)})
         return {"method": "calibrate all: still poses -> static (accelerometer intrinsics, gyroscope biases) -> "
                           "moving (positions, gyroscope gain and misalignment)",
-                "software": f"imu_array_ros {__version__}",
-                "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                "stages": stages, "skipped": dict(self.skipped)}
+                **provenance(), "stages": stages, "skipped": dict(self.skipped)}
 
 
 def calibrate_array(stamps, accel, gyro, model: SensorModel, *, reference=None, static_method: str = "ml",

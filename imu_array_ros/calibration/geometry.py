@@ -152,29 +152,21 @@ class GeometryCalibration:
 
     def record(self) -> dict:
         """The ``calibration:`` block of the written description."""
-        import datetime as _dt
-
-        from imu_array_ros import __version__
+        from imu_array_ros.calibration.output import fit_statistics, provenance
 
         f = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
         return {
             "method": f"geometry ({self.method}): maximum likelihood of the accelerometer positions jointly with the "
                       f"motion (carlsson2017; {'block coordinate descent, Alg. 1' if self.method == 'bcd' else 'Schur-complement Gauss-Newton'}); "
                       "position_std = Cramer-Rao bound of the joint problem",
-            "software": f"imu_array_ros {__version__}",
-            "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            **provenance(),
             "reference": self.reference,
             "window": {"first_stamp_ns": int(self.window_ns[0]), "last_stamp_ns": int(self.window_ns[1]),
                        "seconds": (int(self.window_ns[1]) - int(self.window_ns[0])) / 1e9},
             "samples_total": int(self.samples_total),
             "samples_used": int(self.samples_used),
             "samples_dropped": {k: int(v) for k, v in self.dropped.items()},
-            "iterations": int(self.iterations),
-            "converged": bool(self.converged),
-            "log_likelihood_before": f(self.loglik_before),
-            "log_likelihood_after": f(self.loglik_after),
-            "nis_before": f(self.nis_before),
-            "nis_after": f(self.nis_after),
+            **fit_statistics(self),
             "residual_rms_before": {n: f(v) for n, v in zip(self.names, self.rms_before)},
             "residual_rms_after": {n: f(v) for n, v in zip(self.names, self.rms_after)},
         }

@@ -31,11 +31,31 @@ from imu_array_ros.errors import CalibrationError, ConfigError, OutputError
 from imu_array_ros.io.atomic import atomic_write_bytes, atomic_write_text
 from imu_array_ros.model.description import ArrayDescription, dump_description, load_description
 
-__all__ = ["Installed", "install_calibration", "backup_path", "geometry_description", "LOGLIK_TOLERANCE"]
+__all__ = ["Installed", "install_calibration", "backup_path", "geometry_description", "provenance", "fit_statistics",
+           "LOGLIK_TOLERANCE"]
 
 #: a file on disk counts as better only when its log-likelihood is higher by more than this (a
 #: likelihood ratio of 1.001: two converged solvers of the same problem differ by less)
 LOGLIK_TOLERANCE = 1e-3
+
+
+def provenance() -> dict:
+    """The ``software`` and ``time`` (UTC, ISO 8601) entries of every ``calibration:`` record."""
+    import datetime
+
+    from imu_array_ros import __version__
+
+    return {"software": f"imu_array_ros {__version__}",
+            "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+
+
+def fit_statistics(result) -> dict:
+    """The iterations, convergence, log-likelihood and NIS before/after entries of a fit's record (any result
+    with those attributes: the engine's, the geometry's, the static calibration's); non-finite -> None."""
+    f = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+    return {"iterations": int(result.iterations), "converged": bool(result.converged),
+            "log_likelihood_before": f(result.loglik_before), "log_likelihood_after": f(result.loglik_after),
+            "nis_before": f(result.nis_before), "nis_after": f(result.nis_after)}
 
 
 @dataclass

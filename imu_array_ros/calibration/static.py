@@ -46,6 +46,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from imu_array_ros.calibration.geometry import _reference_index
+from imu_array_ros.calibration.output import fit_statistics
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms
 from imu_array_ros.estimation.motion_models import StaticMotion
@@ -152,12 +153,7 @@ class StaticCalibration:
             "initial": self.initial,
             "gravity": self.gravity,
             "poses": int(self.poses),
-            "iterations": int(self.iterations),
-            "converged": bool(self.converged),
-            "log_likelihood_before": f(self.loglik_before),
-            "log_likelihood_after": f(self.loglik_after),
-            "nis_before": f(self.nis_before),
-            "nis_after": f(self.nis_after),
+            **fit_statistics(self),
             "variance_factor": f(self.variance_factor),
             "consistency_before": f(self.consistency_before),
             "consistency_after": f(self.consistency_after),

@@ -12,17 +12,16 @@ Cramér-Rao bound of the joint problem) and a ``calibration:`` block.
 
 from __future__ import annotations
 
-import datetime as _dt
 from pathlib import Path
 
 import numpy as np
 
-from imu_array_ros import __version__
+from imu_array_ros.calibration.output import fit_statistics, provenance
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.atomic import check_output
 
-__all__ = ["calibrate_fit", "calibrate_geometry", "calibrate_static", "calibrate_all", "parse_list"]
+__all__ = ["calibrate_fit", "calibrate_geometry", "calibrate_static", "calibrate_all", "parse_list", "write_calibrated"]
 
 
 def parse_list(text: str | None) -> list[str] | None:
@@ -33,9 +32,17 @@ def parse_list(text: str | None) -> list[str] | None:
     return items
 
 
-def _float(x) -> float | None:
-    x = float(x)
-    return x if np.isfinite(x) else None
+def write_calibrated(model, desc, terms, stds: dict, record: dict, out: Path, option: str) -> None:
+    """Write ``desc`` with the values of ``terms`` and of every other term of ``model`` not at its identity,
+    the ``stds`` (term -> (K, P); NaN entries left out) and the ``calibration:`` ``record``, atomically."""
+    from imu_array_ros.model.description import save_description
+
+    names = sorted(set(terms) | {n for n, t in model.terms.items() if not t.is_identity})
+    result = model.to_description(desc, names=names, stds=stds)
+    try:
+        save_description(result.with_imus(result.imus, calibration=record), out)
+    except OSError as err:
+        raise OutputError(f"{out}: cannot write {option}: {err.strerror or err}") from None
 
 
 def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibration: Path | None = None,
@@ -45,7 +52,6 @@ def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibr
     from imu_array_ros.cli.commands import check_fusable, load_array
     from imu_array_ros.estimation.fit_terms import check_terms, fit_terms
     from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.description import save_description
     from imu_array_ros.model.forward import SensorModel
     from imu_array_ros.model.terms import REGISTRY
 
@@ -84,30 +90,19 @@ def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibr
     record = {
         "method": "fit_terms: joint maximum likelihood of the terms and the motion (Schur-complement "
                   "Gauss-Newton/Levenberg-Marquardt); *_std = Cramer-Rao bound of the joint problem",
-        "software": f"imu_array_ros {__version__}",
-        "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        **provenance(),
         "recording": str(recording),
         "terms": list(fit.free),
         "imus": list(fit.imus),
         "held_for_gauge": list(fit.held),
         "samples_used": int(fit.samples_used),
         "samples_dropped": int(fit.samples_dropped),
-        "iterations": int(fit.iterations),
-        "converged": bool(fit.converged),
-        "log_likelihood_before": _float(fit.loglik_before),
-        "log_likelihood_after": _float(fit.loglik_after),
-        "nis_before": _float(fit.nis_before),
-        "nis_after": _float(fit.nis_after),
+        **fit_statistics(fit),
     }
     # held parameters are exact in the chosen gauge: std 0 (the record lists them); IMUs not fitted get no _std
     fitted = np.isin(np.array(desc.names), np.array(fit.imus))
     stds = {n: np.where(fitted[:, None] & ~np.isfinite(fit.std[n]), 0.0, fit.std[n]) for n in fit.free}
-    result = fit.model.to_description(desc, names=sorted(set(fit.free) | set(
-        n for n, t in fit.model.terms.items() if not t.is_identity)), stds=stds)
-    try:
-        save_description(result.with_imus(result.imus, calibration=record), out)
-    except OSError as err:
-        raise OutputError(f"{out}: cannot write --out: {err.strerror or err}") from None
+    write_calibrated(fit.model, desc, fit.free, stds, record, out, "--out")
     info(quiet, f"wrote {out}")
     return 0
 

@@ -9,13 +9,12 @@ the nodes and the calibrations use the improved model.
 
 from __future__ import annotations
 
-import datetime as _dt
 from pathlib import Path
 
 import numpy as np
 
-from imu_array_ros import __version__
-from imu_array_ros.cli.calibrate import parse_list
+from imu_array_ros.calibration.output import provenance
+from imu_array_ros.cli.calibrate import parse_list, write_calibrated
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.atomic import check_output
@@ -54,7 +53,6 @@ def discover_command(recording: Path, array: Path, report: Path, *, calibration:
     from imu_array_ros.discovery.discover import DiscoveryOptions, discover
     from imu_array_ros.discovery.report import write_report
     from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.description import save_description
     from imu_array_ros.model.forward import SensorModel
 
     validate = list(validate or [])
@@ -108,12 +106,12 @@ def discover_command(recording: Path, array: Path, report: Path, *, calibration:
         if not d.findings:
             info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
         else:
-            _apply(d, desc, apply, recording, save_description)
+            _apply(d, desc, apply, recording)
             info(quiet, f"wrote {apply}")
     return 0
 
 
-def _apply(d, desc, out: Path, recording: Path, save_description) -> None:
+def _apply(d, desc, out: Path, recording: Path) -> None:
     names = sorted({f.effect for f in d.findings})
     stds = {}
     for n in names:
@@ -125,16 +123,10 @@ def _apply(d, desc, out: Path, recording: Path, save_description) -> None:
     record = {
         "method": "imu-array discover: terms found by mismatch discovery, fitted by the engine (fit_terms); "
                   "*_std = Cramer-Rao bound",
-        "software": f"imu_array_ros {__version__}",
-        "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        **provenance(),
         "recording": str(recording),
         "findings": [f"{f.effect} on {f.sensor}" for f in d.findings],
         "log_likelihood_before": float(d.baseline.loglik),
         "log_likelihood_after": float(d.after.loglik),
     }
-    changed = sorted(set(names) | {n for n, t in d.model.terms.items() if not t.is_identity})
-    result = d.model.to_description(desc, names=changed, stds=stds)
-    try:
-        save_description(result.with_imus(result.imus, calibration=record), out)
-    except OSError as err:
-        raise OutputError(f"{out}: cannot write --apply: {err.strerror or err}") from None
+    write_calibrated(d.model, desc, names, stds, record, out, "--apply")
