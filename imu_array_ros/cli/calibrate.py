@@ -21,7 +21,7 @@ from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.atomic import check_output
 
-__all__ = ["calibrate_fit", "calibrate_geometry", "calibrate_static", "calibrate_all", "parse_list", "write_calibrated"]
+__all__ = ["calibrate_bayes", "calibrate_fit", "calibrate_geometry", "calibrate_static", "calibrate_all", "parse_list", "write_calibrated"]
 
 
 def parse_list(text: str | None) -> list[str] | None:
@@ -292,3 +292,98 @@ def calibrate_all(recording: Path, array: Path, out: Path, *, calibration: Path 
         recording, array, out, calibration, plot, force, quiet, reference=reference, static_method=static_method,
         moving_terms=terms, gravity=gravity or STANDARD_GRAVITY,
         still_options=_still_options(still_gyro, still_accel, still_min_duration))
+
+
+#: what ``calibrate bayes --report DIR`` writes (calibration/bayes_report.py)
+BAYES_REPORT_PNGS = ("ellipses.png", "trace.png", "autocorr.png")
+BAYES_REPORT_NETCDF = "posterior.nc"
+
+
+def _bayes_report_outputs(report: Path, inputs, force: bool, out: Path) -> None:
+    """Check every file ``--report`` writes (a directory, created if missing), before any work."""
+    if report.exists() and not report.is_dir():
+        raise OutputError(f"{report}: --report must be a directory (it is a file)")
+    if not report.exists():
+        check_output(report, inputs, "json", False, option="--report", other_outputs=[("--out", out)])
+    check_output(report / "diagnostics.json", inputs, "json", force, option="--report")
+    for name in ("diagnostics.md", BAYES_REPORT_NETCDF):
+        f = report / name
+        if f.exists() and not force:
+            raise OutputError(f"{f}: exists; pass --force to replace the report in {report}")
+        if f.exists() and not (report / "diagnostics.json").exists():
+            raise OutputError(f"{f}: exists without a diagnostics.json beside it; it is not one of our reports, "
+                              "choose another --report")
+    for name in BAYES_REPORT_PNGS:
+        check_output(report / name, inputs, "png", force, option="--report")
+
+
+def calibrate_bayes(recording: Path, array: Path, out: Path, *, calibration: Path | None = None,
+                    samples: int = 50, chains: int = 4, scheduler: str | None = None, workers: int | None = None,
+                    report: Path | None = None, reference: str | None = None, prior: str = "gaussian",
+                    prior_std: float | None = None, accel_std: float | None = None,
+                    omega_covariance: str = "model", draws: int | None = None, rho: float = 0.9,
+                    proposal: str = "laplace", ess: float = 400.0, max_iterations: int = 400000,
+                    min_excitation: float | None = None, seed: int = 0, force: bool = False,
+                    quiet: bool = False) -> int:
+    """Posterior of the accelerometer positions (carlsson2021 PmMH) from ``samples`` samples of ``recording``."""
+    from imu_array_ros.calibration import bayes, bayes_sampler
+    from imu_array_ros.calibration.output import install_calibration
+    from imu_array_ros.model.forward import SensorModel
+
+    inputs = [recording, array, calibration]
+    out = check_output(out, inputs, "yaml", force)
+    if report is not None:
+        _bayes_report_outputs(Path(report), inputs, force, out)
+    settings = bayes_sampler.SamplerSettings(chains=chains, scheduler=scheduler, workers=workers, n_draws=draws,
+                                             rho=rho, proposal=proposal, ess=ess, max_iterations=max_iterations,
+                                             seed=seed)
+    settings.check()
+    desc, data = _read_recording(recording, array, calibration, quiet)
+    ref = desc.index(reference) if reference else 0  # a one-line error naming an unknown IMU
+    model = SensorModel.from_description(desc)
+    try:
+        idx, dropped, usable = bayes.select_samples(data.stamps, data.accel, data.gyro, model, samples,
+                                                    min_excitation=min_excitation)
+        st, acc, gyr = data.stamps[idx], data.accel[idx], data.gyro[idx]
+        dropped_text = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v) or "none"
+        info(quiet, f"samples: {len(idx)} of {usable} usable ({len(data.stamps)} in the recording; dropped: "
+                    f"{dropped_text}), evenly spread")
+        problem = bayes.build_problem(st, acc, gyr, model, reference=ref, prior_kind=prior,
+                                      prior_std=bayes.PRIOR_STD if prior_std is None else prior_std,
+                                      accel_std=accel_std, omega_covariance=omega_covariance)
+        info(quiet, "Laplace approximation: maximum likelihood of the positions on the same samples, with its CRB")
+        lap = bayes.laplace(problem, st, acc, gyr, model)
+        post = bayes_sampler.sample_posterior(problem, lap, settings, progress=lambda text: info(quiet, text))
+    except CalibrationError as err:
+        raise CalibrationError(f"{recording}: {err}") from None
+    info(quiet, post.summary_line())
+    if not post.converged:
+        info(quiet, f"warning: the chains did not reach ESS {ess:g} with R-hat <= {settings.rhat} within "
+                    f"{max_iterations} iterations; raise --max-iterations or check the report")
+    mean, std = post.positions_mean(), post.positions_std()
+    new_model = model.with_terms(position=mean)
+    record = {**post.record(), "recording": str(recording),
+              "laplace_agreement": bayes_sampler.laplace_agreement(post)}
+    new = new_model.to_description(desc, names=["position"] + [n for n, t in model.terms.items()
+                                                              if n != "position" and not t.is_identity],
+                                   stds={"position": std})
+    new = new.with_imus(new.imus, calibration=record)
+    for k, name in enumerate(desc.names):
+        change = np.linalg.norm(mean[k] - model.positions[k]) * 1e3
+        info(quiet, f"  {name}: moved {change:8.4f} mm, posterior std {np.linalg.norm(std[k]) * 1e6:8.2f} um"
+                    f"{'  (reference)' if k == ref else ''}")
+    # a calibration on file is kept when it fits these samples better than the posterior's own spread explains
+    score, new_score = bayes_sampler.install_scores(post, st, acc, gyr, model)
+    try:
+        installed = install_calibration(new, out, score=score, new_score=new_score)
+    except CalibrationError as err:
+        raise CalibrationError(f"{recording}: {err}") from None
+    if installed.backup is not None:
+        info(quiet, f"previous {out} kept as {installed.backup}")
+    info(quiet, f"wrote {out}")
+    if report is not None:
+        from imu_array_ros.calibration.bayes_report import write_report
+
+        paths = write_report(post, report, extra={"recording": str(recording), "out": str(out)})
+        info(quiet, f"wrote {len(paths)} report files in {report}")
+    return 0

@@ -323,6 +323,53 @@ def build_parser() -> argparse.ArgumentParser:
                       "window better than the new calibration; and an existing --plot PNG")
     sp.set_defaults(func=calibrate.calibrate_geometry)
 
+    sp = cal.add_parser("bayes", help="posterior of the accelerometer positions (carlsson2021 pseudo-marginal MCMC): "
+                                      "mean, std and covariance per IMU, with convergence diagnostics")
+    _calibration_inputs(sp)
+    sp.add_argument("--out", required=True, type=Path,
+                    help="calibrated description YAML to write: position = posterior mean, position_std, and the "
+                         "covariance per IMU in the calibration: block (with --force an existing one is replaced, "
+                         "kept as OUT.bak, unless it fits the samples better than the posterior allows)")
+    sp.add_argument("--samples", type=positive_int, default=50, metavar="T",
+                    help="time samples used, spread evenly over the samples with rotation (default 50; the paper "
+                         "uses 5, 50 and 500)")
+    sp.add_argument("--chains", type=positive_int, default=4, help="Markov chains, >= 2 (default 4)")
+    sp.add_argument("--scheduler", metavar="ADDR",
+                    help="run the chains on Dask: 'local' for a new LocalCluster, or a scheduler address "
+                         "(tcp://host:8786); default: worker processes on this machine ('serial': this process)")
+    sp.add_argument("--workers", type=positive_int, help="worker processes (default: one per core, at most --chains)")
+    sp.add_argument("--report", type=Path, metavar="DIR",
+                    help="write credible-ellipse, trace and autocorrelation plots, the diagnostics table "
+                         "(diagnostics.md/.json) and the draws (posterior.nc) into DIR")
+    sp.add_argument("--reference", help="IMU whose position is held (default: the first)")
+    sp.add_argument("--prior", choices=("gaussian", "uniform"), default="gaussian",
+                    help="prior on each position around --array's: gaussian with --prior-std (default) or "
+                         "uniform over the 4 x 4 x 1 mm package")
+    sp.add_argument("--prior-std", type=positive_float, metavar="M", help="gaussian prior std, m (default 0.003)")
+    sp.add_argument("--accel-std", type=positive_float, metavar="M/S2",
+                    help="accelerometer noise std to assume instead of the description's (carlsson2021 uses "
+                         "0.79 m/s^2 on real data to cover non-linearity)")
+    sp.add_argument("--omega-covariance", choices=("model", "sample"), default="model",
+                    help="p(omega | gyroscopes): 'model' noise (eq. 26b, default) or the gyroscopes' sample "
+                         "covariance at each sample (eq. 30)")
+    sp.add_argument("--draws", type=positive_int, metavar="N",
+                    help="omega draws per time sample (default: tuned so Var[log-likelihood estimate] <= 0.1)")
+    sp.add_argument("--rho", type=non_negative_float, default=0.9,
+                    help="correlation of the random numbers between iterations, in [0, 1) (0: plain PmMH; "
+                         "default 0.9)")
+    sp.add_argument("--proposal", choices=("laplace", "isotropic"), default="laplace",
+                    help="'laplace': random walk shaped by the Laplace covariance mixed with independence "
+                         "proposals (default); 'isotropic': the paper's sigma_q I random walk (eq. 27)")
+    sp.add_argument("--ess", type=positive_float, default=400.0,
+                    help="sample until the smallest bulk effective sample size reaches this (default 400)")
+    sp.add_argument("--max-iterations", type=positive_int, default=400000,
+                    help="cap on the sampling iterations per chain (default 400000)")
+    sp.add_argument("--min-excitation", type=non_negative_float,
+                    help="samples with ||[w]x^2 + [w_dot]x|| below this (rad/s^2) are not used (default 1)")
+    sp.add_argument("--seed", type=non_negative_int, default=0, help="seed of the chains (default 0)")
+    _common(sp, force="replace an existing --out (a YAML mapping; kept as OUT.bak) and an existing report")
+    sp.set_defaults(func=calibrate.calibrate_bayes)
+
     def still_options(sp) -> None:
         sp.add_argument("--gravity", type=positive_float, metavar="M/S2",
                         help="local gravity magnitude (default 9.80665)")

@@ -19,7 +19,7 @@ import numpy as np
 from imu_array_ros.model.constants import STANDARD_GRAVITY as GRAVITY
 from imu_array_ros.model.samples import MotionTruth
 
-__all__ = ["random_motion", "TwistTrajectory", "quat_multiply", "quat_to_matrix", "quat_exp"]
+__all__ = ["random_motion", "gaussian_motion", "TwistTrajectory", "quat_multiply", "quat_to_matrix", "quat_exp"]
 
 
 
@@ -58,6 +58,16 @@ def random_motion(
         omega_dot=omega_dot_norm * _unit(rng, n),
         specific_force=specific_force_norm * _unit(rng, n),
     )
+
+
+def gaussian_motion(n: int, omega_std: float, omega_dot_std: float, specific_force_std: float,
+                    rng: np.random.Generator, *, rate_hz: float = 1000.0, start_ns: int = 0) -> MotionTruth:
+    """``n`` independent motion samples, every component of omega, omega_dot and the specific force
+    zero-mean Gaussian with the given stds (carlsson2021 Sec. IV-A: 1000 deg/s, 35000 deg/s^2, 20 m/s^2)."""
+    stamps = int(start_ns) + (np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
+    return MotionTruth(stamps=stamps, omega=omega_std * rng.normal(size=(n, 3)),
+                       omega_dot=omega_dot_std * rng.normal(size=(n, 3)),
+                       specific_force=specific_force_std * rng.normal(size=(n, 3)))
 
 
 # --------------------------------------------------------------------------- quaternions [w, x, y, z]

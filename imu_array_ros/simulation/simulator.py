@@ -17,9 +17,9 @@ import numpy as np
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.forward import SensorModel, motion_context
 from imu_array_ros.model.samples import ImuSamples, MotionTruth
-from imu_array_ros.simulation.motion import TwistTrajectory, random_motion
+from imu_array_ros.simulation.motion import TwistTrajectory, gaussian_motion, random_motion
 
-__all__ = ["simulate_measurements", "simulate_twist", "simulate_random", "as_sensor_model"]
+__all__ = ["simulate_measurements", "simulate_twist", "simulate_random", "simulate_gaussian", "as_sensor_model"]
 
 
 def as_sensor_model(model: SensorModel | ArrayDescription) -> SensorModel:
@@ -61,3 +61,14 @@ def simulate_random(model: SensorModel | ArrayDescription, n: int, omega_norm: f
     """Independent samples with set |omega|, |omega_dot| (carlsson2017 Monte Carlo), stamps from ``start_ns``."""
     truth = random_motion(n, omega_norm, omega_dot_norm, rng, rate_hz=rate_hz, start_ns=start_ns)
     return simulate_measurements(model, truth, rng), truth
+
+
+def simulate_gaussian(model: SensorModel | ArrayDescription, n: int, rng: np.random.Generator, *,
+                      omega_std: float = np.deg2rad(1000.0), omega_dot_std: float = np.deg2rad(35000.0),
+                      specific_force_std: float = 20.0, rate_hz: float = 1000.0,
+                      start_ns: int = 0) -> tuple[ImuSamples, MotionTruth]:
+    """Independent Gaussian motion samples (carlsson2021 Sec. IV-A defaults), measured without clipping
+    (the paper's sensors never saturate)."""
+    truth = gaussian_motion(n, omega_std, omega_dot_std, specific_force_std, rng, rate_hz=rate_hz,
+                            start_ns=start_ns)
+    return simulate_measurements(model, truth, rng, saturate=False), truth

@@ -1,0 +1,557 @@
+"""Bayesian calibration of the accelerometer positions: the PmMH posterior of carlsson2021.
+
+The target is p(theta | y_1:T), theta the positions of every IMU but the
+reference (held: only relative positions are observable), under the array
+model (carlsson2021 eq. 5) extended to the whole linear sensor model of
+:class:`~imu_array_ros.model.forward.SensorModel`: with every term affine
+(gains, misalignments, non-orthogonalities, biases and their drifts held at
+their calibrated values) IMU k's accelerometer reads y_k = M_k f(r_k) + o_k
+and its gyroscope g_k = G_k omega + o'_k, so the compensated readings
+
+    z_k = M_k^-1 (y_k - o_k) = [omega]x^2 r_k + [omega_dot]x r_k + s + e_k,   e_k ~ N(0, M_k^-1 Sigma_k M_k^-T)
+    w_k = G_k^-1 (g_k - o'_k) = omega + e'_k
+
+are the paper's model exactly, with 3x3 noise blocks (:func:`affine_model`
+checks the model is affine and names the terms that are not).
+
+Likelihood (eq. 26): the linear motion phi = [omega_dot, s] is marginalised
+analytically under a flat prior (eq. 22-25) and omega numerically, by N draws
+from p(omega | gyroscopes) (26b) per time sample::
+
+    log p_N(y | theta) = sum_t logsumexp_n(-||z_t - h(omega_tn, theta)||^2_S / 2) - T log N - T/2 log|H^T Omega H|
+
+Note the exponent of |H^T Omega H|: -1/2, the limit of the Gaussian
+normaliser |M_t|^-1/2 (eq. 19, 21); eq. 25-26 print the determinant without
+the square root.  h(omega, r_k) = ([omega]x^2) r_k is linear in r_k and in the
+six monomials q(omega) = [wx^2, wy^2, wz^2, wx wy, wx wz, wy wz], so the
+exponent is c_t - 2 q^T beta_t + q^T P q with c_t (T,), beta_t (T, 6) and P
+(6, 6) computed once per theta from 3x3 blocks (S is never formed) and reused
+by every draw: a likelihood costs O(T K) + O(T N).
+
+The random numbers: omega_tn = mu_t + L_t u_tn with u (T, N, 3) standard
+normal.  The chain moves on (theta, u) jointly (the pseudo-marginal target
+pi(theta, u) ~ p(theta) p_N(y | theta, u) phi(u), whose theta-marginal is the
+posterior for any N, as p_N is unbiased): ``rho = 0`` draws u afresh every
+iteration (plain PmMH, Alg. 1); ``0 < rho < 1`` proposes u' = rho u +
+sqrt(1 - rho^2) eps (correlated pseudo-marginal, Deligiannidis et al. 2018),
+a phi-reversible move, so the acceptance ratio and the target are the same and
+the noise of the log-likelihood ratio shrinks with 1 - rho.  The proposal for
+theta is a Gaussian random walk (eq. 27), isotropic as in the paper or shaped
+by the Laplace covariance (:func:`laplace`); both are symmetric.
+
+Everything here is ROS-free and picklable; :mod:`imu_array_ros.calibration.bayes_sampler`
+runs the chains (processes or a Dask cluster), tunes N and the step, and
+diagnoses them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.model.kinematics import skew
+
+__all__ = ["BayesProblem", "Prior", "ChainState", "ChunkResult", "affine_model", "build_problem", "select_samples",
+           "laplace", "Laplace", "run_chunk", "initial_state", "loglik_variance", "PRIOR_STD", "PACKAGE_SIZE",
+           "OMEGA_COVARIANCES"]
+
+#: carlsson2021 Sec. IV-A: prior standard deviation of each position coordinate, m
+PRIOR_STD = 3e-3
+#: carlsson2021 Fig. 1: an MPU-9150 package is 4 x 4 x 1 mm (the uniform prior's box)
+PACKAGE_SIZE = (4e-3, 4e-3, 1e-3)
+#: how p(omega | gyroscopes) is formed: "model": the noise model's posterior (26b);
+#: "sample": mean and sample covariance of the gyroscopes at each t (eq. 30)
+OMEGA_COVARIANCES = ("model", "sample")
+#: relative mismatch above which the model is not affine in the motion (see affine_model)
+AFFINE_RTOL = 1e-8
+
+
+# --------------------------------------------------------------------------- the model, compensated
+
+
+def affine_model(model: SensorModel, stamps) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(M_acc (K,3,3), o_acc (T,K,3), M_gyr (K,3,3), o_gyr (T,K,3)) with y = M f(r_k) + o, g = M' omega + o'.
+
+    Read off the model itself (its prediction at rest and its Jacobian) and
+    checked at a random motion; a model with a term that is not affine in the
+    motion (time offsets, axis offsets, non-linearity, g-sensitivity not at
+    their identity) raises :class:`CalibrationError` naming it.
+    """
+    stamps = np.asarray(stamps, dtype=np.int64)
+    t = len(stamps)
+    zero = np.zeros((t, 3))
+    ctx = motion_context(stamps, zero, zero, zero, model.rotations, derivatives=True)
+    acc0, gyr0 = model.predict(ctx)
+    jac = model.jacobians(motion_context(stamps[:1], zero[:1], zero[:1], zero[:1], model.rotations,
+                                         derivatives=True), ())
+    m_acc = jac.motion[0, :, 0:3, 6:9].copy()
+    m_gyr = jac.motion[0, :, 3:6, 0:3].copy()
+    # check: one random motion at every stamp against the affine form
+    rng = np.random.default_rng(12345)
+    w, wd, s = rng.normal(size=(3, t, 3)) * np.array([3.0, 30.0, 10.0])[:, None, None]
+    ctx = motion_context(stamps, w, wd, s, model.rotations, derivatives=True)
+    acc, gyr = model.predict(ctx)
+    lever = skew(w) @ skew(w) + skew(wd)
+    f = s[:, None, :] + np.einsum("tij,kj->tki", lever, model.positions)
+    acc_aff = np.einsum("kij,tkj->tki", m_acc, f) + acc0
+    gyr_aff = np.einsum("kij,tj->tki", m_gyr, w) + gyr0
+    err = max(np.max(np.abs(acc - acc_aff)) / max(np.max(np.abs(acc)), 1.0),
+              np.max(np.abs(gyr - gyr_aff)) / max(np.max(np.abs(gyr)), 1.0))
+    if not np.isfinite(err) or err > AFFINE_RTOL:
+        offending = [n for n in model.nonlinear_terms] + [
+            n for n in ("gyroscope_g_sensitivity", "axis_offsets", "time_offset")
+            if n in model.terms and not model.terms[n].is_identity and n not in model.nonlinear_terms]
+        raise CalibrationError(
+            "the Bayesian position calibration needs a sensor model affine in the motion; "
+            f"{', '.join(offending) or 'a term'} is not (hold it at its identity, or calibrate with "
+            "'calibrate fit' / 'calibrate geometry')")
+    for label, m in (("accelerometer", m_acc), ("gyroscope", m_gyr)):
+        if np.any(np.abs(np.linalg.det(m)) < 1e-6):
+            raise CalibrationError(f"the {label} model of an IMU is singular (a gain near 0?)")
+    return m_acc, acc0, m_gyr, gyr0
+
+
+# --------------------------------------------------------------------------- the problem
+
+
+@dataclass(frozen=True)
+class Prior:
+    """Prior on the free positions (d,) = (K-1)*3: ``kind`` "gaussian" N(mean, std^2) per coordinate
+    or "uniform" on mean +- half_width (box)."""
+
+    kind: str
+    mean: np.ndarray
+    std: np.ndarray  # gaussian: std; uniform: half width
+
+    def logpdf(self, theta: np.ndarray) -> float:
+        d = (np.asarray(theta) - self.mean) / self.std
+        if self.kind == "uniform":
+            return 0.0 if np.all(np.abs(d) <= 1.0) else -np.inf
+        return -0.5 * float(d @ d)
+
+    def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        z = rng.uniform(-1, 1, (n, len(self.mean))) if self.kind == "uniform" else rng.normal(size=(n, len(self.mean)))
+        return self.mean + z * self.std
+
+    @property
+    def covariance_diag(self) -> np.ndarray:
+        """Per-coordinate prior variance (uniform: half_width^2 / 3)."""
+        return self.std ** 2 / (3.0 if self.kind == "uniform" else 1.0)
+
+
+@dataclass(frozen=True)
+class BayesProblem:
+    """The selected samples, compensated (module docstring), and everything θ-independent.
+
+    names (K,); reference: index of the held IMU; free (K-1,) indices of the
+    sampled ones; positions (K, 3) the starting positions (the reference's is
+    held at its value); stamps (T,); wz (T, 3K) Omega_k z_tk; zz (T,)
+    sum_k z^T Omega z; wsum (T, 3) sum_k Omega_k z_tk; omega_info (K, 3, 3)
+    Omega_k; mu (T, 3), chol (T or 1, 3, 3): p(omega_t | gyroscopes) =
+    N(mu_t, chol chol^T); prior; n_draws N; rho.
+    """
+
+    names: tuple
+    reference: int
+    free: np.ndarray
+    positions: np.ndarray
+    stamps: np.ndarray
+    wz: np.ndarray = field(repr=False)
+    zz: np.ndarray = field(repr=False)
+    wsum: np.ndarray = field(repr=False)
+    omega_info: np.ndarray = field(repr=False)
+    mu: np.ndarray = field(repr=False)
+    chol: np.ndarray = field(repr=False)
+    prior: Prior = None
+    n_draws: int = 16
+    rho: float = 0.0
+    omega_covariance: str = "model"
+    accel_std: np.ndarray = field(default=None, repr=False)
+    coef: np.ndarray = field(default=None, repr=False)
+    coef0: np.ndarray = field(default=None, repr=False)
+    amat: np.ndarray = field(default=None, repr=False)
+
+    @property
+    def dim(self) -> int:
+        return 3 * len(self.free)
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.stamps)
+
+    def with_(self, **kw) -> "BayesProblem":
+        return replace(self, **kw)
+
+    def full_positions(self, theta: np.ndarray) -> np.ndarray:
+        """(K, 3) positions from the free coordinates theta (d,) (or (..., d) -> (..., K, 3))."""
+        theta = np.asarray(theta, dtype=float)
+        out = np.broadcast_to(self.positions, theta.shape[:-1] + self.positions.shape).copy()
+        out[..., self.free, :] = theta.reshape(theta.shape[:-1] + (len(self.free), 3))
+        return out
+
+    def theta_of(self, positions: np.ndarray) -> np.ndarray:
+        """Free coordinates (d,) of (K, 3) positions."""
+        return np.asarray(positions, dtype=float)[self.free].reshape(-1)
+
+    def omega_draws(self, u: np.ndarray) -> np.ndarray:
+        """omega_tn = mu_t + L_t u_tn: u (..., T, N, 3) -> (..., T, N, 3)."""
+        return self.mu[:, None, :] + np.einsum("tij,...tnj->...tni", self.chol, u) if len(self.chol) > 1 else \
+            self.mu[:, None, :] + u @ self.chol[0].T
+
+    def quadratic(self, theta: np.ndarray):
+        """(c (T,), beta (T, 6), P (6, 6), log|G|) of the exponent at theta (module docstring), or None
+        where G = H^T Omega H is singular.  Every matrix is a quadratic polynomial in the positions, so
+        all of them are one product with the coefficients ``build_problem`` precomputed."""
+        r = self.full_positions(theta)
+        rr = (r[:, :, None] * r[:, None, :]).reshape(-1)
+        m = np.concatenate([rr, r.reshape(-1)]) @ self.coef + self.coef0  # (108,)
+        g, f, p1 = m[:36].reshape(6, 6), m[36:72].reshape(6, 6), m[72:].reshape(6, 6)
+        try:
+            low = np.linalg.cholesky(g)
+        except np.linalg.LinAlgError:
+            return None
+        linv = np.linalg.inv(low)
+        mats = (r @ self.amat).reshape(3 * len(r), 9)  # rows of [E_k | X_k^T], linear in r_k
+        prod = self.wz @ mats  # (T, 9): sum_k E_k^T w_tk, sum_k X_k w_tk
+        g0 = np.concatenate([prod[:, 6:9], self.wsum], axis=1)  # (T, 6)
+        a = g0 @ linv.T
+        fl = linv @ f
+        c = self.zz - np.sum(a * a, axis=1)
+        beta = prod[:, :6] - a @ fl
+        p = p1 - fl.T @ fl
+        return c, beta, 0.5 * (p + p.T), 2.0 * float(np.sum(np.log(np.diag(low))))
+
+    def loglik(self, theta: np.ndarray, u: np.ndarray) -> float:
+        """log p_N(y | theta, u) up to a theta-independent constant (module docstring); u (T, N, 3)."""
+        quad = self.quadratic(theta)
+        if quad is None:
+            return -np.inf
+        return _loglik(quad, _monomials(self.omega_draws(u)))
+
+    def loglik_batch(self, theta: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """log p_N for R replicates of the random numbers u (R, T, N, 3) at one theta: (R,)."""
+        quad = self.quadratic(theta)
+        if quad is None:
+            return np.full(len(u), -np.inf)
+        return _loglik(quad, _monomials(self.omega_draws(u)))
+
+    def exact_loglik(self, theta: np.ndarray, omega: np.ndarray) -> float:
+        """The same with omega known (T, 3): sum_t -||z_t - h||^2_S / 2 - T/2 log|G| (the N -> inf limit
+        when the gyroscopes are exact); for tests."""
+        quad = self.quadratic(theta)
+        return _loglik(quad, _monomials(np.asarray(omega, dtype=float)[:, None, :]))
+
+
+def _monomial_matrix(r: np.ndarray) -> np.ndarray:
+    """E(r) (K, 3, 6) with ([omega]x^2) r = E(r) q(omega), q = [wx^2, wy^2, wz^2, wx wy, wx wz, wy wz]."""
+    rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
+    z = np.zeros_like(rx)
+    return np.stack([np.stack([z, -rx, -rx, ry, rz, z], axis=1),
+                     np.stack([-ry, z, -ry, rx, z, rz], axis=1),
+                     np.stack([-rz, -rz, z, z, rx, ry], axis=1)], axis=1)
+
+
+def _monomials(w: np.ndarray) -> np.ndarray:
+    """q(omega) (..., 6) of omega (..., 3)."""
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    return np.stack([x * x, y * y, z * z, x * y, x * z, y * z], axis=-1)
+
+
+def _loglik(quad, q: np.ndarray):
+    """sum_t logsumexp_n(-e_tn / 2) - T log N - T/2 log|G| for q (..., T, N, 6); leading dims kept."""
+    c, beta, p, logdet = quad
+    e = c[:, None] + np.sum(q * (q @ p - 2.0 * beta[:, None, :]), axis=-1)  # (..., T, N)
+    t, n = q.shape[-3], q.shape[-2]
+    x = -0.5 * e
+    if n == 1:
+        lse = x[..., 0]
+    else:
+        mx = np.max(x, axis=-1)
+        lse = mx + np.log(np.sum(np.exp(x - mx[..., None]), axis=-1))
+    return np.sum(lse, axis=-1) - t * np.log(n) - 0.5 * t * logdet
+
+
+def _coefficients(omega_info: np.ndarray):
+    """Coefficients of G, F, P1 (module docstring) as polynomials in the positions: (coef (12K, 108),
+    coef0 (108,)) with [vec(r_k r_k^T) for k, vec(r)] @ coef + coef0; and amat (3, 27) with
+    r_k @ amat = the rows of [E(r_k) | X(r_k)^T] (3 x 9)."""
+    k = len(omega_info)
+    eye = np.eye(3)
+    xb = skew(eye)  # X_i = [e_i]x, (3, 3, 3)
+    eb = _monomial_matrix(eye)  # E_i = E(e_i), (3, 3, 6)
+    om = omega_info
+    # quadratic parts per k: (K, 3, 3, 108)
+    g11 = -np.einsum("iab,kbc,jcd->kijad", xb, om, xb)
+    ftop = np.einsum("iab,kbc,jcd->kijad", xb, om, eb)
+    p1 = np.einsum("iba,kbc,jcd->kijad", eb, om, eb)
+    quad = np.zeros((k, 3, 3, 3 * 36))
+    quad[..., :36] = np.pad(g11, [(0, 0)] * 3 + [(0, 3), (0, 3)]).reshape(k, 3, 3, 36)
+    quad[..., 36:72] = np.pad(ftop, [(0, 0)] * 3 + [(0, 3), (0, 0)]).reshape(k, 3, 3, 36)
+    quad[..., 72:] = p1.reshape(k, 3, 3, 36)
+    # linear parts per k: (K, 3, 108)
+    g12 = np.einsum("iab,kbc->kiac", xb, om)  # X_i Omega_k (3x3) -> G[:3, 3:]; its transpose -> G[3:, :3]
+    fbot = np.einsum("kab,ibc->kiac", om, eb)  # Omega_k E_i -> F[3:, :]
+    lin = np.zeros((k, 3, 108))
+    gl = np.zeros((k, 3, 6, 6))
+    gl[:, :, :3, 3:] = g12
+    gl[:, :, 3:, :3] = g12.transpose(0, 1, 3, 2)
+    lin[..., :36] = gl.reshape(k, 3, 36)
+    fl = np.zeros((k, 3, 6, 6))
+    fl[:, :, 3:, :] = fbot
+    lin[..., 36:72] = fl.reshape(k, 3, 36)
+    g0 = np.zeros((6, 6))
+    g0[3:, 3:] = om.sum(axis=0)
+    coef = np.concatenate([quad.reshape(9 * k, 108), lin.reshape(3 * k, 108)], axis=0)
+    coef0 = np.concatenate([g0.reshape(36), np.zeros(72)])
+    amat = np.concatenate([eb, xb.transpose(0, 2, 1)], axis=2).reshape(3, 27)  # r_k @ amat: [E_k | X_k^T]
+    return coef, coef0, amat
+
+
+# --------------------------------------------------------------------------- building a problem
+
+
+def select_samples(stamps, accel, gyro, model: SensorModel, n_samples: int | None, *,
+                   min_excitation: float | None = None):
+    """Indices of the samples to use: complete (every reading valid), with rotation (the geometry
+    calibration's test, :func:`~imu_array_ros.calibration.geometry._select`), ``n_samples`` of them
+    evenly spread in time (None: all).  Returns (indices, dropped reason -> count, usable count)."""
+    from imu_array_ros.calibration import geometry
+
+    used, dropped, _ = geometry._select(np.asarray(stamps), np.asarray(accel), np.asarray(gyro), model,
+                                        geometry.MIN_EXCITATION if min_excitation is None else min_excitation)
+    idx = np.flatnonzero(used)
+    usable = len(idx)
+    if n_samples is not None and usable > n_samples:
+        idx = idx[np.round(np.linspace(0, usable - 1, n_samples)).astype(int)]
+    if len(idx) < 2:
+        why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v)
+        raise CalibrationError(f"too few samples with rotation: {usable} usable of {len(used)}"
+                               f"{' (dropped: ' + why + ')' if why else ''}; twist the array by hand about at "
+                               "least two axes")
+    return idx, dropped, usable
+
+
+def build_problem(stamps, accel, gyro, model: SensorModel, *, reference: int = 0, prior: Prior | None = None,
+                  prior_kind: str = "gaussian", prior_std: float = PRIOR_STD, package=PACKAGE_SIZE,
+                  accel_std: float | None = None, omega_covariance: str = "model", n_draws: int = 16,
+                  rho: float = 0.0) -> BayesProblem:
+    """The :class:`BayesProblem` of complete samples (T, K, 3) under ``model`` (module docstring).
+
+    The prior is centred on the model's positions (the description's); ``accel_std`` replaces the
+    accelerometer noise std (carlsson2021 Sec. IV-B sets it to 0.79 m/s^2 for the real array).
+    """
+    stamps = np.asarray(stamps, dtype=np.int64)
+    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
+    t, k = len(stamps), model.n_imus
+    if accel.shape != (t, k, 3) or gyro.shape != (t, k, 3):
+        raise CalibrationError(f"readings of shape {accel.shape}/{gyro.shape}, expected {(t, k, 3)}")
+    if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(gyro))):
+        raise CalibrationError("the Bayesian calibration needs complete samples (no missing or NaN reading)")
+    if k < 2:
+        raise CalibrationError("an array of one IMU has no relative positions to calibrate")
+    if omega_covariance not in OMEGA_COVARIANCES:
+        raise CalibrationError(f"omega covariance {omega_covariance!r}: expected one of {', '.join(OMEGA_COVARIANCES)}")
+    if omega_covariance == "sample" and k < 4:
+        raise CalibrationError("the sample covariance of the gyroscopes (eq. 30) needs at least 4 IMUs")
+    if not 0.0 <= rho < 1.0:
+        raise CalibrationError(f"rho {rho}: the correlation of the random numbers must be in [0, 1)")
+    m_acc, o_acc, m_gyr, o_gyr = affine_model(model, stamps)
+    inv_a, inv_g = np.linalg.inv(m_acc), np.linalg.inv(m_gyr)
+    z = np.einsum("kij,tkj->tki", inv_a, accel - o_acc)
+    w = np.einsum("kij,tkj->tki", inv_g, gyro - o_gyr)
+    sa = model.acc_std if accel_std is None else np.full((k, 3), float(accel_std))
+    cov_a = inv_a @ (sa[:, :, None] ** 2 * np.eye(3)) @ inv_a.transpose(0, 2, 1)
+    om = np.linalg.inv(cov_a)
+    om = 0.5 * (om + om.transpose(0, 2, 1))
+    wz = np.einsum("kij,tkj->tki", om, z)
+    zz = np.einsum("tki,tki->t", z, wz)
+    if omega_covariance == "model":
+        cov_g = inv_g @ (model.gyro_std[:, :, None] ** 2 * np.eye(3)) @ inv_g.transpose(0, 2, 1)
+        info_g = np.linalg.inv(cov_g)
+        post = np.linalg.inv(np.sum(info_g, axis=0))
+        mu = np.einsum("ij,tj->ti", post, np.einsum("kij,tkj->ti", info_g, w))
+        chol = np.linalg.cholesky(0.5 * (post + post.T))[None]
+    else:  # eq. 30: the gyroscopes' mean and sample covariance at each t
+        mu = w.mean(axis=1)
+        d = w - mu[:, None, :]
+        cov = np.einsum("tki,tkj->tij", d, d) / (k - 1)
+        try:
+            chol = np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            raise CalibrationError("the gyroscopes' sample covariance (eq. 30) is singular at some sample") from None
+    positions = np.asarray(model.positions, dtype=float).copy()
+    free = np.array([i for i in range(k) if i != reference])
+    if prior is None:
+        if prior_kind == "gaussian":
+            prior = Prior("gaussian", positions[free].reshape(-1), np.full(3 * len(free), float(prior_std)))
+        elif prior_kind == "uniform":
+            half = np.tile(0.5 * np.asarray(package, dtype=float), len(free))
+            prior = Prior("uniform", positions[free].reshape(-1), half)
+        else:
+            raise CalibrationError(f"prior {prior_kind!r}: expected gaussian or uniform")
+    coef, coef0, amat = _coefficients(om)
+    return BayesProblem(names=tuple(model.names), reference=int(reference), free=free, positions=positions,
+                        stamps=stamps, coef=coef, coef0=coef0, amat=amat, wz=wz.reshape(t, 3 * k), zz=zz, wsum=wz.sum(axis=1), omega_info=om, mu=mu,
+                        chol=chol, prior=prior, n_draws=int(n_draws), rho=float(rho),
+                        omega_covariance=omega_covariance, accel_std=sa)
+
+
+# --------------------------------------------------------------------------- Laplace / CRB approximation
+
+
+@dataclass
+class Laplace:
+    """Gaussian approximation of the posterior: mean (d,), covariance (d, d); the ML (BCD/joint)
+    estimate and its Cramér-Rao covariance it combines with the prior."""
+
+    mean: np.ndarray
+    covariance: np.ndarray
+    ml: np.ndarray
+    crb: np.ndarray
+
+
+def laplace(problem: BayesProblem, stamps, accel, gyro, model: SensorModel, *, method: str = "joint") -> Laplace:
+    """The ML estimate of the positions on the same samples (:func:`~imu_array_ros.calibration.geometry.calibrate_geometry`,
+    with the same noise) and its CRB, combined with a Gaussian prior (precisions add); with a uniform
+    prior the CRB alone, its mean clipped into the box."""
+    from imu_array_ros.calibration.geometry import calibrate_geometry
+
+    m = model
+    if problem.accel_std is not None:
+        m = replace(model, acc_std=np.asarray(problem.accel_std, dtype=float))
+    geo = calibrate_geometry(stamps, accel, gyro, m, reference=problem.reference, method=method, min_excitation=0.0)
+    # the geometry result keeps the reference at its position only up to the common shift: re-anchor
+    pos = geo.positions - geo.positions[problem.reference] + problem.positions[problem.reference]
+    ml = problem.theta_of(pos)
+    idx = (3 * problem.free[:, None] + np.arange(3)).reshape(-1)
+    crb = geo.covariance[np.ix_(idx, idx)]
+    crb = 0.5 * (crb + crb.T)
+    pr = problem.prior
+    if pr.kind == "gaussian":
+        info = np.linalg.inv(crb) + np.diag(1.0 / pr.std ** 2)
+        cov = np.linalg.inv(info)
+        mean = cov @ (np.linalg.solve(crb, ml) + pr.mean / pr.std ** 2)
+    else:
+        cov, mean = crb, np.clip(ml, pr.mean - pr.std, pr.mean + pr.std)
+    return Laplace(mean=mean, covariance=0.5 * (cov + cov.T), ml=ml, crb=crb)
+
+
+# --------------------------------------------------------------------------- the chain
+
+
+@dataclass
+class ChainState:
+    """Where a chain is: theta (d,), its random numbers u (T, N, 3), log-likelihood and log-prior,
+    the random walk's step scale and Cholesky factor (d, d), the independence proposal (a multivariate
+    t with ``IND_DOF`` degrees of freedom: mean, Cholesky factor of its scale matrix, probability of
+    proposing from it each iteration; None: random walk only) and the generator."""
+
+    theta: np.ndarray
+    u: np.ndarray
+    loglik: float
+    logprior: float
+    scale: float
+    proposal: np.ndarray
+    rng: np.random.Generator
+    iterations: int = 0
+    ind_mean: np.ndarray | None = None
+    ind_chol: np.ndarray | None = None
+    ind_prob: float = 0.0
+
+
+#: degrees of freedom of the independence proposal's multivariate t (heavier tails than the posterior)
+IND_DOF = 10.0
+
+
+def _t_logpdf(theta: np.ndarray, mean: np.ndarray, chol_inv: np.ndarray) -> float:
+    """log density (up to a constant) of the multivariate t (IND_DOF, mean, L L^T) at theta; chol_inv = L^-1."""
+    z = chol_inv @ (theta - mean)
+    return -0.5 * (IND_DOF + len(theta)) * np.log1p(float(z @ z) / IND_DOF)
+
+
+@dataclass
+class ChunkResult:
+    """One chunk of a chain: draws (M, d), loglik (M,), logprior (M,), accepted (M,) bool, independence
+    (M,) bool (which proposal was made), the new state and the process time it took (s)."""
+
+    draws: np.ndarray
+    loglik: np.ndarray
+    logprior: np.ndarray
+    accepted: np.ndarray
+    independence: np.ndarray
+    state: ChainState
+    cpu_seconds: float
+
+
+def initial_state(problem: BayesProblem, theta0: np.ndarray, proposal_chol: np.ndarray, scale: float,
+                  seed) -> ChainState:
+    """A chain at theta0 with fresh random numbers."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((problem.n_samples, problem.n_draws, 3))
+    theta0 = np.asarray(theta0, dtype=float)
+    return ChainState(theta=theta0, u=u, loglik=problem.loglik(theta0, u), logprior=problem.prior.logpdf(theta0),
+                      scale=float(scale), proposal=np.asarray(proposal_chol, dtype=float), rng=rng)
+
+
+def run_chunk(problem: BayesProblem, state: ChainState, n_iter: int) -> ChunkResult:
+    """``n_iter`` PmMH iterations (Alg. 1; correlated when problem.rho > 0) from ``state``.
+
+    Each iteration proposes theta' from the random walk (eq. 27, symmetric) or, with probability
+    ``state.ind_prob`` decided independently of the state, from the independence proposal (then the
+    acceptance ratio carries q(theta) / q(theta')); a mixture of two kernels that each leave the
+    target invariant leaves it invariant.  u' as in the module docstring."""
+    import time
+
+    t0 = time.process_time()
+    rng = state.rng
+    d = problem.dim
+    theta, u, ll, lp = state.theta.copy(), state.u, state.loglik, state.logprior
+    if u.shape != (problem.n_samples, problem.n_draws, 3):  # N changed (tuning): fresh random numbers
+        u = rng.standard_normal((problem.n_samples, problem.n_draws, 3))
+        ll = problem.loglik(theta, u)
+    rho, rho_c = problem.rho, np.sqrt(1.0 - problem.rho ** 2)
+    draws = np.empty((n_iter, d))
+    lls, lps = np.empty(n_iter), np.empty(n_iter)
+    acc = np.zeros(n_iter, dtype=bool)
+    steps = rng.standard_normal((n_iter, d)) @ state.proposal.T * state.scale
+    logu = np.log(rng.random(n_iter))
+    use_ind = state.ind_mean is not None and state.ind_prob > 0
+    ind = (rng.random(n_iter) < state.ind_prob) if use_ind else np.zeros(n_iter, dtype=bool)
+    if use_ind:
+        m, c = state.ind_mean, state.ind_chol
+        cinv = np.linalg.inv(c)
+        w = np.sqrt(IND_DOF / rng.chisquare(IND_DOF, n_iter))
+        ind_props = m + (rng.standard_normal((n_iter, d)) @ c.T) * w[:, None]
+        lq = _t_logpdf(theta, m, cinv)
+    for i in range(n_iter):
+        prop = ind_props[i] if ind[i] else theta + steps[i]
+        lp_new = problem.prior.logpdf(prop)
+        if np.isfinite(lp_new):
+            eps = rng.standard_normal(u.shape)
+            u_new = eps if rho == 0.0 else rho * u + rho_c * eps
+            ll_new = problem.loglik(prop, u_new)
+            log_ratio = (ll_new + lp_new) - (ll + lp)
+            if ind[i]:
+                lq_new = _t_logpdf(prop, m, cinv)
+                log_ratio += lq - lq_new
+            if logu[i] < log_ratio:
+                theta, u, ll, lp = prop, u_new, ll_new, lp_new
+                if use_ind:
+                    lq = lq_new if ind[i] else _t_logpdf(theta, m, cinv)
+                acc[i] = True
+        draws[i], lls[i], lps[i] = theta, ll, lp
+    new = replace(state, theta=theta, u=u, loglik=ll, logprior=lp, iterations=state.iterations + n_iter)
+    return ChunkResult(draws, lls, lps, acc, ind, new, time.process_time() - t0)
+
+
+def loglik_variance(problem: BayesProblem, theta: np.ndarray, replicates: int, rng: np.random.Generator,
+                    batch: int = 8) -> float:
+    """Var[log p_N(y | theta)] over ``replicates`` independent sets of random numbers (the tuning of N)."""
+    vals = []
+    for lo in range(0, replicates, batch):
+        r = min(batch, replicates - lo)
+        vals.append(problem.loglik_batch(theta, rng.standard_normal((r, problem.n_samples, problem.n_draws, 3))))
+    return float(np.var(np.concatenate(vals), ddof=1))

@@ -1,0 +1,251 @@
+"""Bayesian position calibration (carlsson2021): the likelihood, the sampler, its runners, the command."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import yaml
+from scipy.stats import ks_2samp
+
+from conftest import START, assert_user_error, cli
+from imu_array_ros.calibration import bayes
+from imu_array_ros.calibration import bayes_sampler as bs
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.model.description import load_description, save_description
+from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.kinematics import skew
+from imu_array_ros.model.layouts import grid_array32, tetrahedron4
+from imu_array_ros.simulation.simulator import simulate_gaussian
+
+
+def _unclipped(desc) -> SensorModel:
+    return dataclasses.replace(SensorModel.from_description(desc), acc_clip=np.inf, gyro_clip=np.inf)
+
+
+def _problem(seed=0, t=30, desc=None, true_offset=2e-4, **kw):
+    """(problem, laplace, samples, true positions, nominal model) for a tetrahedron of 4 IMUs."""
+    nominal = _unclipped(desc or tetrahedron4())
+    rng = np.random.default_rng(seed)
+    pos = nominal.positions.copy()
+    pos[1:] += rng.normal(size=pos[1:].shape) * true_offset
+    s, truth = simulate_gaussian(nominal.with_terms(position=pos), t, rng)
+    p = bayes.build_problem(s.stamps, s.accel, s.gyro, nominal, **kw)
+    return p, bayes.laplace(p, s.stamps, s.accel, s.gyro, nominal), s, truth, pos, nominal
+
+
+# --------------------------------------------------------------------------- the likelihood
+
+
+def test_rao_blackwellised_likelihood_matches_the_dense_formula_with_a_calibrated_model():
+    """eq. 22-25 with S formed densely, in the raw sensor frames with gains, misalignments and biases:
+    the compensated, factorised likelihood differs from it by a theta-independent constant only."""
+    desc = tetrahedron4()
+    nominal = _unclipped(desc)
+    rng = np.random.default_rng(4)
+    k = nominal.n_imus
+    model = nominal.with_terms(accelerometer_gain=1 + 0.02 * rng.normal(size=(k, 3)),
+                               accelerometer_misalignment=0.01 * rng.normal(size=(k, 3)),
+                               accelerometer_bias=0.1 * rng.normal(size=(k, 3)),
+                               gyroscope_gain=1 + 0.01 * rng.normal(size=(k, 3)))
+    s, truth = simulate_gaussian(model, 12, rng)
+    p = bayes.build_problem(s.stamps, s.accel, s.gyro, model)
+    m_acc, o_acc, _, _ = bayes.affine_model(model, s.stamps)
+    sigma = np.diag(np.tile(model.acc_std[0] ** 2, k))
+    om = np.linalg.inv(sigma)
+    mbig = np.zeros((3 * k, 3 * k))
+    for i in range(k):
+        mbig[3 * i:3 * i + 3, 3 * i:3 * i + 3] = m_acc[i]
+
+    def dense(theta):
+        r = p.full_positions(theta)
+        h = mbig @ np.concatenate([np.concatenate([-skew(r[i]), np.eye(3)], 1) for i in range(k)])
+        g = h.T @ om @ h
+        smat = om - om @ h @ np.linalg.solve(g, h.T @ om)
+        total = 0.0
+        for t in range(len(s.stamps)):
+            w = skew(truth.omega[t])
+            pred = mbig @ np.concatenate([w @ w @ r[i] for i in range(k)])
+            d = (s.accel[t] - o_acc[t]).reshape(-1) - pred
+            total += -0.5 * d @ smat @ d
+        return total - 0.5 * len(s.stamps) * np.linalg.slogdet(g)[1]
+
+    th0 = p.theta_of(model.positions)
+    th1 = th0 + 1e-3 * rng.normal(size=p.dim)
+    ours = p.exact_loglik(th1, truth.omega) - p.exact_loglik(th0, truth.omega)
+    assert ours == pytest.approx(dense(th1) - dense(th0), rel=1e-8, abs=1e-6)
+    assert abs(ours) > 10  # the comparison is not between two zeros
+
+
+def test_estimator_variance_falls_as_one_over_n():
+    """carlsson2021 Fig. 2: Var[log p_N] ~ 1/N."""
+    p, lap, *_ = _problem(t=200, desc=grid_array32())
+    rng = np.random.default_rng(1)
+    v1 = bayes.loglik_variance(p.with_(n_draws=1), lap.mean, 200, rng)
+    v16 = bayes.loglik_variance(p.with_(n_draws=16), lap.mean, 200, rng)
+    assert 8 < v1 / v16 < 32, (v1, v16)
+
+
+def test_a_model_with_time_offsets_is_refused_by_name():
+    nominal = _unclipped(tetrahedron4())
+    model = nominal.with_terms(time_offset=np.full((4, 2), 1e-3))
+    s, _ = simulate_gaussian(model, 5, np.random.default_rng(0))
+    with pytest.raises(CalibrationError, match="time_offset"):
+        bayes.build_problem(s.stamps, s.accel, s.gyro, model)
+
+
+# --------------------------------------------------------------------------- the sampler
+
+FAST = dict(scheduler="serial", ess=300, min_warmup=500, chunk=500)
+
+
+@pytest.fixture(scope="module")
+def tetra_posterior():
+    p, lap, s, truth, pos, nominal = _problem(seed=3)
+    post = bs.sample_posterior(p, lap, bs.SamplerSettings(**FAST, seed=1))
+    return p, lap, post, pos
+
+
+def test_posterior_covers_the_truth_and_agrees_with_laplace(tetra_posterior):
+    p, lap, post, pos = tetra_posterior
+    assert post.converged and post.rhat_max <= 1.01 and post.ess_bulk_min >= 300
+    z = (post.mean - p.theta_of(pos)) / np.sqrt(np.diag(post.covariance))
+    assert np.all(np.abs(z) < 4), z
+    chi2 = float(z @ z)
+    assert chi2 < 30, chi2  # 9 coordinates: chi2(9) exceeds 30 with probability 4e-4
+    agree = bs.laplace_agreement(post)
+    assert agree["agrees"], agree
+    # the posterior is far narrower than the 3 mm prior: the data, not the prior, speak
+    assert np.all(np.sqrt(np.diag(post.covariance)) < 0.05 * bayes.PRIOR_STD)
+    assert 0.07 <= post.acceptance.min() and post.acceptance.max() <= 0.35
+
+
+def test_correlated_random_numbers_keep_the_target():
+    """rho 0.9 against plain PmMH (rho 0), random walk only: two-sample KS per coordinate on thinned draws."""
+    p, lap, *_ = _problem(seed=5, t=40)
+    runs = {}
+    for rho in (0.0, 0.9):
+        runs[rho] = bs.sample_posterior(p, lap, bs.SamplerSettings(**{**FAST, "ess": 600}, rho=rho, independence=0.0,
+                                                                   n_draws=1, seed=7))
+    pvals = []
+    for j in range(p.dim):
+        a, b = (runs[r].draws[..., j].reshape(-1) for r in (0.0, 0.9))
+        thin = lambda x, post: x[::max(1, int(len(x) / post.ess_bulk_min))]  # noqa: E731
+        pvals.append(ks_2samp(thin(a, runs[0.0]), thin(b, runs[0.9])).pvalue)
+    assert min(pvals) > 0.001 / p.dim, pvals  # Bonferroni at 0.1 %
+
+
+def test_uniform_prior_keeps_every_draw_in_the_package():
+    p, lap, *_ = _problem(seed=2, t=5, true_offset=5e-4, prior_kind="uniform")
+    post = bs.sample_posterior(p, lap, bs.SamplerSettings(**FAST, seed=2))
+    lo, hi = p.prior.mean - p.prior.std, p.prior.mean + p.prior.std
+    assert np.all((post.flat >= lo) & (post.flat <= hi))
+    assert p.prior.std[:3] == pytest.approx(np.array(bayes.PACKAGE_SIZE) / 2)
+
+
+def test_runners_give_the_same_chains_in_processes_on_dask_and_in_process():
+    """Each round carries its chain's generator: where the chains run cannot change a draw."""
+    pytest.importorskip("distributed")
+    p, lap, *_ = _problem(seed=8, t=10)
+    settings = dict(ess=50, min_warmup=200, chunk=200, max_iterations=400, chains=2, seed=3)
+    serial = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", **settings))
+    procs = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler=None, workers=2, **settings))
+    dask = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="local", workers=2, **settings))
+    assert procs.runner == "processes" and dask.runner == "dask" and serial.runner == "serial"
+    np.testing.assert_array_equal(serial.draws, procs.draws)
+    np.testing.assert_array_equal(serial.draws, dask.draws)
+    assert dask.cpu_seconds > 0
+
+
+def test_settings_are_checked():
+    for bad in (dict(chains=1), dict(rho=1.0), dict(proposal="hmc"), dict(independence=1.0)):
+        with pytest.raises(CalibrationError):
+            bs.SamplerSettings(**bad).check()
+
+
+def test_an_unreachable_scheduler_is_a_one_line_error():
+    pytest.importorskip("distributed")
+    p, lap, *_ = _problem(seed=8, t=5)
+    with pytest.raises(CalibrationError, match="cannot connect"):
+        bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="tcp://127.0.0.1:9", chains=2, n_draws=1))
+
+
+# --------------------------------------------------------------------------- the command
+
+
+@pytest.fixture(scope="module")
+def bayes_recording(tmp_path_factory):
+    """A 2 s twist of a tetrahedron with seeded 0.3 mm position errors (imu_00 at nominal)."""
+    from imu_array_ros.cli import main
+
+    d = tmp_path_factory.mktemp("bayes")
+    desc = tetrahedron4()
+    save_description(desc, d / "array.yaml")
+    model = SensorModel.from_description(desc)
+    pos = model.positions.copy()
+    pos[1:] += np.random.default_rng(5).normal(0, 3e-4, (3, 3))
+    save_description(model.with_terms(position=pos).to_description(desc), d / "true.yaml")
+    assert main(["simulate", "--array", str(d / "array.yaml"), "--true-array", str(d / "true.yaml"), "--out",
+                 str(d / "twist"), "--duration", "2", "--rate", "200", "--seed", "3", "--start-time", START,
+                 "-q"]) == 0
+    return d, pos
+
+
+def test_calibrate_bayes_writes_the_posterior_and_the_report(bayes_recording, capsys):
+    d, pos = bayes_recording
+    out, rep = d / "bayes.yaml", d / "report"
+    code, stdout, err = cli(capsys, "calibrate", "bayes", d / "twist", "--array", d / "array.yaml", "--out", out,
+                            "--samples", "40", "--chains", "2", "--scheduler", "serial", "--ess", "200",
+                            "--report", rep)
+    assert code == 0 and stdout == "", err
+    assert "ESS bulk" in err and "warm-up" in err and f"wrote {out}" in err
+    desc = load_description(out)
+    mean = np.array([imu.position for imu in desc.imus])
+    std = np.array([imu.stds["position"] for imu in desc.imus[1:]])
+    assert np.all(std > 0) and np.all(std < 1e-3)
+    assert np.all(np.abs(mean[1:] - pos[1:]) < 5 * std), (mean - pos, std)
+    record = yaml.safe_load(out.read_text())["calibration"]
+    assert record["samples"] == 40 and record["chains"] == 2 and record["converged"]
+    cov = np.array(record["position_covariance"]["imu_01"])
+    assert cov.shape == (3, 3) and np.allclose(np.sqrt(np.diag(cov)), std[0], rtol=1e-6)
+    assert set(p.name for p in rep.iterdir()) >= {"diagnostics.json", "diagnostics.md", "ellipses.png", "trace.png",
+                                                  "autocorr.png"}
+    # again without --force: refused, nothing touched
+    before = out.read_bytes()
+    assert_user_error(cli(capsys, "calibrate", "bayes", d / "twist", "--array", d / "array.yaml", "--out", out,
+                          "-q"), str(out))
+    assert out.read_bytes() == before
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--chains", "1"], "chains"),
+    (["--rho", "1"], "rho"),
+    (["--reference", "nope"], "nope"),
+    (["--samples", "0"], "--samples"),
+])
+def test_calibrate_bayes_bad_options_are_one_line_errors(bayes_recording, capsys, tmp_path, args, fragment):
+    d, _ = bayes_recording
+    out = tmp_path / "c.yaml"
+    assert_user_error(cli(capsys, "calibrate", "bayes", d / "twist", "--array", d / "array.yaml", "--out", out,
+                          "--scheduler", "serial", "-q", *args), fragment)
+    assert not out.exists()
+
+
+def test_calibrate_bayes_report_must_be_a_directory(bayes_recording, capsys, tmp_path):
+    d, _ = bayes_recording
+    (tmp_path / "file").write_text("x")
+    assert_user_error(cli(capsys, "calibrate", "bayes", d / "twist", "--array", d / "array.yaml", "--out",
+                          tmp_path / "c.yaml", "--report", tmp_path / "file", "-q"), "must be a directory")
+    assert not (tmp_path / "c.yaml").exists()
+
+
+def test_still_recording_is_a_clear_error(capsys, tmp_path):
+    from imu_array_ros.cli import main
+
+    desc = tetrahedron4()
+    save_description(desc, tmp_path / "a.yaml")
+    assert main(["simulate", "--array", str(tmp_path / "a.yaml"), "--out", str(tmp_path / "still"), "--duration",
+                 "1", "--rate", "100", "--rms-rate", "0.01", "--start-time", START, "-q"]) == 0
+    assert_user_error(cli(capsys, "calibrate", "bayes", tmp_path / "still", "--array", tmp_path / "a.yaml", "--out",
+                          tmp_path / "c.yaml", "--scheduler", "serial", "-q"), "rotation")
