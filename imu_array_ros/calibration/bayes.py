@@ -224,18 +224,12 @@ class BayesProblem:
         p = p1 - fl.T @ fl
         return c, beta, 0.5 * (p + p.T), 2.0 * float(np.sum(np.log(np.diag(low))))
 
-    def loglik(self, theta: np.ndarray, u: np.ndarray) -> float:
-        """log p_N(y | theta, u) up to a theta-independent constant (module docstring); u (T, N, 3)."""
+    def loglik(self, theta: np.ndarray, u: np.ndarray):
+        """log p_N(y | theta, u) up to a theta-independent constant (module docstring); u (T, N, 3), or
+        (R, T, N, 3) for R replicates of the random numbers at one theta (then (R,))."""
         quad = self.quadratic(theta)
         if quad is None:
-            return -np.inf
-        return _loglik(quad, _monomials(self.omega_draws(u)))
-
-    def loglik_batch(self, theta: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """log p_N for R replicates of the random numbers u (R, T, N, 3) at one theta: (R,)."""
-        quad = self.quadratic(theta)
-        if quad is None:
-            return np.full(len(u), -np.inf)
+            return np.full(u.shape[:-3], -np.inf) if u.ndim > 3 else -np.inf
         return _loglik(quad, _monomials(self.omega_draws(u)))
 
     def exact_loglik(self, theta: np.ndarray, omega: np.ndarray) -> float:
@@ -553,5 +547,5 @@ def loglik_variance(problem: BayesProblem, theta: np.ndarray, replicates: int, r
     vals = []
     for lo in range(0, replicates, batch):
         r = min(batch, replicates - lo)
-        vals.append(problem.loglik_batch(theta, rng.standard_normal((r, problem.n_samples, problem.n_draws, 3))))
+        vals.append(problem.loglik(theta, rng.standard_normal((r, problem.n_samples, problem.n_draws, 3))))
     return float(np.var(np.concatenate(vals), ddof=1))

@@ -501,10 +501,9 @@ def sample_posterior(problem: BayesProblem, laplace: Laplace, settings: SamplerS
             need = (settings.ess / max(ess, 1.0) - 1.0) * m * 1.2
             n_iter = int(min(max(settings.chunk, need), 4 * m, settings.max_iterations - m))
             n_iter = max(settings.chunk, int(np.ceil(n_iter / settings.chunk)) * settings.chunk)
+    # draws, lls and their diagnostics are the last round's, which covered every sampling round
     cat = lambda key: np.concatenate([np.stack([getattr(r, key) for r in o]) for o in parts], axis=1)  # noqa: E731
-    draws, lls, lps, accepted = cat("draws"), cat("loglik"), cat("logprior"), cat("accepted")
-    independence = cat("independence")
-    ess, ess_tail, rh = _diagnostics(draws, lls)
+    lps, accepted, independence = cat("logprior"), cat("accepted"), cat("independence")
     post = BayesPosterior(
         problem=problem, settings=settings, laplace=laplace, draws=draws, loglik=lls, logprior=lps,
         accepted=accepted, independence=independence, warmup=warm, n_draws=n_draws,

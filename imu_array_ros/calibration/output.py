@@ -31,7 +31,7 @@ from imu_array_ros.errors import CalibrationError, ConfigError, OutputError
 from imu_array_ros.io.atomic import atomic_write_bytes, atomic_write_text
 from imu_array_ros.model.description import ArrayDescription, dump_description, load_description
 
-__all__ = ["Installed", "install_calibration", "backup_path", "geometry_description", "provenance", "fit_statistics",
+__all__ = ["Installed", "install_calibration", "backup_path", "geometry_description", "positions_description", "provenance", "fit_statistics",
            "LOGLIK_TOLERANCE"]
 
 #: a file on disk counts as better only when its log-likelihood is higher by more than this (a
@@ -74,13 +74,18 @@ def backup_path(out: str | Path) -> Path:
     return out.with_name(out.name + ".bak")
 
 
+def positions_description(desc: ArrayDescription, model, position_std: np.ndarray, record: dict) -> ArrayDescription:
+    """``desc`` with the positions of ``model``, their ``position_std`` (K, 3), every other term of ``model``
+    not at its identity, and the ``calibration:`` ``record``."""
+    names = ["position"] + [n for n, t in model.terms.items() if n != "position" and not t.is_identity]
+    out = model.to_description(desc, names=names, stds={"position": position_std})
+    return out.with_imus(out.imus, calibration=record)
+
+
 def geometry_description(desc: ArrayDescription, result) -> ArrayDescription:
     """``desc`` with the calibrated positions of a :class:`~imu_array_ros.calibration.geometry.GeometryCalibration`,
     their ``position_std`` and its ``calibration:`` block (the other calibrated fields as in ``result.model``)."""
-    model = result.model
-    names = ["position"] + [n for n, t in model.terms.items() if n != "position" and not t.is_identity]
-    out = model.to_description(desc, names=names, stds={"position": result.position_std})
-    return out.with_imus(out.imus, calibration=result.record())
+    return positions_description(desc, result.model, result.position_std, result.record())
 
 
 def install_calibration(new: ArrayDescription, out: str | Path, *,

@@ -327,7 +327,7 @@ def calibrate_bayes(recording: Path, array: Path, out: Path, *, calibration: Pat
                     quiet: bool = False) -> int:
     """Posterior of the accelerometer positions (carlsson2021 PmMH) from ``samples`` samples of ``recording``."""
     from imu_array_ros.calibration import bayes, bayes_sampler
-    from imu_array_ros.calibration.output import install_calibration
+    from imu_array_ros.calibration.output import install_calibration, positions_description
     from imu_array_ros.model.forward import SensorModel
 
     inputs = [recording, array, calibration]
@@ -364,10 +364,7 @@ def calibrate_bayes(recording: Path, array: Path, out: Path, *, calibration: Pat
     new_model = model.with_terms(position=mean)
     record = {**post.record(), "recording": str(recording),
               "laplace_agreement": bayes_sampler.laplace_agreement(post)}
-    new = new_model.to_description(desc, names=["position"] + [n for n, t in model.terms.items()
-                                                              if n != "position" and not t.is_identity],
-                                   stds={"position": std})
-    new = new.with_imus(new.imus, calibration=record)
+    new = positions_description(desc, new_model, std, record)
     for k, name in enumerate(desc.names):
         change = np.linalg.norm(mean[k] - model.positions[k]) * 1e3
         info(quiet, f"  {name}: moved {change:8.4f} mm, posterior std {np.linalg.norm(std[k]) * 1e6:8.2f} um"
