@@ -302,9 +302,8 @@ def main() -> int:
     # the estimates are µm from the truth, which lies up to ~0.3 mm from nominal: centre the panels on the truth
     for path, view, what in ((fig5z_png, None, "automatic zoom (T = 5)"),
                              (fig5zz_png, FIG5_ZOOM_MM, "zoom for T = 50 / 500")):
-        plot_ellipses(path, nominal.names, true_pos, estimates, view=view, **common,
-                      title=f"50 % credible ellipses, mm relative to the TRUE position (the panel origin; "
-                            f"'nominal' in the axis labels means the truth here), {what}")
+        plot_ellipses(path, nominal.names, true_pos, estimates, view=view, origin="true", **common,
+                      title=f"50 % credible ellipses, mm relative to the TRUE position (the panel origin), {what}")
     plot_trace(fig3_png, posts[500], coords=[(IMU2, "x")])
 
     # 4. Laplace vs MCMC, plus weak excitation

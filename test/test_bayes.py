@@ -249,3 +249,66 @@ def test_still_recording_is_a_clear_error(capsys, tmp_path):
                  "1", "--rate", "100", "--rms-rate", "0.01", "--start-time", START, "-q"]) == 0
     assert_user_error(cli(capsys, "calibrate", "bayes", tmp_path / "still", "--array", tmp_path / "a.yaml", "--out",
                           tmp_path / "c.yaml", "--scheduler", "serial", "-q"), "rotation")
+
+
+# --------------------------------------------------------------------------- review fixes
+
+
+def test_still_samples_with_accelerometer_biases_are_not_taken_for_rotation():
+    """Uncalibrated accelerometer biases make a still array's fused omega_dot large (the geometry test
+    passes it as rotation); the gyroscopes say it is still, and select_samples drops it."""
+    from imu_array_ros.calibration import geometry
+    from imu_array_ros.model.samples import MotionTruth
+    from imu_array_ros.simulation.simulator import simulate_measurements
+
+    nominal = _unclipped(tetrahedron4())
+    rng = np.random.default_rng(11)
+    n = 200
+    truth = simulate_gaussian(nominal, n, rng)[1]
+    still = np.arange(n) < n // 2
+    omega, omega_dot, force = truth.omega.copy(), truth.omega_dot.copy(), truth.specific_force.copy()
+    omega[still], omega_dot[still], force[still] = 0.0, 0.0, [0.0, 0.0, 9.81]
+    truth = MotionTruth(stamps=(np.arange(n) * 1e7).astype(np.int64), omega=omega, omega_dot=omega_dot,
+                        specific_force=force)  # 100 Hz
+    biased = nominal.with_terms(accelerometer_bias=0.3 * rng.normal(size=(4, 3)))
+    s = simulate_measurements(biased, truth, rng, saturate=False)
+    used, _, _ = geometry._select(s.stamps, s.accel, s.gyro, nominal, geometry.MIN_EXCITATION)
+    assert used[still].sum() > 80  # the accelerometer-based test alone lets the still samples through
+    idx, dropped, usable = bayes.select_samples(s.stamps, s.accel, s.gyro, nominal, None)
+    # the last still sample's central difference reaches into the motion: a transition, not still
+    assert set(np.flatnonzero(still[idx])) <= {0}, np.flatnonzero(still[idx])
+    assert dropped["still_by_gyroscopes"] >= used[still].sum() - 1
+    assert usable >= 0.9 * (~still).sum()  # the moving samples stay
+
+
+def test_sample_covariance_laplace_has_the_likelihoods_information_about_omega():
+    """eq. 30 uses the spread of single gyroscopes as omega's covariance (not of their mean, as the paper
+    writes): K times the model's sigma^2 / K. The Laplace approximation's equivalent gyroscope std must
+    carry that information: sqrt(K) times the simulated gyroscopes' std."""
+    p, lap, s, *_ , nominal = _problem(seed=6, t=60, desc=grid_array32(), omega_covariance="sample")
+    ratio = bayes.sample_gyro_std(p) / nominal.gyro_std / np.sqrt(nominal.n_imus)
+    assert np.all((ratio > 0.85) & (ratio < 1.15)), ratio
+
+
+def test_a_log_likelihood_too_noisy_to_sample_is_a_clear_error(monkeypatch):
+    """Accelerometer noise 100x too small for the data: no N up to the cap makes the estimate usable."""
+    p, lap, s, *_ , nominal = _problem(seed=9, t=40, accel_std=1e-4)
+    monkeypatch.setattr(bs, "MAX_DRAWS", 8)
+    with pytest.raises(CalibrationError, match="too noisy to sample.*--draws"):
+        bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", seed=0))
+    n, table = bs.choose_draws(p, lap.mean, 0.1, np.random.default_rng(0))
+    assert n == 8 and table[-1][1] > 10 * 0.1
+
+
+def test_sampling_rounds_grow_geometrically_when_only_rhat_is_missing():
+    """When the ESS is met but R-hat cannot be (target 1.0001), the rounds still grow geometrically
+    (they fell back to one chunk each, re-running the diagnostics on all draws: 55 rounds here)."""
+    p, lap, *_ = _problem(seed=3, t=30)
+    lines = []
+    post = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", independence=0.0, n_draws=1, seed=4,
+                                                          chunk=500, min_warmup=1000, max_warmup=30000,
+                                                          rhat=1.0001, max_iterations=30000),
+                               progress=lines.append)
+    assert post.warmup < 15000, post.warmup
+    rounds = [x for x in lines if x.startswith("sampling:")]
+    assert post.draws.shape[1] == 30000 and len(rounds) <= 12, rounds  # one-chunk rounds: 60

@@ -55,7 +55,7 @@ from imu_array_ros.model.forward import SensorModel, motion_context
 from imu_array_ros.model.kinematics import skew
 
 __all__ = ["BayesProblem", "Prior", "ChainState", "ChunkResult", "affine_model", "build_problem", "select_samples",
-           "laplace", "Laplace", "run_chunk", "initial_state", "loglik_variance", "PRIOR_STD", "PACKAGE_SIZE",
+           "laplace", "Laplace", "sample_gyro_std", "run_chunk", "initial_state", "loglik_variance", "PRIOR_STD", "PACKAGE_SIZE",
            "OMEGA_COVARIANCES"]
 
 #: carlsson2021 Sec. IV-A: prior standard deviation of each position coordinate, m
@@ -309,13 +309,34 @@ def _coefficients(omega_info: np.ndarray):
 
 def select_samples(stamps, accel, gyro, model: SensorModel, n_samples: int | None, *,
                    min_excitation: float | None = None):
-    """Indices of the samples to use: complete (every reading valid), with rotation (the geometry
-    calibration's test, :func:`~imu_array_ros.calibration.geometry._select`), ``n_samples`` of them
-    evenly spread in time (None: all).  Returns (indices, dropped reason -> count, usable count)."""
+    """Indices of the samples to use: complete (every reading valid), with rotation by the geometry
+    calibration's test (:func:`~imu_array_ros.calibration.geometry._select`) and by the gyroscopes' alone,
+    ``n_samples`` of them evenly spread in time (None: all).  Returns (indices, dropped reason -> count,
+    usable count).
+
+    The gyroscope test asks ||[omega]x^2 + [d omega/dt]x||_F >= min_excitation (and >= NOISE_FACTOR times
+    what the gyroscope noise gives it) with d omega/dt the time derivative of the fused omega (central
+    differences): the geometry test's omega_dot comes from the
+    accelerometers, and with uncalibrated accelerometer biases a still array shows tens of rad/s^2 there
+    (the MIMU4444BT captures: ~14 rad/s^2 at rest), so static poses would pass as rotation."""
     from imu_array_ros.calibration import geometry
 
-    used, dropped, _ = geometry._select(np.asarray(stamps), np.asarray(accel), np.asarray(gyro), model,
-                                        geometry.MIN_EXCITATION if min_excitation is None else min_excitation)
+    stamps = np.asarray(stamps)
+    threshold = geometry.MIN_EXCITATION if min_excitation is None else float(min_excitation)
+    used, dropped, motion = geometry._select(stamps, np.asarray(accel), np.asarray(gyro), model, threshold)
+    omega = motion[:, 0:3]
+    if len(stamps) >= 2:
+        seconds = (stamps - stamps[0]) * 1e-9
+        with np.errstate(invalid="ignore"):
+            omega_dot = np.gradient(omega, seconds, axis=0)
+        gyro_excitation = np.linalg.norm(geometry._lever(np.concatenate([omega, omega_dot], axis=1)), axis=(1, 2))
+        # what the gyroscopes' noise alone gives ||[d omega/dt]x||_F: sqrt(sum_j var_j) / dt for the
+        # central difference of the fused omega (per-axis variance var_j = 1 / sum_k sigma_kj^-2)
+        dt = float(np.median(np.diff(seconds)))
+        noise = np.sqrt(np.sum(1.0 / np.sum(model.gyro_std ** -2.0, axis=0))) / dt if dt > 0 else np.inf
+        still = used & ~(gyro_excitation >= max(threshold, geometry.NOISE_FACTOR * noise))  # NaN: still
+        used = used & ~still
+        dropped = {**dropped, "still_by_gyroscopes": int(still.sum())}
     idx = np.flatnonzero(used)
     usable = len(idx)
     if n_samples is not None and usable > n_samples:
@@ -407,15 +428,29 @@ class Laplace:
     crb: np.ndarray
 
 
+def sample_gyro_std(problem: BayesProblem) -> np.ndarray:
+    """(K, 3) gyroscope noise std that gives the ML/CRB of :func:`laplace` the information about omega
+    that eq. 30 gives the likelihood on average: the sample covariance S_t of the K gyroscopes is used as
+    the covariance of omega itself, so K gyroscopes of std s per axis with K / s^2 = mean_t (S_t^-1)_jj
+    carry the same (time-averaged) information (the sample covariance varies with t, the model's
+    noise does not: an approximation, as the Laplace one is)."""
+    cov = problem.chol @ problem.chol.transpose(0, 2, 1)
+    info = np.linalg.inv(cov).mean(axis=0)
+    k = len(problem.positions)
+    return np.tile(np.sqrt(k / np.diag(info)), (k, 1))
+
+
 def laplace(problem: BayesProblem, stamps, accel, gyro, model: SensorModel, *, method: str = "joint") -> Laplace:
     """The ML estimate of the positions on the same samples (:func:`~imu_array_ros.calibration.geometry.calibrate_geometry`,
-    with the same noise) and its CRB, combined with a Gaussian prior (precisions add); with a uniform
+    with the same noise; with eq. 30's sample covariance, the gyroscope std of :func:`sample_gyro_std`) and its CRB, combined with a Gaussian prior (precisions add); with a uniform
     prior the CRB alone, its mean clipped into the box."""
     from imu_array_ros.calibration.geometry import calibrate_geometry
 
     m = model
     if problem.accel_std is not None:
         m = replace(model, acc_std=np.asarray(problem.accel_std, dtype=float))
+    if problem.omega_covariance == "sample":
+        m = replace(m, gyro_std=sample_gyro_std(problem))
     geo = calibrate_geometry(stamps, accel, gyro, m, reference=problem.reference, method=method, min_excitation=0.0)
     # the geometry result keeps the reference at its position only up to the common shift: re-anchor
     pos = geo.positions - geo.positions[problem.reference] + problem.positions[problem.reference]

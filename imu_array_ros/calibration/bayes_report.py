@@ -180,7 +180,7 @@ def _save(fig, path) -> None:
 def plot_ellipses(path: str | Path, names: Sequence[str], nominal, estimates: Mapping[str, tuple], *,
                   prior_std=None, prior_mean=None, package=(4e-3, 4e-3, 1e-3), truth=None,
                   reference: str | None = None, level: float = 0.5, colors=None, title: str | None = None,
-                  view: float | None = None) -> dict[str, tuple[int, int]]:
+                  view: float | None = None, origin: str = "nominal") -> dict[str, tuple[int, int]]:
     """PNG of the x-y credible ellipses of each IMU's position (carlsson2021 Fig. 5).
 
     Parameters
@@ -196,6 +196,8 @@ def plot_ellipses(path: str | Path, names: Sequence[str], nominal, estimates: Ma
     view : half width of every panel, mm (None: automatic -- the estimates, truth, prior and package
         all fit when the prior/package are at most 5 times the estimates' extent; otherwise the view
         zooms on the estimates and a note says what lies outside).
+    origin : what the ``nominal`` positions are, for the axis labels and the default title ("nominal";
+        e.g. "true" when the panels are centred on the true positions).
 
     Returns
     -------
@@ -267,7 +269,7 @@ def plot_ellipses(path: str | Path, names: Sequence[str], nominal, estimates: Ma
     panel = 1.9
     grid_w = panel * sum(widths)
     width = max(7.5, grid_w + 1.0)
-    title = title or f"{level:.0%} credible ellipses of the x-y positions, mm relative to nominal"
+    title = title or f"{level:.0%} credible ellipses of the x-y positions, mm relative to {origin}"
     title_lines = textwrap.wrap(title, int(12.5 * width))
     note_lines = textwrap.wrap(note, int(17 * width)) if note else []
     n_handles = len(est) + (prior_std is not None) + (package is not None) + (truth_off is not None)
@@ -324,8 +326,8 @@ def plot_ellipses(path: str | Path, names: Sequence[str], nominal, estimates: Ma
         fig.legend(handles=handles, loc="lower center", ncol=leg_cols, fontsize=8, frameon=False,
                    bbox_to_anchor=(0.5, 0.02 / height), borderaxespad=0.0)
     fig.suptitle("\n".join(title_lines), fontsize=10, y=1 - 0.12 / height, va="top")
-    fig.text(0.5, (leg_in + note_in + 0.05) / height, "x - nominal (mm)", ha="center", va="bottom", fontsize=8)
-    fig.text((0.15 + side) / width, (bottom_in + 0.5 * panel * rows) / height, "y - nominal (mm)", ha="left",
+    fig.text(0.5, (leg_in + note_in + 0.05) / height, f"x - {origin} (mm)", ha="center", va="bottom", fontsize=8)
+    fig.text((0.15 + side) / width, (bottom_in + 0.5 * panel * rows) / height, f"y - {origin} (mm)", ha="left",
              va="center", rotation=90, fontsize=8)
     x_of = np.concatenate([[0.0], np.cumsum(widths)]) * panel + 0.7 + side  # column edges, inches
     for a, b in blocks:

@@ -5,6 +5,9 @@
 1. **N** (draws of omega per time sample): the smallest power of two whose
    Var[log p_N(y | theta)] at the Laplace mean is at most ``loglik_var``
    (paper: ~0.1; measured over ``VAR_REPLICATES`` sets of random numbers).
+   If even ``MAX_DRAWS`` leaves it above ``UNTUNABLE`` times that, the data
+   disagree with the noise model and :class:`CalibrationError` says so
+   (a given ``n_draws`` skips the tuning).
 2. **Starts**: ``chains`` (>= 2) points drawn from the Laplace approximation with
    twice its standard deviations (over-dispersed, as R-hat assumes).
 3. **Warm-up** (discarded: the burn-in): rounds of ``chunk`` iterations per
@@ -12,7 +15,7 @@
    acceptance (``target_acceptance``, within the paper's 7-23 %) and the
    proposal covariance toward the pooled draws' (shrunk to the Laplace one).
    It ends when the chains agree: split R-hat of every coordinate and of the
-   log-likelihood over the second half of the warm-up below ``WARMUP_RHAT`` and the
+   log-likelihood over the second half of the whole warm-up so far (thinned) below ``WARMUP_RHAT`` and the
    acceptance within 7-35 %, after at least ``min_warmup`` iterations.  The
    kernel is then fixed, so the sampling rounds are plain (C)PmMH.
 4. **Sampling** until the smallest bulk effective sample size over the
@@ -52,8 +55,14 @@ PROPOSALS = ("laplace", "isotropic")
 VAR_REPLICATES = 48
 #: largest N tried
 MAX_DRAWS = 1024
+#: Var[log p_N] at N = MAX_DRAWS above UNTUNABLE x the target is an error, not a warning: with a
+#: log-likelihood estimate of standard deviation >~ 1 a pseudo-marginal chain sticks for very long
+#: (Doucet et al. 2015 put the optimum at 0.9-1.7 in variance); --draws runs anyway
+UNTUNABLE = 10.0
 #: split R-hat below which the warm-up counts as converged
 WARMUP_RHAT = 1.05
+#: draws per chain and warm-up round kept for the warm-up R-hat (thinned)
+WARMUP_KEEP = 100
 
 
 def arviz():
@@ -66,7 +75,12 @@ def arviz():
 
 @dataclass
 class SamplerSettings:
-    """How :func:`sample_posterior` runs (module docstring); every default is the documented one."""
+    """How :func:`sample_posterior` runs (module docstring); every default is the documented one.
+
+    ``seed`` fixes the whole run (N tuning, starts, every chain's random numbers) whatever the scheduler.
+    Two settings with one seed therefore share their random numbers (common random numbers: good for
+    comparing costs, wrong for a two-sample test between the runs, which needs a seed per run).
+    """
 
     chains: int = 4
     scheduler: str | None = None
@@ -381,7 +395,11 @@ def _rw_acceptance(r: ChunkResult) -> float:
 
 def choose_draws(problem: BayesProblem, theta: np.ndarray, target: float, rng: np.random.Generator,
                  progress: Callable[[str], None] | None = None) -> tuple[int, list]:
-    """Smallest power-of-two N with Var[log p_N] <= target at theta (capped at MAX_DRAWS); the table."""
+    """Smallest power-of-two N with Var[log p_N] <= target at theta (capped at MAX_DRAWS); the table.
+
+    N doubles from 1; when the variance, falling as 1/N, would need more than ``4 * MAX_DRAWS`` draws, the
+    next measurement is at the cap (no time spent on the doublings in between).
+    """
     table, n = [], 1
     while True:
         var = loglik_variance(problem.with_(n_draws=n), theta, VAR_REPLICATES, rng)
@@ -390,7 +408,19 @@ def choose_draws(problem: BayesProblem, theta: np.ndarray, target: float, rng: n
             progress(f"tuning N: N = {n}, Var[log-likelihood estimate] = {var:.3g} (target {target:g})")
         if var <= target or n >= MAX_DRAWS:
             return n, table
-        n *= 2
+        n = MAX_DRAWS if n * var / target > 4 * MAX_DRAWS else 2 * n
+
+
+def _untunable(table: list, target: float) -> CalibrationError:
+    """The error when even MAX_DRAWS draws leave the log-likelihood estimate too noisy to sample with."""
+    n0, v0 = table[0]
+    n1, v1 = table[-1]
+    need = n1 * v1 / target
+    return CalibrationError(
+        f"the log-likelihood estimate is too noisy to sample: Var = {v1:.3g} at N = {n1} (target {target:g}; "
+        f"{v0:.3g} at N = {n0}), so N ~ {need:.2g} draws per sample would be needed. The readings disagree with "
+        "the noise model: calibrate the intrinsics first (imu-array calibrate all), widen the noise "
+        "(--accel-std, --omega-covariance sample), or give --draws to run anyway (the chains will mix slowly)")
 
 
 def sample_posterior(problem: BayesProblem, laplace: Laplace, settings: SamplerSettings | None = None,
@@ -404,6 +434,8 @@ def sample_posterior(problem: BayesProblem, laplace: Laplace, settings: SamplerS
     d = problem.dim
     if settings.n_draws is None:
         n_draws, table = choose_draws(problem, laplace.mean, settings.loglik_var, rng, say)
+        if table[-1][1] > UNTUNABLE * settings.loglik_var:
+            raise _untunable(table, settings.loglik_var)
         if table[-1][1] > settings.loglik_var:
             say(f"warning: Var[log-likelihood estimate] {table[-1][1]:.3g} > {settings.loglik_var:g} at the cap "
                 f"N = {MAX_DRAWS}; the chains will mix slowly")
@@ -445,11 +477,13 @@ def sample_posterior(problem: BayesProblem, laplace: Laplace, settings: SamplerS
             acc = np.array([_rw_acceptance(r) for r in out])
             draws = np.stack([r.draws for r in out])
             warm_trace.append(np.stack([r.loglik + r.logprior for r in out]))
-            rounds.append((draws, np.stack([r.loglik for r in out])))
-            half = rounds[len(rounds) // 2:]  # R-hat over the second half of the warm-up so far
+            # R-hat over the second half of the whole warm-up so far (the window grows with it: a fixed
+            # window shorter than a few autocorrelation times never agrees), thinned to bound memory
+            thin = max(1, settings.chunk // WARMUP_KEEP)
+            rounds.append((draws[:, ::thin], np.stack([r.loglik for r in out])[:, ::thin]))
+            half = rounds[len(rounds) // 2:]
             _, _, rh = _diagnostics(np.concatenate([h[0] for h in half], axis=1),
                                     np.concatenate([h[1] for h in half], axis=1))
-            rounds = rounds[len(rounds) // 4:] if len(rounds) > 8 else rounds  # memory: the recent part suffices
             states = [r.state for r in out]
             # step scale toward the target acceptance (Robbins-Monro on log scale)
             for s, a in zip(states, acc):
@@ -498,8 +532,11 @@ def sample_posterior(problem: BayesProblem, laplace: Laplace, settings: SamplerS
                 f"R-hat {rh:.4f}")
             if done or m >= settings.max_iterations:
                 break
+            # the ESS-based estimate of what is missing, but at least half of what has run: when the ESS
+            # is met and R-hat is not, rounds still grow geometrically (the diagnostics cover all draws,
+            # so one-chunk rounds would cost quadratically)
             need = (settings.ess / max(ess, 1.0) - 1.0) * m * 1.2
-            n_iter = int(min(max(settings.chunk, need), 4 * m, settings.max_iterations - m))
+            n_iter = int(min(max(settings.chunk, need, m / 2), 4 * m, settings.max_iterations - m))
             n_iter = max(settings.chunk, int(np.ceil(n_iter / settings.chunk)) * settings.chunk)
     # draws, lls and their diagnostics are the last round's, which covered every sampling round
     cat = lambda key: np.concatenate([np.stack([getattr(r, key) for r in o]) for o in parts], axis=1)  # noqa: E731

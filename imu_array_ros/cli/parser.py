@@ -353,7 +353,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="p(omega | gyroscopes): 'model' noise (eq. 26b, default) or the gyroscopes' sample "
                          "covariance at each sample (eq. 30)")
     sp.add_argument("--draws", type=positive_int, metavar="N",
-                    help="omega draws per time sample (default: tuned so Var[log-likelihood estimate] <= 0.1)")
+                    help="omega draws per time sample (default: tuned so Var[log-likelihood estimate] <= 0.1; an error "
+                         "when 1024 cannot bring it below 1, which means the readings disagree with the noise "
+                         "model; give N to sample anyway)")
     sp.add_argument("--rho", type=non_negative_float, default=0.9,
                     help="correlation of the random numbers between iterations, in [0, 1) (0: plain PmMH; "
                          "default 0.9)")
