@@ -2,26 +2,35 @@
 
 For each capture ../shared/data/openshoe_mimu4444bt/exp_N.bin, imported with the nominal description
 config/mimu4444bt_corners.yaml (``import_capture(path, desc)[0]``), as ``imu-array calibrate bayes``
-does per recording: T = 500 samples spread evenly over the usable ones (``select_samples``),
-``build_problem`` (reference imu_1 held, gaussian prior N(nominal, 3 mm)), ``laplace`` (ML on the same
-samples + CRB + prior), ``sample_posterior`` (4 chains on 2 worker processes, Laplace-shaped random walk
-mixed with independence proposals, ESS >= 400, R-hat <= 1.01 -- capped, see below), in two noise settings:
+does per recording: T samples (default 500) spread evenly over the usable ones (``select_samples``: every
+reading valid, rotation by the fused motion's test and by the gyroscopes'), ``build_problem``
+(reference imu_1 held, gaussian prior N(nominal, 3 mm)), ``laplace`` (ML on the same samples + CRB +
+prior), then ``sample_posterior`` as the library runs it by default -- N tuned to Var[log p_N] <= 0.1
+(refused when even N = 1024 leaves it above 10x that), rho 0.9, 4 chains on 2 worker processes,
+Laplace-shaped random walk mixed with independence proposals, ESS >= 400, R-hat <= 1.01 -- with the
+warm-up and sampling capped (see Choices), in three noise settings:
 
 (a) the description's accelerometer noise (0.045 m/s^2) and p(omega | gyroscopes) from the gyroscope
     noise model (eq. 26b, ``omega_covariance="model"``);
 (b) carlsson2021's real-data setting: sigma_a = 0.79 m/s^2 (the MPU-9150 non-linearity at full scale)
-    and the gyroscopes' sample covariance at each sample (eq. 30, ``omega_covariance="sample"``).
+    and the gyroscopes' sample covariance at each sample (eq. 30, ``omega_covariance="sample"``);
+(c) an empirical-Bayes noise level: sigma_a per capture = the ML estimate of the accelerometer noise on
+    the same T samples (RMS of the accelerometer residuals of the ML position fit that setting (a)'s
+    Laplace approximation rests on), with the gyroscope noise model.
 
-Per capture and setting: the posterior mean and std per IMU, ESS / R-hat / time, the ML estimate on
-every usable sample of the capture (``calibrate_geometry``, joint solver, same accelerometer noise) with
-its CRB, and the Laplace agreement (``laplace_agreement``).  Then whether the captures' posteriors agree
-with each other (pairwise differences of the means against the combined posterior covariance) and with
-the ML/CRB, and a carlsson2021 Fig. 5-style plot per setting, one colour per capture.
+Where the sampler refuses (untunable N) the report gives the error, the tuning table (``choose_draws``)
+and the Laplace approximation only, labelled as such.  Per capture and setting: the posterior (or
+Laplace) mean and std per IMU, ESS / R-hat / time, the ML estimate on every usable sample of the capture
+(``calibrate_geometry``, joint solver, the setting's noise) with its CRB, and the Laplace agreement
+(``laplace_agreement``).  Then whether the captures agree with each other (pairwise differences of the
+means against the combined covariances) and with the ML/CRB, and a carlsson2021 Fig. 5-style plot per
+setting with posteriors, one colour per capture.
 
-Writes benchmarks/results/bayes_real.md, bayes_real.json, bayes_real_ellipses_a.png,
-bayes_real_ellipses_b.png, bayes_real_trace_a.png, bayes_real_trace_b.png.
+Writes benchmarks/results/bayes_real.md, bayes_real.json, bayes_real_ellipses_<setting>.png and
+bayes_real_trace_<setting>.png for every setting with posteriors (and removes those of settings without).
 
-    python benchmarks/bayes_real.py [--captures 1 2 ...] [--samples 500] [--draws 16] [--report-only]
+    python benchmarks/bayes_real.py [--captures 1 2 ...] [--settings a b c] [--samples 500]
+        [--max-warmup 10000] [--max-iterations 40000] [--report-only]
 """
 
 from __future__ import annotations
@@ -52,18 +61,24 @@ NAME = "bayes_real"
 UM, MM = 1e6, 1e3
 #: carlsson2021 Sec. IV-B: sigma_a covering the MPU-9150's non-linearity (0.5 % of 157 m/s^2)
 PAPER_SIGMA_A = 0.79
-#: the two settings: label -> (accelerometer std (None: the description's), omega covariance, description)
+#: "ml": the per-capture ML estimate of the accelerometer noise (setting c)
+ML_SIGMA = "ml"
+#: the settings: label -> (accelerometer std (None: the description's; ML_SIGMA: estimated), omega
+#: covariance, description)
 SETTINGS = {
     "a": (None, "model", "description's sigma_a (0.045 m/s^2), omega covariance from the gyroscope noise model"),
     "b": (PAPER_SIGMA_A, "sample", "sigma_a = 0.79 m/s^2 (carlsson2021), gyroscopes' sample covariance (eq. 30)"),
+    "c": (ML_SIGMA, "model", "empirical Bayes: sigma_a = the capture's ML accelerometer residual RMS, omega "
+                             "covariance from the gyroscope noise model"),
 }
-#: correlation of the random numbers per setting (see "Choices" in the report; measured, not guessed)
-RHO = {"a": 0.99, "b": 0.99}
 #: a sample "is moving" (hand twisting, not a static pose) when the mean over the IMUs of |gyro| exceeds this
 MOVING_RAD_S = 1.0
-#: replicates of the log-likelihood for the variance table and of the log acceptance ratio noise
+#: replicates of the log acceptance ratio noise (rho check)
 REPLICATES = 24
-VAR_NS = (16, 64, 1024)
+#: rho values at which the log acceptance ratio noise is measured (the library default is 0.9)
+RHO_CHECK = (0.0, 0.9)
+#: draws of omega per sample for the fixed-random-number mode check (see mode_check)
+MODE_DRAWS = 16
 
 
 def say(text: str) -> None:
@@ -95,6 +110,37 @@ def ratio_noise(problem, theta, step_chol, rho: float, rng, replicates: int = RE
     return float(np.std(diffs, ddof=1))
 
 
+def mode_check(problem, lap, post, rng) -> dict:
+    """Where the Laplace mean and the posterior mean sit relative to the mode of the sampled target.
+
+    With fixed random numbers (MODE_DRAWS per sample) log p_N(y | theta, u) + log p(theta) is a smooth
+    function of theta; its maximum is found (BFGS from the Laplace mean) once as it is and once without
+    the -T/2 log|H^T Omega H| term of the marginalised linear motion (eq. 22-26).  Without that term the
+    likelihood is the profile one the ML/CRB of ``laplace`` maximises.  Distances in posterior stds."""
+    from scipy.optimize import minimize
+
+    p = problem.with_(n_draws=MODE_DRAWS)
+    u = rng.standard_normal((p.n_samples, MODE_DRAWS, 3))
+    sd = np.sqrt(np.diag(post.covariance))
+
+    def neg(x, det: bool) -> float:
+        theta = lap.mean + x * sd
+        quad = p.quadratic(theta)
+        if quad is None:
+            return 1e30
+        ll = float(p.loglik(theta, u)) + (0.0 if det else 0.5 * p.n_samples * quad[3])
+        return -(ll + p.prior.logpdf(theta))
+
+    out = {"draws": MODE_DRAWS}
+    for key, det in (("with_logdet", True), ("without_logdet", False)):
+        res = minimize(neg, np.zeros(p.dim), args=(det,), method="BFGS")
+        mode = lap.mean + res.x * sd
+        out[key] = {"max_abs_z_vs_posterior_mean": float(np.max(np.abs(mode - post.mean) / sd)),
+                    "max_abs_z_vs_laplace_mean": float(np.max(np.abs(mode - lap.mean) / sd)),
+                    "iterations": int(res.nit)}
+    return out
+
+
 def per_imu(free: np.ndarray, vec: np.ndarray, cov: np.ndarray, k: int):
     """(K, 3) positions and (K, 3, 3) covariances (reference rows zero) from free-coordinate vectors."""
     pos = np.zeros((k, 3))
@@ -105,10 +151,63 @@ def per_imu(free: np.ndarray, vec: np.ndarray, cov: np.ndarray, k: int):
     return pos, c
 
 
+def estimate(rec: dict):
+    """(mean (d,), covariance (d, d), source) of a setting's record: the posterior where the sampler ran,
+    else the Laplace approximation; None without either."""
+    if "mean_free" in rec:
+        return np.array(rec["mean_free"]), np.array(rec["cov_free"]), "posterior"
+    if "laplace_mean_free" in rec:
+        return np.array(rec["laplace_mean_free"]), np.array(rec["laplace_cov_free"]), "Laplace"
+    return None
+
+
+def noise_estimate(st, acc, gyr, model) -> dict:
+    """Setting (c)'s sigma_a: the ML estimate of the accelerometer noise on the T selected samples.
+
+    The fit is the one setting (a)'s ``laplace`` runs (``calibrate_geometry``, joint solver, the
+    description's noise, ``min_excitation=0``) on the same samples; sigma_a = the RMS over every IMU, axis
+    and sample of its accelerometer residuals at the ML positions and motion (the ML estimate of a common
+    white-noise std).  As a check, the positions and motion are refitted once with that sigma_a on the
+    same samples (``fit_terms``: no sample selection) and the RMS recomputed."""
+    from imu_array_ros.calibration.geometry import _profile, calibrate_geometry
+    from imu_array_ros.estimation.fit_terms import fit_terms
+    from imu_array_ros.estimation.model_fusion import ModelFusion
+    from imu_array_ros.model.forward import motion_context
+
+    k = model.n_imus
+    geo = calibrate_geometry(st, acc, gyr, model, reference=0, method="joint", min_excitation=0.0)
+    rms = np.asarray(geo.rms_after, dtype=float)
+    sigma = float(np.sqrt(np.mean(rms ** 2)))  # every selected sample is complete: equal counts per IMU
+    m = dataclasses.replace(model, acc_std=np.full((k, 3), sigma))
+    fit = fit_terms(st, acc, gyr, m, ["position"], reference=0)
+    refit = float(np.sqrt(np.mean(_profile(st, acc, gyr, fit.model).rms ** 2)))
+    # the gyroscopes at the same fit: how far they are from one rigid-body omega (the noise model says 0.0039 rad/s)
+    fused, _ = ModelFusion(geo.model).fuse(st, acc, gyr)
+    rows = np.searchsorted(st, fused.stamps)
+    ctx = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, geo.model.rotations,
+                         derivatives=True)
+    _, gyr_pred = geo.model.predict(ctx)
+    gyro_rms = float(np.sqrt(np.mean((gyr[rows] - gyr_pred) ** 2)))
+    return {"sigma_a": sigma, "rms_per_imu": rms.tolist(), "fit_samples_used": int(geo.samples_used),
+            "nis_after": float(geo.nis_after), "sigma_after_one_refit": refit, "gyro_residual_rms": gyro_rms,
+            "gyro_std_model": float(np.mean(model.gyro_std))}
+
+
+def laplace_model(problem, model):
+    """The model ``bayes.laplace`` gives ``calibrate_geometry`` for ``problem`` (its noise; with eq. 30
+    the gyroscope std of ``sample_gyro_std``)."""
+    from imu_array_ros.calibration import bayes
+
+    m = dataclasses.replace(model, acc_std=np.asarray(problem.accel_std, dtype=float))
+    if problem.omega_covariance == "sample":
+        m = dataclasses.replace(m, gyro_std=bayes.sample_gyro_std(problem))
+    return m
+
+
 def run_capture(i: int, desc, model, args) -> dict:
-    """Everything for one capture: both settings."""
+    """Everything for one capture: every setting."""
     from imu_array_ros.calibration import bayes, bayes_sampler
-    from imu_array_ros.calibration.bayes_sampler import _diagnostics
+    from imu_array_ros.calibration.bayes_sampler import VAR_REPLICATES, _diagnostics
     from imu_array_ros.calibration.geometry import calibrate_geometry
     from imu_array_ros.errors import CalibrationError
     from imu_array_ros.io.openshoe.capture import import_capture
@@ -118,94 +217,108 @@ def run_capture(i: int, desc, model, args) -> dict:
     t0 = time.perf_counter()
     idx, dropped, usable = bayes.select_samples(stamps, accel, gyro, model, args.samples)
     select_s = time.perf_counter() - t0
+    all_idx, _, _ = bayes.select_samples(stamps, accel, gyro, model, None)
     rate = np.mean(np.linalg.norm(gyro, axis=2), axis=1)  # rotation invariant: mean over IMUs of |gyro|
-    valid_all = model.valid(accel, gyro).all(axis=(1, 2))
     st, acc, gyr = stamps[idx], accel[idx], gyro[idx]
+    # the samples the gyroscope test drops: what the fused-motion test saw in them
+    from imu_array_ros.calibration import geometry
+
+    used_geo, _, motion = geometry._select(stamps, accel, gyro, model, geometry.MIN_EXCITATION)
+    still = used_geo.copy()
+    still[all_idx] = False
     out = {
         "capture": f"exp_{i}", "samples_total": int(len(stamps)), "usable": int(usable),
-        "dropped": {k: int(v) for k, v in dropped.items()}, "selected": int(len(idx)),
-        "moving_in_capture": int(np.sum(valid_all & (rate > MOVING_RAD_S))),
+        "dropped": {key: int(v) for key, v in dropped.items()}, "selected": int(len(idx)),
         "moving_selected": int(np.sum(rate[idx] > MOVING_RAD_S)),
+        "moving_usable": int(np.sum(rate[all_idx] > MOVING_RAD_S)),
         "max_gyro_over_clip_selected": float(np.max(np.abs(gyr)) / model.gyro_clip),
         "max_acc_over_clip_selected": float(np.max(np.abs(acc)) / model.acc_clip),
         "select_seconds": select_s, "settings": {},
+        "still_fused_omega_dot_median": float(np.median(np.linalg.norm(motion[still, 3:6], axis=1)))
+        if still.any() else None,
+        "still_gyro_rate_median": float(np.median(rate[still])) if still.any() else None,
     }
     say(f"exp_{i}: {len(idx)} of {usable} usable samples ({len(stamps)} total, dropped {dropped}); "
         f"{out['moving_selected']} of the selected have mean |gyro| > {MOVING_RAD_S} rad/s")
-    k = model.n_imus
-    # the diagnostic: the same number of samples spread over the usable samples that are moving (Laplace only)
-    all_idx, _, _ = bayes.select_samples(stamps, accel, gyro, model, None)
-    mov = all_idx[rate[all_idx] > MOVING_RAD_S]
-    mov = mov[np.round(np.linspace(0, len(mov) - 1, min(args.samples, len(mov)))).astype(int)]
-    out["moving_only"] = {"usable_moving": int(np.sum(rate[all_idx] > MOVING_RAD_S)), "selected": int(len(mov)),
-                          "settings": {}}
-    for label, (accel_std, omega_cov, _) in SETTINGS.items():
+    if ML_SIGMA in [SETTINGS[lab][0] for lab in args.settings]:
+        t0 = time.perf_counter()
+        out["noise_estimate"] = noise_estimate(st, acc, gyr, model)
+        out["noise_estimate"]["seconds"] = time.perf_counter() - t0
+        say(f"exp_{i}: ML accelerometer noise on the {len(idx)} samples: {out['noise_estimate']['sigma_a']:.4g} m/s^2 "
+            f"(one refit: {out['noise_estimate']['sigma_after_one_refit']:.4g})")
+    for n_label, (label, (accel_std, omega_cov, _)) in enumerate(SETTINGS.items()):
         if label not in args.settings:
             continue
-        try:
-            pm = bayes.build_problem(stamps[mov], accel[mov], gyro[mov], model, reference=0, accel_std=accel_std,
-                                     omega_covariance=omega_cov)
-            lm = bayes.laplace(pm, stamps[mov], accel[mov], gyro[mov], model)
-            out["moving_only"]["settings"][label] = {"mean_free": lm.mean.tolist(), "cov_free": lm.covariance.tolist()}
-        except CalibrationError as err:
-            out["moving_only"]["settings"][label] = {"error": str(err)}
-    for label, (accel_std, omega_cov, _) in SETTINGS.items():
-        if label not in args.settings:
-            continue
+        if accel_std == ML_SIGMA:
+            accel_std = out["noise_estimate"]["sigma_a"]
+        seed = 10 * i + n_label
         rec = {"accel_std": accel_std if accel_std is not None else float(np.mean(model.acc_std)),
-               "omega_covariance": omega_cov, "rho": RHO[label], "n_draws": args.draws}
+               "omega_covariance": omega_cov, "seed": seed}
         out["settings"][label] = rec
-        rng = np.random.default_rng(1000 * i + ord(label))
+        settings = bayes_sampler.SamplerSettings(
+            chains=args.chains, workers=args.workers, seed=seed, ess=args.ess,
+            max_warmup=args.max_warmup, max_iterations=args.max_iterations)
+        rec["sampler_settings"] = dataclasses.asdict(settings)
         try:
             t0 = time.perf_counter()
             problem = bayes.build_problem(st, acc, gyr, model, reference=0, accel_std=accel_std,
                                           omega_covariance=omega_cov)
             lap = bayes.laplace(problem, st, acc, gyr, model)
             rec["laplace_seconds"] = time.perf_counter() - t0
-            lap_chol = np.linalg.cholesky(lap.covariance)
-            t0 = time.perf_counter()
-            rec["var_loglik"] = {int(n): bayes.loglik_variance(problem.with_(n_draws=n), lap.mean, REPLICATES, rng)
-                                 for n in VAR_NS}
-            p_n = problem.with_(n_draws=args.draws)
-            rec["ratio_noise_sd"] = {str(r): ratio_noise(p_n, lap.mean, lap_chol, r, rng)
-                                     for r in sorted({0.0, 0.9, RHO[label], 0.999})}
-            rec["noise_seconds"] = time.perf_counter() - t0
-            settings = bayes_sampler.SamplerSettings(
-                chains=args.chains, workers=args.workers, n_draws=args.draws, rho=RHO[label], seed=i,
-                max_warmup=args.max_warmup, max_iterations=args.max_iterations)
-            rec["sampler_settings"] = dataclasses.asdict(settings)
+        except CalibrationError as err:
+            rec["error"] = f"Laplace: {err}"
+            say(f"exp_{i} ({label}): Laplace FAILED: {err}")
+            continue
+        cov_w = problem.chol @ problem.chol.transpose(0, 2, 1)
+        rec["omega_std_median"] = float(np.median(np.sqrt(np.einsum("tii->t", cov_w) / 3)))  # rad/s, per axis
+        lm = laplace_model(problem, model)
+        # how many of the T samples the Laplace's ML fit uses (its noise-dependent excitation test may drop some)
+        geo_lap = calibrate_geometry(st, acc, gyr, lm, reference=0, method="joint", min_excitation=0.0)
+        rec.update({"laplace_mean_free": lap.mean.tolist(), "laplace_cov_free": lap.covariance.tolist(),
+                    "laplace_fit_samples_used": int(geo_lap.samples_used)})
+        try:
             post = bayes_sampler.sample_posterior(problem, lap, settings,
                                                   progress=lambda s, lab=label: say(f"exp_{i} ({lab}): {s}"))
         except CalibrationError as err:
             rec["error"] = str(err)
-            say(f"exp_{i} ({label}): FAILED: {err}")
-            continue
-        say(f"exp_{i} ({label}): {post.summary_line()}")
-        mean, cov = post.mean, post.covariance
-        ess_t, ess_tail_t, rhat_t = _diagnostics(post.draws)  # theta alone (the sampler adds the log-lik)
-        _, _, rhat_ll = _diagnostics(post.loglik[..., None])
-        rec.update({
-            "summary": post.summary_line(),
-            "chains": int(post.draws.shape[0]), "draws_per_chain": int(post.draws.shape[1]),
-            "warmup_per_chain": int(post.warmup),
-            "acceptance_random_walk": post.acceptance.tolist(),
-            "acceptance_independence": post.acceptance_independence.tolist(),
-            "ess_bulk_min": post.ess_bulk_min, "ess_tail_min": post.ess_tail_min, "rhat_max": post.rhat_max,
-            "converged": bool(post.converged), "seconds": post.seconds, "cpu_seconds": post.cpu_seconds,
-            "theta_only": {"ess_bulk_min": ess_t, "ess_tail_min": ess_tail_t, "rhat_max": rhat_t},
-            "rhat_loglik_estimate": rhat_ll,
-            "loglik_chain_means": post.loglik.mean(axis=1).tolist(),
-            "loglik_chain_sds": post.loglik.std(axis=1).tolist(),
-            "mean_free": mean.tolist(), "cov_free": cov.tolist(),
-            "laplace_mean_free": lap.mean.tolist(), "laplace_cov_free": lap.covariance.tolist(),
-            "laplace_agreement": bayes_sampler.laplace_agreement(post),
-        })
-        rec["_post"] = post  # for the trace plot; dropped before writing JSON
-        # the ML estimate on every usable sample of the capture, same accelerometer noise
-        m = model if accel_std is None else dataclasses.replace(model, acc_std=np.full((k, 3), float(accel_std)))
+            rec["refused"] = "too noisy to sample" in str(err)
+            say(f"exp_{i} ({label}): sampler refused: {err}")
+            if rec["refused"]:  # the tuning table: the same call with the same generator as the sampler's
+                _, table = bayes_sampler.choose_draws(problem, lap.mean, settings.loglik_var,
+                                                      np.random.default_rng(settings.seed))
+                rec["var_loglik"] = [[int(n), float(v)] for n, v in table]
+        else:
+            rec["refused"] = False
+            say(f"exp_{i} ({label}): {post.summary_line()}")
+            ess_t, ess_tail_t, rhat_t = _diagnostics(post.draws)  # theta alone (the sampler adds the log-lik)
+            _, _, rhat_ll = _diagnostics(post.loglik[..., None])
+            rng = np.random.default_rng(seed + 100000)
+            p_n = problem.with_(n_draws=post.n_draws)
+            lap_chol = np.linalg.cholesky(lap.covariance)
+            t0 = time.perf_counter()
+            rec.update({
+                "summary": post.summary_line(), "n_draws": int(post.n_draws), "rho": float(post.problem.rho),
+                "var_loglik": [[int(n), float(v)] for n, v in post.var_loglik],
+                "chains": int(post.draws.shape[0]), "draws_per_chain": int(post.draws.shape[1]),
+                "warmup_per_chain": int(post.warmup),
+                "acceptance_random_walk": post.acceptance.tolist(),
+                "acceptance_independence": post.acceptance_independence.tolist(),
+                "ess_bulk_min": post.ess_bulk_min, "ess_tail_min": post.ess_tail_min, "rhat_max": post.rhat_max,
+                "converged": bool(post.converged), "seconds": post.seconds, "cpu_seconds": post.cpu_seconds,
+                "theta_only": {"ess_bulk_min": ess_t, "ess_tail_min": ess_tail_t, "rhat_max": rhat_t},
+                "rhat_loglik_estimate": rhat_ll,
+                "mean_free": post.mean.tolist(), "cov_free": post.covariance.tolist(),
+                "laplace_agreement": bayes_sampler.laplace_agreement(post),
+                "ratio_noise_sd": {str(r): ratio_noise(p_n, lap.mean, lap_chol, r, rng) for r in RHO_CHECK},
+                "mode_check": mode_check(problem, lap, post, rng),
+            })
+            rec["check_seconds"] = time.perf_counter() - t0
+            rec["_post"] = post  # for the trace plot; dropped before writing JSON
+        # the ML estimate on every usable sample of the capture (select_samples with no cap), the Laplace's noise
         t0 = time.perf_counter()
         try:
-            geo = calibrate_geometry(stamps, accel, gyro, m, reference=0)
+            geo = calibrate_geometry(stamps[all_idx], accel[all_idx], gyro[all_idx], lm, reference=0,
+                                     method="joint", min_excitation=0.0)
         except CalibrationError as err:
             rec["ml_error"] = str(err)
             say(f"exp_{i} ({label}): ML FAILED: {err}")
@@ -213,13 +326,27 @@ def run_capture(i: int, desc, model, args) -> dict:
         pos = geo.positions - geo.positions[0] + model.positions[0]
         fidx = (3 * problem.free[:, None] + np.arange(3)).reshape(-1)
         crb = geo.covariance[np.ix_(fidx, fidx)]
-        rec["ml"] = {"positions": pos.tolist(), "theta": problem.theta_of(pos).tolist(),
-                     "crb_free": (0.5 * (crb + crb.T)).tolist(), "samples_used": int(geo.samples_used),
+        rec["ml"] = {"theta": problem.theta_of(pos).tolist(), "crb_free": (0.5 * (crb + crb.T)).tolist(),
+                     "usable": int(len(all_idx)), "samples_used": int(geo.samples_used),
                      "iterations": int(geo.iterations), "converged": bool(geo.converged),
                      "nis_before": float(geo.nis_before), "nis_after": float(geo.nis_after),
                      "seconds": time.perf_counter() - t0}
-        say(f"exp_{i} ({label}): ML on {geo.samples_used} samples, NIS {geo.nis_before:.4g} -> {geo.nis_after:.4g}, "
-            f"{rec['ml']['seconds']:.1f} s")
+        say(f"exp_{i} ({label}): ML on {geo.samples_used} of {len(all_idx)} usable samples, NIS "
+            f"{geo.nis_before:.4g} -> {geo.nis_after:.4g}, {rec['ml']['seconds']:.1f} s")
+    # which part of (b) makes it untunable: its sigma_a or eq. 30?  The settings' ingredients swapped, Var[log p_N]
+    # at N = 1 and 16 at (c)'s Laplace mean (the positions hardly matter at this scale)
+    c = out["settings"].get("c", {})
+    if "laplace_mean_free" in c and "b" in out["settings"]:
+        rng = np.random.default_rng(10 * i + 7)
+        theta = np.array(c["laplace_mean_free"])
+        out["swap"] = {}
+        for key, (sa, oc) in {"sigma_c+model": (c["accel_std"], "model"), "sigma_c+sample": (c["accel_std"], "sample"),
+                              "0.79+model": (PAPER_SIGMA_A, "model"), "0.79+sample": (PAPER_SIGMA_A, "sample")}.items():
+            pr = bayes.build_problem(st, acc, gyr, model, reference=0, accel_std=sa, omega_covariance=oc)
+            out["swap"][key] = {str(n): bayes.loglik_variance(pr.with_(n_draws=n), theta, VAR_REPLICATES, rng)
+                                for n in (1, 16)}
+        say(f"exp_{i}: Var[log p_N] at N = 1 with the ingredients swapped: "
+            + ", ".join(f"{k} {v['1']:.3g}" for k, v in out["swap"].items()))
     return out
 
 
@@ -227,39 +354,41 @@ def run_capture(i: int, desc, model, args) -> dict:
 
 
 def compare(results: list[dict], label: str, names, free) -> dict:
-    """Cross-capture agreement of the posteriors of setting ``label``, and with the ML/CRB."""
-    caps = [r for r in results if label in r["settings"] and "mean_free" in r["settings"][label]]
-    out = {"captures": [r["capture"] for r in caps], "pairs": []}
+    """Cross-capture agreement of the estimates (posterior, else Laplace) of setting ``label``, and with
+    the ML/CRB."""
+    caps, est = [], []
+    for r in results:
+        e = estimate(r["settings"].get(label, {}))
+        if e is not None:
+            caps.append(r)
+            est.append(e)
+    out = {"captures": [r["capture"] for r in caps], "sources": [e[2] for e in est], "pairs": []}
     if not caps:
         return out
-    means = np.array([r["settings"][label]["mean_free"] for r in caps])
-    covs = np.array([r["settings"][label]["cov_free"] for r in caps])
-    out.update(agreement(means, covs, [r["capture"] for r in caps], names, free))
+    means = np.array([e[0] for e in est])
+    covs = np.array([e[1] for e in est])
+    out.update(agreement(means, covs, out["captures"], names, free))
     sds = np.sqrt(np.einsum("cii->ci", covs))
-    # the diagnostic: Laplace on moving samples only
-    mo = [r["moving_only"]["settings"].get(label, {}) for r in results]
-    if all("mean_free" in m for m in mo) and len(mo) > 1:
-        out["moving_only"] = agreement(np.array([m["mean_free"] for m in mo]), np.array([m["cov_free"] for m in mo]),
-                                       [r["capture"] for r in results], names, free)
-        out["moving_only"]["sd_median_um"] = float(np.median(np.sqrt(np.einsum(
-            "cii->ci", np.array([m["cov_free"] for m in mo])))) * UM)
-    # ML on all usable samples, and its CRB
-    mls = [np.array(r["settings"][label]["ml"]["theta"]) if "ml" in r["settings"][label] else None for r in caps]
+    out["sd_median_um"] = float(np.median(sds) * UM)
+    mls = [r["settings"][label].get("ml") for r in caps]
     if all(m is not None for m in mls):
-        mls = np.array(mls)
-        crbs = np.array([np.sqrt(np.diag(r["settings"][label]["ml"]["crb_free"])) for r in caps])
-        zml = (means - mls) / sds
+        ml = np.array([m["theta"] for m in mls])
+        crbs = np.array([np.sqrt(np.diag(m["crb_free"])) for m in mls])
+        zml = (means - ml) / sds
+        many = len(caps) > 1
         out["ml"] = {
-            "z_post_vs_ml": zml.tolist(),
+            "z_vs_ml": zml.tolist(),
             "max_abs_z_per_capture": np.max(np.abs(zml), axis=1).tolist(),
             "rms_z_per_capture": np.sqrt(np.mean(zml ** 2, axis=1)).tolist(),
             "crb_sd_median_um": float(np.median(crbs) * UM),
-            "post_sd_median_um": float(np.median(sds) * UM),
-            "ml_scatter_um": (mls.std(axis=0, ddof=1) * UM).tolist() if len(caps) > 1 else None,
-            "ml_scatter_over_crb_median": float(np.median(mls.std(axis=0, ddof=1) / np.sqrt(np.mean(crbs ** 2, axis=0))))
-            if len(caps) > 1 else None,
-            "post_minus_ml_rms_um": float(np.sqrt(np.mean((means - mls) ** 2)) * UM),
+            "ml_scatter_um": (ml.std(axis=0, ddof=1) * UM).tolist() if many else None,
+            "ml_scatter_over_crb_median": float(np.median(ml.std(axis=0, ddof=1) / np.sqrt(np.mean(crbs ** 2, axis=0))))
+            if many else None,
+            "minus_ml_rms_um": float(np.sqrt(np.mean((means - ml) ** 2)) * UM),
         }
+        lap = [r["settings"][label].get("laplace_mean_free") for r in caps]
+        if all(v is not None for v in lap):  # the Laplace mean (profile ML on the T samples + prior) against ML(all)
+            out["ml"]["laplace_minus_ml_rms_um"] = float(np.sqrt(np.mean((np.array(lap) - ml) ** 2)) * UM)
     return out
 
 
@@ -284,12 +413,11 @@ def agreement(means: np.ndarray, covs: np.ndarray, caps: list[str], names, free)
             out["pairs"].append({"pair": [caps[a], caps[b]], "chi2": x2, "dof": d,
                                  "p": float(chi2.sf(x2, d)), "max_abs_z": float(np.max(np.abs(z))),
                                  "median_abs_z": float(np.median(np.abs(z))), "imu": imu})
-    # scatter of the posterior means across captures vs the posterior std
     if len(caps) > 1:
         scatter = means.std(axis=0, ddof=1)
         rms_sd = np.sqrt(np.mean(sds ** 2, axis=0))
         out["scatter_um"] = (scatter * UM).tolist()
-        out["posterior_sd_rms_um"] = (rms_sd * UM).tolist()
+        out["sd_rms_um"] = (rms_sd * UM).tolist()
         out["scatter_over_sd"] = (scatter / rms_sd).tolist()
         # the paired differences pooled: their z should be N(0,1) if the posteriors are right
         allz = np.concatenate([np.asarray([p["imu"][n]["z"] for n in p["imu"]]).ravel() for p in out["pairs"]])
@@ -301,69 +429,367 @@ def agreement(means: np.ndarray, covs: np.ndarray, caps: list[str], names, free)
 # --------------------------------------------------------------------------- report
 
 
-def _f(x, spec=".3g"):
-    return "—" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, spec)
-
-
 TITLE = "Bayesian (PmMH) position calibration on the real MIMU4444BT captures"
 
 
-def markdown(results, comps, names, nominal, free, args, total_s, header: str | None = None) -> str:
+def _rng(vals, spec=".3g") -> str:
+    """'lo-hi' (or the one value) of a list of numbers."""
+    vals = [int(v) if spec == "d" else float(v) for v in vals]
+    if not vals:
+        return "—"
+    lo, hi = min(vals), max(vals)
+    return format(lo, spec) if format(lo, spec) == format(hi, spec) else f"{format(lo, spec)}-{format(hi, spec)}"
+
+
+def _p(p: float) -> str:
+    """A p-value; 0 (below the double range) as such."""
+    return "< 1e-300" if p == 0 else format(p, ".2g")
+
+
+def _recs(results, label):
+    return [(r["capture"], r["settings"][label]) for r in results if label in r["settings"]]
+
+
+def _var_at(rec, n):
+    for nn, v in rec.get("var_loglik", []):
+        if nn == n:
+            return v
+    return None
+
+
+def _intro() -> str:
+    doc = __doc__.split("\n\n", 1)[1]
+    return doc[:doc.index("\nWrites benchmarks/")].strip() + "\n\n"
+
+
+def summary_line(label, text, results, comps, args) -> str:
+    from imu_array_ros.calibration.bayes_sampler import MAX_DRAWS, UNTUNABLE
+
+    recs = [s for _, s in _recs(results, label)]
+    c = comps.get(label) or {}
+    if not recs:
+        return ""
+    line = f"- **({label}) {text}**: "
+    if label == "c":
+        sig = [s["accel_std"] for s in recs]
+        line += f"sigma_a = {_rng(sig)} m/s^2 over the captures. "
+    refused = [s for s in recs if s.get("refused")]
+    ok = [s for s in recs if "mean_free" in s]
+    other = [s for s in recs if "error" in s and not s.get("refused")]
+    target = recs[0]["sampler_settings"]["loglik_var"]
+    if refused:
+        v1 = [_var_at(s, 1) for s in refused]
+        vmax = [_var_at(s, MAX_DRAWS) for s in refused]
+        line += (f"**the sampler refused {len(refused)} of {len(recs)} captures** (untunable: Var[log p_N] at the "
+                 f"Laplace mean {_rng(v1)} at N = 1 and still {_rng(vmax)} at N = {MAX_DRAWS}, against the target "
+                 f"{target:g} and the refusal threshold {UNTUNABLE * target:g}); ")
+    if other:
+        line += f"{len(other)} other failure(s) ({'; '.join(s['error'] for s in other)}); "
+    if ok:
+        n_conv = sum(s["converged"] for s in ok)
+        th = [s["theta_only"] for s in ok]
+        line += (f"{'P' if line.endswith('. ') else 'p'}osteriors for {len(ok)} of {len(recs)}: N tuned to {_rng([s['n_draws'] for s in ok], 'd')} "
+                 f"(Var[log p_N] {_rng([s['var_loglik'][-1][1] for s in ok], '.2g')}), sampler convergence (ESS >= "
+                 f"{args.ess:g}, R-hat of positions and log-likelihood estimate <= 1.01) in {n_conv} of {len(ok)} "
+                 f"within the caps; positions alone ESS bulk {_rng([t['ess_bulk_min'] for t in th], '.0f')}, "
+                 f"R-hat {_rng([t['rhat_max'] for t in th], '.3f')}; "
+                 f"{_rng([s['seconds'] for s in ok], '.0f')} s wall each; Laplace agrees with the chains "
+                 f"(`laplace_agreement`) in {sum(s['laplace_agreement']['agrees'] for s in ok)} of {len(ok)} (largest "
+                 f"mean offset per capture {_rng([s['laplace_agreement']['max_abs_mean_z'] for s in ok], '.2g')} "
+                 "posterior stds, Laplace/MCMC std ratios "
+                 f"{_rng([s['laplace_agreement'][q] for s in ok for q in ('sd_ratio_min', 'sd_ratio_max')], '.2f')}). ")
+    src = sorted(set(c.get("sources", [])))
+    what = " / ".join("posterior" if s == "posterior" else "**Laplace approximation (not a posterior)**" for s in src)
+    short = " / ".join(src)
+    if c.get("captures"):
+        line += f"{what[0].upper() + what[1:]} std median {c['sd_median_um']:.3g} um. "
+    if c.get("pairs") and "scatter_over_sd" in c:
+        ps = np.array([p["p"] for p in c["pairs"]])
+        ratio = np.array(c["scatter_over_sd"])
+        line += (f"Between captures ({short}): the means scatter by {np.sqrt(np.mean(np.square(c['scatter_um']))):.3g} "
+                 f"um RMS per coordinate, {np.median(ratio):.3g}x (median over coordinates; {ratio.min():.2g}-"
+                 f"{ratio.max():.2g}x) the std; pairwise chi2 ({c['pairs'][0]['dof']} dof): {int(np.sum(ps < 0.01))} of "
+                 f"{len(ps)} pairs with p < 0.01 (p from {_p(ps.min())} to {_p(ps.max())}), pooled z RMS "
+                 f"{c['pooled_z_rms']:.3g} (1 if the uncertainties were right), {c['fraction_abs_z_gt_2']:.0%} of |z| > 2 "
+                 "(5 % expected). ")
+        line += ("**The captures agree.**" if np.sum(ps < 0.01) == 0 and c["pooled_z_rms"] < 1.5 else
+                 "**The captures do not agree**: the std is too small for the scatter between captures." if
+                 np.median(ratio) > 1.5 else "**Some pairs disagree.**")
+        if "ml" in c:
+            m = c["ml"]
+            line += (f" ML on all usable samples: CRB median {m['crb_sd_median_um']:.3g} um, ML scatter between "
+                     f"captures {m['ml_scatter_over_crb_median']:.3g}x the CRB (median); {short} mean - ML(all) "
+                     f"{m['minus_ml_rms_um']:.3g} um RMS, |z| up to {max(m['max_abs_z_per_capture']):.3g} stds.")
+    return line + "\n"
+
+
+def reading(results, comps, args) -> str:
+    """What the numbers say, in words (every number computed from this run's records)."""
+    from imu_array_ros.calibration.bayes_sampler import MAX_DRAWS, UNTUNABLE, VAR_REPLICATES
+
+    md = "## Reading\n\n"
+    recs = {lab: [s for _, s in _recs(results, lab)] for lab in SETTINGS}
+    # agreement between captures
+    parts = []
+    for lab in SETTINGS:
+        c = comps.get(lab) or {}
+        if not c.get("pairs") or "scatter_over_sd" not in c:
+            continue
+        ps = np.array([p["p"] for p in c["pairs"]])
+        src = "posteriors" if set(c["sources"]) == {"posterior"} else (
+            "Laplace approximations" if set(c["sources"]) == {"Laplace"} else "posteriors / Laplace approximations")
+        n_imu = sum(sum(v["p"] < 0.01 for v in p["imu"].values()) for p in c["pairs"])
+        parts.append(f"({lab}) {src}: scatter {np.median(c['scatter_over_sd']):.3g}x the std (median; up to "
+                     f"{max(c['scatter_over_sd']):.2g}x), pooled z RMS {c['pooled_z_rms']:.3g}, {int(np.sum(ps < 0.01))} "
+                     f"of {len(ps)} pairs reject at p < 0.01 (largest p {_p(ps.max())}), the 3-dof test per IMU rejects in "
+                     f"{n_imu} of {sum(len(p['imu']) for p in c['pairs'])} IMU-pairs")
+    if parts:
+        agree_all = all(
+            sum(p["p"] < 0.01 for p in comps[lab]["pairs"]) == 0 for lab in SETTINGS if comps.get(lab, {}).get("pairs"))
+        md += ("- **Do the captures agree?** " + ("Yes. " if agree_all else "No. ") + "; ".join(parts) + ". ")
+        if not agree_all:
+            md += (f"{len(results)} recordings of one board must give one set of positions; a scatter of the means larger than "
+                   "their stated uncertainty means the model behind that uncertainty leaves out something that "
+                   "changes from capture to capture (here: the intrinsics the nominal description holds at their "
+                   "identities -- biases, gains, misalignments, g-sensitivity -- whose effect on the lever-arm "
+                   "fit depends on each capture's motion), so the stds are not the error of the positions.")
+        md += "\n"
+    # what sigma_a would make the uncertainty cover the scatter
+    sig_parts = []
+    for lab in SETTINGS:
+        c = comps.get(lab) or {}
+        if "scatter_over_sd" not in c:
+            continue
+        sig = float(np.mean([s["accel_std"] for s in recs[lab]]))
+        r = float(np.median(c["scatter_over_sd"]))
+        sig_parts.append(f"{sig:.3g} x {r:.3g} = {sig * r:.2g} m/s^2 from ({lab})")
+    if sig_parts:
+        md += ("- **What the scatter says about the noise level**: the std scales about with sigma_a, so the sigma_a at "
+               "which the std would match the scatter between captures is about " + ", ".join(sig_parts)
+               + " (mean sigma_a x median ratio). ")
+        ne = [r["noise_estimate"] for r in results if "noise_estimate" in r]
+        if ne:
+            sg = [n["sigma_a"] for n in ne]
+            rf = [abs(n["sigma_after_one_refit"] / n["sigma_a"] - 1) for n in ne]
+            md += (f"The residuals themselves say {_rng(sg)} m/s^2 (setting (c)'s ML estimate on the T samples: "
+                   f"{min(sg) / 0.045:.0f}-{max(sg) / 0.045:.0f}x the description's 0.045 m/s^2 white noise and "
+                   f"{min(sg) / PAPER_SIGMA_A:.2g}-{max(sg) / PAPER_SIGMA_A:.2g}x the paper's {PAPER_SIGMA_A}; one refit "
+                   f"with it changes it by at most {max(rf):.2%}). ")
+            cc = comps.get("c") or {}
+            if "scatter_over_sd" in cc and set(cc["sources"]) == {"posterior"}:
+                r = float(np.median(cc["scatter_over_sd"]))
+                md += (f"So the scatter between captures needs about {r:.2g}x the noise level the residuals show "
+                       + ("(median coordinate): the misfit moves the positions more than white noise of its size "
+                          "would -- it is correlated across the samples of a capture, so it does not average down "
+                          "with T as the posterior assumes. " if r > 1.2 else "(median coordinate). "))
+        md += "\n"
+    # refusals
+    ref = {lab: [s for s in recs[lab] if s.get("refused")] for lab in SETTINGS}
+    if any(ref.values()):
+        bits = []
+        for lab, rs in ref.items():
+            if not rs:
+                continue
+            v1 = np.array([_var_at(s, 1) for s in rs])
+            vm = np.array([_var_at(s, MAX_DRAWS) for s in rs])
+            bits.append(f"({lab}) in {len(rs)} of {len(recs[lab])} captures: Var[log p_N] {_rng(v1)} at N = 1 and "
+                        f"{_rng(vm)} at N = {MAX_DRAWS}, where 1/N would give {_rng(v1 / MAX_DRAWS, '.2g')}; "
+                        f"N ~ {_rng(MAX_DRAWS * vm / rs[0]['sampler_settings']['loglik_var'], '.2g')} draws per "
+                        "sample would be needed")
+        md += ("- **Where the sampler refuses**: `sample_posterior` (N tuned) raised \"the log-likelihood estimate is "
+               "too noisy to sample\" for " + "; ".join(bits) + f" (threshold {UNTUNABLE:g} x the target 0.1 at N = "
+               f"{MAX_DRAWS}). The variance falls far slower than 1/N: the estimator is heavy-tailed.\n")
+        # why: the residuals against sigma_a, the omega draws' width, and the swapped ingredients
+        ne = [r["noise_estimate"] for r in results if "noise_estimate" in r]
+        wstd = {lab: [s["omega_std_median"] for s in recs[lab] if "omega_std_median" in s] for lab in SETTINGS}
+        sw = [r["swap"] for r in results if "swap" in r]
+        md += ("- **Why**: per sample, the exponent ||z - h(omega)||^2 / sigma_a^2 of the likelihood changes between "
+               "the drawn omegas by about 2 x residual x dh/domega x spread(omega) / sigma_a^2, so the estimate is "
+               "noisy when sigma_a is far below the residuals or the omega draws are wide. ")
+        if ne and ref.get("a"):
+            sg = [n["sigma_a"] for n in ne]
+            md += (f"(a): the accelerometer residuals of the nominal description are {_rng(sg, '.2g')} m/s^2 RMS on "
+                   f"these samples (setting (c)'s estimate), {min(sg) / 0.045:.0f}-{max(sg) / 0.045:.0f}x the "
+                   "description's sigma_a = 0.045, so even the noise model's narrow omega draws (median std "
+                   f"{_rng(wstd['a'], '.2g')} rad/s per axis) spread the exponent widely. ")
+        if ref.get("b") and wstd.get("b"):
+            md += (f"(b): eq. 30's omega draws are wide, median std {_rng(wstd['b'], '.2g')} rad/s per axis (the "
+                   "noise model's: " + _rng(wstd["a"] or wstd["c"], '.2g') + " rad/s)")
+            if ne:
+                g = [n["gyro_residual_rms"] for n in ne]
+                gr = [n["gyro_residual_rms"] / n["gyro_std_model"] for n in ne]
+                md += (f", because the 8 gyroscopes disagree: at the ML fit their residual RMS is {_rng(g, '.2g')} "
+                       f"rad/s, {_rng(gr, '.0f')}x the noise model's std (uncalibrated gyroscope gains and "
+                       "misalignments give such errors at high rates)")
+            md += ". "
+            if sw:
+                v = {k: [x[k]["1"] for x in sw] for k in sw[0]}
+                v16 = {k: [x[k]["16"] for x in sw] for k in sw[0]}
+                md += (f"Swapping the ingredients (Var[log p_N] at N = 1 / 16 at (c)'s Laplace mean, {VAR_REPLICATES} "
+                       f"replicates) locates it: sigma_a = 0.79 with the noise model gives {_rng(v['0.79+model'], '.2g')} "
+                       f"/ {_rng(v16['0.79+model'], '.2g')}, with eq. 30 {_rng(v['0.79+sample'], '.3g')} / "
+                       f"{_rng(v16['0.79+sample'], '.3g')}; (c)'s sigma_a with the noise model "
+                       f"{_rng(v['sigma_c+model'], '.2g')} / {_rng(v16['sigma_c+model'], '.2g')}, with eq. 30 "
+                       f"{_rng(v['sigma_c+sample'], '.3g')} / {_rng(v16['sigma_c+sample'], '.3g')}. ")
+                b_tunable = max(v["0.79+model"]) <= 0.1
+                c_sample_bad = min(v16["sigma_c+sample"]) > UNTUNABLE * 0.1
+                md += ("So (b) refuses because of eq. 30, not because of its sigma_a" if b_tunable and c_sample_bad
+                       else "So both its sigma_a and eq. 30 contribute") + ". "
+        md += ("Both are the data disagreeing with the noise model. carlsson2021 assumes \"that the sensor triads' "
+               "scale factor-, misalignment-, orientation-, and offset-errors are calibrated\" (Sec. II); with those "
+               "errors left in, (a) and (b) are outside the method's assumptions, and the refusal is the library "
+               "working as designed. For these settings the report gives the Laplace approximation (ML + CRB + "
+               "prior) only; it is not a posterior, and its std rests on the same noise level.\n")
+    # the sampled settings
+    for lab in SETTINGS:
+        ok = [s for s in recs[lab] if "mean_free" in s]
+        if not ok:
+            continue
+        th = [s["theta_only"] for s in ok]
+        la = [s["laplace_agreement"] for s in ok]
+        mc = [s["mode_check"] for s in ok]
+        rn = [s["ratio_noise_sd"] for s in ok]
+        used = [s["laplace_fit_samples_used"] for s in ok]
+        md += (f"- **Sampler in ({lab})**: N tuned to {_rng([s['n_draws'] for s in ok], 'd')} "
+               f"(Var[log p_N] {_rng([s['var_loglik'][-1][1] for s in ok], '.2g')} at the Laplace mean; the noise of "
+               f"the log acceptance ratio for one typical step, sd {_rng([r['0.0'] for r in rn], '.2g')} at rho = 0 and "
+               f"{_rng([r['0.9'] for r in rn], '.2g')} at rho = 0.9, so the library's rho = 0.9 was kept). "
+               f"{sum(s['converged'] for s in ok)} of {len(ok)} converged (ESS >= {args.ess:g} and R-hat <= 1.01 for "
+               f"positions and log-likelihood estimate) after {_rng([s['warmup_per_chain'] for s in ok], 'd')} warm-up "
+               f"and {_rng([s['draws_per_chain'] for s in ok], 'd')} sampling iterations per chain; positions ESS "
+               f"{_rng([t['ess_bulk_min'] for t in th], '.0f')}, R-hat {_rng([t['rhat_max'] for t in th], '.3f')}, "
+               f"log-likelihood estimate R-hat {_rng([s['rhat_loglik_estimate'] for s in ok], '.3f')}. ")
+        ratios = [a[q] for a in la for q in ("sd_ratio_min", "sd_ratio_max")]
+        width_ok = min(ratios) >= 0.8 and max(ratios) <= 1.25
+        md += (f"The Laplace approximation's std is {'about right' if width_ok else 'off'} (Laplace/MCMC std ratios "
+               f"{_rng(ratios, '.2f')}); its mean is off by up to {_rng([a['max_abs_mean_z'] for a in la], '.2g')} "
+               f"posterior stds (RMS {_rng([a['rms_mean_z'] for a in la], '.2g')}), so by `laplace_agreement` it agrees "
+               f"in {sum(a['agrees'] for a in la)} of {len(la)}. The mode check: the mode of the sampled target (fixed "
+               f"random numbers) is {_rng([m['with_logdet']['max_abs_z_vs_posterior_mean'] for m in mc], '.2g')} "
+               f"posterior stds from the posterior mean and "
+               f"{_rng([m['with_logdet']['max_abs_z_vs_laplace_mean'] for m in mc], '.2g')} from the Laplace mean; "
+               "without the -T/2 log|H^T Omega H| term of the marginalised linear motion it is "
+               f"{_rng([m['without_logdet']['max_abs_z_vs_laplace_mean'] for m in mc], '.2g')} stds from the "
+               "Laplace mean. ")
+        explained = (max(m["with_logdet"]["max_abs_z_vs_posterior_mean"] for m in mc) < 0.5
+                     and max(m["without_logdet"]["max_abs_z_vs_laplace_mean"] for m in mc) < 0.5)
+        if explained:
+            md += ("So the offset is the difference between the marginal likelihood the posterior uses (eq. 22-26, "
+                   "omega_dot and s integrated out) and the profile likelihood (maximised over them) whose ML and CRB "
+                   "`laplace` takes, not a sampler error. ")
+        md += (f"The Laplace's ML fit uses {_rng(used, 'd')} of the {args.samples} samples: `calibrate_geometry`'s "
+               "noise-dependent excitation test drops the least-excited ones even with min_excitation = 0")
+        if explained:
+            md += (" -- without effect here, as the profile mode on all T samples (the mode check without the term) "
+                   "coincides with the Laplace mean")
+        md += ".\n"
+    # the empirical-Bayes setting: do its posteriors cover the scatter?
+    for lab in SETTINGS:
+        c = comps.get(lab) or {}
+        if SETTINGS[lab][0] != ML_SIGMA or set(c.get("sources", [])) != {"posterior"} or "scatter_over_sd" not in c:
+            continue
+        ratio = np.array(c["scatter_over_sd"])
+        ps = np.array([p["p"] for p in c["pairs"]])
+        coords = [f"{n} {a}" for n in c["pairs"][0]["imu"] for a in "xyz"]
+        worst = np.argsort(ratio)[::-1][:3]
+        n_imu = sum(sum(v["p"] < 0.01 for v in p["imu"].values()) for p in c["pairs"])
+        n_all = sum(len(p["imu"]) for p in c["pairs"])
+        md += (f"- **Empirical Bayes ({lab})**: with sigma_a at the level the residuals call for, the posterior means "
+               f"scatter between captures by {np.sqrt(np.mean(np.square(c['scatter_um']))):.3g} um RMS, "
+               f"{np.median(ratio):.3g}x the posterior std (median {c['sd_median_um']:.3g} um) in the median "
+               f"coordinate; {int(np.sum(ratio > 1))} of {len(ratio)} coordinates above 1x, the largest "
+               + ", ".join(f"{coords[q]} {ratio[q]:.2g}x" for q in worst) + ". ")
+        if np.sum(ps < 0.01):
+            md += (f"Yet the full-covariance test rejects: {int(np.sum(ps < 0.01))} of {len(ps)} pairs at p < 0.01, "
+                   f"{n_imu} of {n_all} IMU-pairs, pooled z RMS {c['pooled_z_rms']:.3g}. So even at the noise level "
+                   "the residuals call for, the captures disagree beyond their posteriors: the misfit of the nominal "
+                   "model is not white noise independent between samples (what sigma_a models) but a systematic "
+                   "error that moves some IMUs' estimates by different amounts in different captures. "
+                   + (f"The posterior std gives the order of the position error of this uncalibrated array (within "
+                      f"a factor {max(ratio):.2g} in every coordinate), not a calibrated uncertainty. "
+                      if max(ratio) <= 3 else "")
+                   + "The remedy is calibrating the intrinsics (carlsson2021 does this first, "
+                   "Sec. II / IV-B), not a larger sigma_a.\n")
+        else:
+            md += (f"No pair rejects at p < 0.01 (pooled z RMS {c['pooled_z_rms']:.3g}): at this noise level the "
+                   "posteriors cover the scatter between captures.\n")
+        ne = [r["noise_estimate"] for r in results if "noise_estimate" in r]
+        if ne:
+            gr = [n["gyro_residual_rms"] / n["gyro_std_model"] for n in ne]
+            md += (f"- **(c)'s gyroscope side** keeps the noise model: p(omega | gyroscopes) is {_rng(gr, '.0f')}x "
+                   "narrower than the gyroscopes' disagreement at the fit (\"Why\" above); whatever that misses ends "
+                   "in the accelerometer residuals, which sigma_a absorbs.\n")
+    # (a) and (b): the same ML, different widths
+    if all(comps.get(lab, {}).get("captures") for lab in ("a", "b")):
+        dab, zab = [], []
+        for r in results:
+            ea, eb = estimate(r["settings"].get("a", {})), estimate(r["settings"].get("b", {}))
+            if ea is None or eb is None:
+                continue
+            dab.append(float(np.sqrt(np.mean((ea[0] - eb[0]) ** 2)) * UM))
+            zab.append(float(np.max(np.abs(ea[0] - eb[0]) / np.sqrt(np.diag(eb[1])))))
+        if dab:
+            md += (f"- **(a) vs (b)**: their {'/'.join(sorted(set(comps['a']['sources'] + comps['b']['sources'])))} "
+                   f"means are {_rng(dab)} um RMS apart per capture (at most {max(zab):.2g} (b)-stds): both rest on "
+                   "an ML position fit of the same samples" + (" (the noise weighting hardly moves it)" if max(zab) < 1
+                                                               else "") + ", "
+                   f"and the settings differ in the width: std median {comps['a']['sd_median_um']:.3g} um (a) vs "
+                   f"{comps['b']['sd_median_um']:.3g} um (b).\n")
+    # ML / CRB
+    ml_parts = []
+    for lab in SETTINGS:
+        c = comps.get(lab) or {}
+        m = c.get("ml")
+        if not m or m.get("ml_scatter_over_crb_median") is None:
+            continue
+        src = "posterior" if set(c["sources"]) == {"posterior"} else "Laplace"
+        ml_parts.append(f"({lab}) ML scatter {m['ml_scatter_over_crb_median']:.3g}x its CRB (CRB median "
+                        f"{m['crb_sd_median_um']:.3g} um), {src} mean {m['minus_ml_rms_um']:.3g} um RMS from it (|z| up to "
+                        f"{max(m['max_abs_z_per_capture']):.3g} {src} stds)"
+                        + (f"; its Laplace mean (the profile ML on the T samples + prior) "
+                           f"{m['laplace_minus_ml_rms_um']:.3g} um RMS" if src == "posterior" and
+                           "laplace_minus_ml_rms_um" in m else ""))
+    if ml_parts:
+        md += "- **ML on all usable samples / CRB**: " + "; ".join(ml_parts) + ". "
+        worst = [lab for lab in SETTINGS if (comps.get(lab) or {}).get("ml", {}).get("ml_scatter_over_crb_median")]
+        low = min(comps[lab]["ml"]["ml_scatter_over_crb_median"] for lab in worst)
+        if low > 1.5:
+            md += ("The ML estimates of different captures disagree with each other by more than their CRB in every "
+                   f"setting (at least {low:.3g}x): with the intrinsics uncalibrated, more samples shrink the CRB but "
+                   "not the systematic error.")
+        md += "\n"
+    # time
+    sec = [s["seconds"] for lab in SETTINGS for s in recs[lab] if "seconds" in s]
+    if sec:
+        md += (f"- **Time**: {_rng(sec, '.0f')} s wall per posterior ({args.chains} chains on {args.workers} worker "
+               f"processes, caps {args.max_warmup} warm-up + {args.max_iterations} sampling iterations per chain, "
+               "the 2 cores shared with other jobs)")
+        ns = sorted({n for lab in SETTINGS for s in recs[lab] if s.get("refused") for n, _ in s.get("var_loglik", [])})
+        if ns:
+            md += ("; a refusal costs the tuning only (Var measurements at N = " + ", ".join(str(n) for n in ns) + ")")
+        md += ".\n"
+    return md + "\n"
+
+
+def markdown(results, comps, names, free, args, total_s, header: str | None = None) -> str:
+    from imu_array_ros.calibration.bayes_sampler import MAX_DRAWS, UNTUNABLE, VAR_REPLICATES
+
     axes = "xyz"
     if header is None:
         md = machine_header(TITLE)
-        md += f"- run time: {total_s:.0f} s (whole script, 12 posteriors one after the other; machine shared with other work)\n"
+        md += (f"- run time: {total_s:.0f} s (whole script; {len(results)} captures x {len(args.settings)} settings "
+               "one after the other; machine shared with other work)\n")
         md += f"- code: {_commit()}\n\n"
     else:
         md = header
-    md += __doc__.split("\n\n", 1)[1].rsplit("\n\n", 2)[0] + "\n\n"
+    md += _intro()
 
-    # ---- summary (numbers only; the reading of them follows each section)
     md += "## Summary\n\n"
     for label, (_, _, text) in SETTINGS.items():
-        c = comps.get(label) or {}
-        recs = [r["settings"][label] for r in results if label in r["settings"]]
-        ok = [s for s in recs if "mean_free" in s]
-        if not ok:
-            md += f"- **({label}) {text}**: no posterior.\n"
-            continue
-        sd_med = float(np.median([np.sqrt(np.diag(s["cov_free"])) for s in ok]) * UM)
-        n_conv = sum(s["converged"] for s in ok)
-        th = [s["theta_only"] for s in ok]
-        n_th = sum(t["ess_bulk_min"] >= args.ess and t["rhat_max"] <= 1.01 for t in th)
-        line = (f"- **({label}) {text}**: posterior std median {sd_med:.3g} um; sampler convergence "
-                f"(ESS >= {args.ess:g}, R-hat of positions and log-likelihood estimate <= 1.01) reached by {n_conv} "
-                f"of {len(ok)} within the caps; the positions alone: ESS bulk "
-                f"{min(t['ess_bulk_min'] for t in th):.0f}-{max(t['ess_bulk_min'] for t in th):.0f}, R-hat "
-                f"{min(t['rhat_max'] for t in th):.3f}-{max(t['rhat_max'] for t in th):.3f} ({n_th} of {len(ok)} "
-                f"meet both targets); R-hat of the log-likelihood estimate "
-                f"{min(s['rhat_loglik_estimate'] for s in ok):.3f}-{max(s['rhat_loglik_estimate'] for s in ok):.3f}; "
-                f"Laplace agrees with the chains in {sum(s['laplace_agreement']['agrees'] for s in ok)} of {len(ok)}; "
-                f"{min(s['seconds'] for s in ok):.0f}-{max(s['seconds'] for s in ok):.0f} s wall each.")
-        if c.get("pairs"):
-            ps = np.array([p["p"] for p in c["pairs"]])
-            ratio = np.array(c["scatter_over_sd"])
-            line += (f" Between captures: the posterior means scatter by {np.sqrt(np.mean(np.square(c['scatter_um']))):.3g} "
-                     f"um RMS per coordinate, {np.median(ratio):.3g}x (median over coordinates; "
-                     f"{ratio.min():.2g}-{ratio.max():.2g}x) the posterior std; pairwise chi2 "
-                     f"({c['pairs'][0]['dof']} dof): {int(np.sum(ps < 0.01))} of {len(ps)} pairs with p < 0.01 "
-                     f"(p from {ps.min():.2g} to {ps.max():.2g}), pooled z RMS {c['pooled_z_rms']:.3g} "
-                     f"(1 if the posteriors were right), {c['fraction_abs_z_gt_2']:.0%} of |z| > 2 (5 % expected). ")
-            line += ("**The captures agree.**" if np.sum(ps < 0.01) == 0 and c["pooled_z_rms"] < 1.5 else
-                     "**The captures do not agree: the posterior std is too small for the scatter between "
-                     "captures, so the model leaves out something that changes the estimate by more than its "
-                     "std.**" if np.median(ratio) > 1.5 else
-                     "**Some pairs disagree.**")
-            if "ml" in c:
-                mlc = c["ml"]
-                line += (f" ML on all usable samples: CRB median {mlc['crb_sd_median_um']:.3g} um against an ML "
-                         f"scatter between captures {mlc['ml_scatter_over_crb_median']:.3g}x the CRB (median); "
-                         f"posterior mean - ML(all) {mlc['post_minus_ml_rms_um']:.3g} um RMS, |z| (in posterior "
-                         f"stds) up to {max(mlc['max_abs_z_per_capture']):.3g}.")
-        md += line + "\n"
+        md += summary_line(label, text, results, comps, args)
     md += "\n"
-
     md += reading(results, comps, args)
+
     md += ("## What the description calibrates, and what not\n\n"
            "`config/mimu4444bt_corners.yaml` is nominal: it gives each IMU's nominal position (the README's "
            "corner coordinates, +-9.45 mm, +-1 mm; here the prior's centre and the panels' origin), its "
@@ -374,122 +800,159 @@ def markdown(results, comps, names, nominal, free, args, total_s, header: str | 
            "non-orthogonality, g-sensitivity, time offsets and sampling jitter, and the sensors' non-linearity. "
            "The posterior is of the positions *given* those identities: any of these errors that projects onto "
            "the lever-arm terms moves the positions, and all of them enter the residual the noise model is "
-           "supposed to explain.\n\n")
+           "supposed to explain. carlsson2021 (Sec. II) assumes them calibrated.\n\n")
 
     md += "## Choices\n\n"
-    md += (f"- **Samples**: `select_samples(..., {args.samples})`, which keeps samples with every reading valid "
-           "(none clipped) and ||[w]x^2 + [w_dot]x||_F >= 1 rad/s^2 from the fused motion, then spreads the "
-           f"{args.samples} evenly in time over the whole capture. The same samples serve both settings.\n")
-    md += (f"- **N and rho**: N = {args.draws} draws of omega per sample, fixed, and rho = {RHO['a']} (a) / "
-           f"{RHO['b']} (b) -- not the CLI defaults (N tuned to Var[log p_N] <= 0.1, rho = 0.9). The tuning "
-           f"cannot reach its target on these captures: Var[log p_N] at the Laplace mean is still "
-           f"{_var_range(results, 'a', 1024)} (a) and {_var_range(results, 'b', 1024)} (b) at the cap "
-           "N = 1024 (table below), where one likelihood costs ~0.07-0.09 s at T = 500 (hours per "
-           "posterior). The variance falls slowly with N -- a few fast-turning samples dominate it, the "
-           "estimator is heavy-tailed -- while the noise of the log acceptance ratio is set mostly by rho: "
-           "on exp_1 (a), its sd for one typical random-walk step was 18 / 7.1 / 2.6 / 0.8 at rho = 0 / 0.9 / "
-           "0.99 / 0.999 with N = 16 and 11 / 5.6 / 2.7 / 0.7 with N = 128 (measured before the run). So N is kept small (cheap "
-           "iterations) and rho raised to 0.99 (measured for every capture in the sampler table). rho = 0.999 "
-           "was tried on exp_1 (a) (N = 64): more theta moves were accepted, but the warm-up R-hat (positions and "
-           "log-likelihood estimate) stayed at 1.8-1.9 after 4000 iterations: the random numbers hardly move, "
-           "and they are part of the target (at rho = 0.99 the same run reached R-hat 1.02 for the positions, "
-           "1.52 for the log-likelihood estimate). The pseudo-marginal chain targets the exact posterior for any N and "
-           "rho; N and rho only change how fast it mixes.\n")
+    md += (f"- **Samples**: `select_samples(..., {args.samples})`: every reading valid (none clipped), "
+           "||[w]x^2 + [w_dot]x||_F >= 1 rad/s^2 from the fused motion (and >= 3x what its own noise gives) and "
+           "the same from the gyroscopes alone (w_dot the time derivative of the fused w: drops the static poses, "
+           f"counted as `still_by_gyroscopes`), then {args.samples} spread evenly in time over the usable ones. "
+           "The same samples serve every setting.\n")
+    md += ("- **Setting (c)'s noise level**: per capture, from that capture's T samples only: the fit behind "
+           "setting (a)'s Laplace approximation (`calibrate_geometry`, joint solver, description noise, "
+           "min_excitation = 0; it used every one of the T samples, see the table), and sigma_a = RMS of its "
+           "accelerometer residuals over all IMUs, axes and samples -- the ML estimate of one white-noise std "
+           "for every accelerometer axis. It is an empirical-Bayes choice: the data set the noise level of "
+           "their own likelihood, so the posterior does not carry the uncertainty of sigma_a (small at "
+           f"{8 * 3 * args.samples} residuals) and sigma_a absorbs every misfit of the nominal model, white or "
+           "not. The gyroscope noise stays the description's (0.0039 rad/s), although at the same fit the gyroscopes "
+           "are further from one rigid-body omega than that (gyroscope residual RMS in the table): p(omega | "
+           "gyroscopes) is narrower than the gyroscopes' disagreement. No hand tuning, nothing shared across "
+           "captures.\n")
+    md += (f"- **N and rho**: the sampler's own: `n_draws=None` (N = the smallest power of two with "
+           f"Var[log p_N] <= 0.1 at the Laplace mean over {VAR_REPLICATES} replicates; it jumps to the cap N = "
+           f"{MAX_DRAWS} when 1/N scaling would need more than 4x the cap; refused when Var at the cap exceeds "
+           f"{UNTUNABLE:g} x 0.1) and rho = 0.9 (the default; the log acceptance ratio noise at rho = 0 and 0.9 "
+           "is in the sampler table). The tuning table of a refused setting is `choose_draws` rerun with the "
+           "sampler's generator (same seed, so the same numbers as in the error message). Seed 10 x capture + "
+           "setting index: different random numbers for every posterior.\n")
+    md += (f"- **Caps**: {args.chains} chains on {args.workers} worker processes, the sampler's chunk (1000) and "
+           f"min_warmup (2000), warm-up at most {args.max_warmup} and sampling at most {args.max_iterations} "
+           "iterations per chain (library defaults: 40000 and 400000); a posterior that reaches a cap is flagged "
+           "as not converged.\n")
     md += ("- **Convergence**: `sample_posterior` declares convergence when the smallest bulk ESS of the "
-           "coordinates reaches the target and the largest split R-hat of the coordinates *and of the "
-           "log-likelihood estimate* is <= 1.01. The log-likelihood estimate depends on the random numbers "
-           "u (part of the pseudo-marginal target), so its R-hat measures how well u mixes; the tables give "
-           "it separately, with ESS and R-hat of the positions alone (what the posterior summaries rest on).\n")
-    md += (f"- **Caps**: {args.chains} chains on {args.workers} worker processes, warm-up at most "
-           f"{args.max_warmup} and sampling at most {args.max_iterations} iterations per chain (CLI: 40000 "
-           "and 400000), so a posterior that mixes slowly ends unconverged instead of running for hours; "
-           "it is then flagged in the tables.\n")
-    md += ("- **ML(all)**: `calibrate_geometry(method=\"joint\")` on every sample of the capture that passes "
-           "its selection (the same test as `select_samples`), with the setting's accelerometer std "
-           "(the gyroscope noise model in both: the sample covariance has no counterpart there); the CRB is "
-           "its Cramér-Rao bound. The selection depends on the noise: its rotation test asks for ||C_n|| >= 3x "
-           "what the fused motion's own noise gives, and with sigma_a = 0.79 the fused omega_dot of a still "
-           "array is that noisy, so in (b) the static poses drop out and ML(all) uses about the moving samples "
-           "only (see the samples-used column). It uses far more samples than the posterior, so its CRB is smaller; a "
-           "posterior mean should lie within a few posterior stds of it.\n")
-    md += ("- **Agreement between captures**: for each pair, d = mean_i - mean_j over the 21 free coordinates "
-           "(imu_1 held at nominal in every capture, the same gauge), z = d / sqrt(var_i + var_j) per "
-           "coordinate, chi2 = d^T (C_i + C_j)^-1 d with the full posterior covariances (21 dof) and per IMU "
-           "(3 dof). Captures are independent recordings, so with a right model z ~ N(0, 1) and chi2 ~ "
-           "chi2(21); the scatter of the six posterior means per coordinate (sample std) should match the "
-           "posterior std.\n\n")
+           f"coordinates reaches {args.ess:g} and the largest split R-hat of the coordinates *and of the "
+           "log-likelihood estimate* is <= 1.01. The tables also give ESS and R-hat of the positions alone.\n")
+    md += ("- **Laplace agreement / mode check**: `laplace_agreement` (|mean difference| <= 0.5 posterior std and "
+           "Laplace/MCMC std ratio in [0.8, 1.25] for every coordinate). The mode check maximises the sampled "
+           f"target log p_N(y | theta, u) + log p(theta) at fixed random numbers (N = {MODE_DRAWS}) by BFGS from the "
+           "Laplace mean, with and without the -T/2 log|H^T Omega H| term, and gives each mode's largest "
+           "distance (in posterior stds) to the posterior and the Laplace mean.\n")
+    md += ("- **ML(all)**: `calibrate_geometry(method=\"joint\", min_excitation=0)` on every usable sample of the "
+           "capture (`select_samples` with no cap), with the noise the setting's Laplace uses (the setting's "
+           "sigma_a; in (b) the gyroscope std of `sample_gyro_std`); the CRB is its Cramér-Rao bound. Its "
+           "noise-dependent excitation test drops the least-excited samples when sigma_a is large (samples-used "
+           "column). A right model would put each posterior mean within a few posterior stds of it and make "
+           "the ML scatter between captures match its CRB.\n")
+    md += ("- **Agreement between captures**: the posterior where the sampler ran, else the Laplace approximation "
+           "(labelled). For each pair, d = mean_i - mean_j over the 21 free coordinates (imu_1 held at nominal in "
+           "every capture, the same gauge), z = d / sqrt(var_i + var_j) per coordinate, chi2 = d^T (C_i + C_j)^-1 d "
+           "with the full covariances (21 dof) and per IMU (3 dof). Captures are independent recordings, so with "
+           f"a right model z ~ N(0, 1) and chi2 ~ chi2(21); the scatter of the {len(results)} means per coordinate "
+           "(sample std) should match the std.\n\n")
 
     md += "## Samples\n\n"
     md += ("| capture | samples | usable | dropped: clipped/missing | little rotation | not identified | "
-           "moving in capture (valid, mean \\|gyro\\| > 1 rad/s) | of them usable | selected | of them moving | "
+           "still by gyroscopes | usable moving (mean \\|gyro\\| > 1 rad/s) | selected | of them moving | "
            "max \\|gyro\\| / clip | max \\|acc\\| / clip |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     for r in results:
         dr = r["dropped"]
-        md += (f"| {r['capture']} | {r['samples_total']} | {r['usable']} | {dr['missing_or_saturated']} | "
-               f"{dr['little_rotation']} | {dr['motion_not_identified']} | {r['moving_in_capture']} | "
-               f"{r['moving_only']['usable_moving']} | "
-               f"{r['selected']} | {r['moving_selected']} | {r['max_gyro_over_clip_selected']:.3f} | "
+        md += (f"| {r['capture']} | {r['samples_total']} | {r['usable']} | {dr.get('missing_or_saturated', '—')} | "
+               f"{dr.get('little_rotation', '—')} | {dr.get('motion_not_identified', '—')} | "
+               f"{dr.get('still_by_gyroscopes', '—')} | {r['moving_usable']} | {r['selected']} | "
+               f"{r['moving_selected']} | {r['max_gyro_over_clip_selected']:.3f} | "
                f"{r['max_acc_over_clip_selected']:.3f} |\n")
-    mv = [r["moving_selected"] for r in results]
-    md += (f"\nOnly {min(mv)}-{max(mv)} of the {args.samples} selected samples per capture are from the hand "
-           "twisting; the others are from the static poses. They pass the rotation test because the fused "
-           "omega_dot of the still array is not ~0: on exp_1 (checked separately) its median is 14 rad/s^2 at "
-           "rest (||C|| median 20 rad/s^2 against the threshold 1), as accelerometer bias differences of a few "
-           "tenths of m/s^2 over the ~2 cm between IMUs would make it. At rest [w]x^2 ~ 0 and omega_dot is "
-           "marginalised, so these samples carry little information about the positions")
-    ca, mo_a = comps.get("a") or {}, (comps.get("a") or {}).get("moving_only")
-    if mo_a and "a" in (results[0]["settings"] if results else {}):
-        sd_sel = float(np.median([np.sqrt(np.diag(r["settings"]["a"]["cov_free"])) for r in results
-                                  if "cov_free" in r["settings"].get("a", {})]) * UM)
-        md += (f": in (a) the posterior std on the CLI's selection ({sd_sel:.3g} um median) is about what "
-               f"~{np.mean(mv):.0f} moving samples give -- on {args.samples} moving samples the std is "
-               f"{mo_a['sd_median_um']:.3g} um, {sd_sel / mo_a['sd_median_um']:.2g}x smaller (sqrt({args.samples}/"
-               f"{np.mean(mv):.0f}) = {np.sqrt(args.samples / np.mean(mv)):.2g})")
-    md += ". The selection is what the CLI does; the report keeps it and adds the moving-only diagnostic.\n\n"
+    if results:
+        mv = [r["moving_selected"] / r["selected"] for r in results]
+        st = [r["dropped"].get("still_by_gyroscopes", 0) for r in results]
+        md += (f"\n{_rng([r['moving_selected'] for r in results], 'd')} of the {args.samples} selected samples per "
+               f"capture ({min(mv):.0%}-{max(mv):.0%}) have mean |gyro| > {MOVING_RAD_S} rad/s; the others pass the "
+               "gyroscope test by angular acceleration (starts and ends of twists). The gyroscope test dropped "
+               f"{_rng(st, 'd')} samples per capture as still: mean |gyro| median "
+               f"{_rng([r['still_gyro_rate_median'] for r in results if r.get('still_gyro_rate_median') is not None], '.2g')} "
+               "rad/s, yet the fused motion (whose omega_dot comes from the accelerometers, biases uncalibrated) gives "
+               "them |omega_dot| median "
+               f"{_rng([r['still_fused_omega_dot_median'] for r in results if r.get('still_fused_omega_dot_median') is not None], '.3g')} "
+               "rad/s^2, which is why they passed the fused-motion test.\n\n")
+
+    ne = [(r["capture"], r["noise_estimate"]) for r in results if "noise_estimate" in r]
+    if ne:
+        md += ("## Setting (c): the ML accelerometer noise per capture\n\n"
+               "| capture | fit: samples used | residual RMS per IMU (m/s^2) | sigma_a (m/s^2) | / 0.045 | / 0.79 | "
+               "after one refit at sigma_a | gyroscope residual RMS (rad/s) | / the model's gyro std | NIS of the fit "
+               "(description noise) |\n|---|---|---|---|---|---|---|---|---|---|\n")
+        for cap, n in ne:
+            md += (f"| {cap} | {n['fit_samples_used']} | {', '.join(f'{v:.3g}' for v in n['rms_per_imu'])} | "
+                   f"{n['sigma_a']:.4g} | {n['sigma_a'] / 0.045:.1f} | {n['sigma_a'] / PAPER_SIGMA_A:.2f} | "
+                   f"{n['sigma_after_one_refit']:.4g} | {n['gyro_residual_rms']:.3g} | "
+                   f"{n['gyro_residual_rms'] / n['gyro_std_model']:.0f} | {n['nis_after']:.4g} |\n")
+        md += "\n"
 
     for label, (_, _, text) in SETTINGS.items():
-        recs = [(r["capture"], r["settings"][label]) for r in results if label in r["settings"]]
+        recs = _recs(results, label)
         if not recs:
             continue
         md += f"## Setting ({label}): {text}\n\n### Sampler\n\n"
-        md += ("| capture | Var[log p_N] N=16 / 64 / 1024 | log-ratio noise sd rho=0 / 0.9 / 0.99 / 0.999 | warm-up | "
-               "draws/chain | RW acceptance | indep. acceptance | positions: ESS bulk / tail min | positions: R-hat max | "
-               "log-lik estimate: R-hat | sampler: converged | wall s | CPU s | Laplace: max \\|z\\| | "
-               "Laplace/MCMC sd ratio | Laplace agrees | ML(all): samples used, NIS before -> after, s |\n"
-               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
-        for cap, s in recs:
-            if "error" in s:
-                md += f"| {cap} | **failed**: {s['error']} |" + " |" * 14 + "\n"
-                continue
-            vl = s["var_loglik"]
-            rn = s["ratio_noise_sd"]
-            la = s["laplace_agreement"]
-            th = s["theta_only"]
-            md += (f"| {cap} | {' / '.join(format(vl[n], '.3g') for n in VAR_NS)} | "
-                   f"{' / '.join(format(rn[k], '.2g') for k in sorted(rn, key=float))} | {s['warmup_per_chain']} | "
-                   f"{s['draws_per_chain']} | {min(s['acceptance_random_walk']):.0%}-{max(s['acceptance_random_walk']):.0%} | "
-                   f"{np.nanmin(s['acceptance_independence']):.0%}-{np.nanmax(s['acceptance_independence']):.0%} | "
-                   f"{th['ess_bulk_min']:.0f} / {th['ess_tail_min']:.0f} | {th['rhat_max']:.3f} | "
-                   f"{s['rhat_loglik_estimate']:.3f} | "
-                   f"{'yes' if s['converged'] else '**no**'} | {s['seconds']:.0f} | {s['cpu_seconds']:.0f} | "
-                   f"{la['max_abs_mean_z']:.2f} | {la['sd_ratio_min']:.2f}-{la['sd_ratio_max']:.2f} | "
-                   f"{'yes' if la['agrees'] else 'no'} | "
-                   + (f"{s['ml']['samples_used']}, {s['ml']['nis_before']:.4g} -> {s['ml']['nis_after']:.4g}, "
-                      f"{s['ml']['seconds']:.0f} |\n" if "ml" in s else f"{s.get('ml_error', '—')} |\n"))
-        md += ("\nLaplace agreement: `laplace_agreement` (|mean difference| <= 0.5 posterior std and Laplace/MCMC "
-               "std ratio in [0.8, 1.25] for every coordinate); the Laplace approximation is the ML on the same "
-               f"{args.samples} samples with its CRB, combined with the prior.\n\n")
-        md += ("### Per IMU\n\nPosterior mean (mm) and std (um) of each free IMU; ML(all): the ML estimate on every "
-               "usable sample (mm) and its CRB std (um); z = (posterior mean - ML) / posterior std.\n\n"
-               "| IMU | capture | mean x, y, z (mm) | std x, y, z (um) | ML(all) x, y, z (mm) | CRB x, y, z (um) | "
-               "z vs ML |\n|---|---|---|---|---|---|---|\n")
+        refused = [(cap, s) for cap, s in recs if "mean_free" not in s]
+        ok = [(cap, s) for cap, s in recs if "mean_free" in s]
+        if refused:
+            md += ("| capture | sigma_a (m/s^2) | sampler | tuning: Var[log p_N] at N (target 0.1) | Laplace std median (um) | "
+                   "Laplace fit: samples used |\n|---|---|---|---|---|---|\n")
+            for cap, s in refused:
+                what = "**refused** (untunable)" if s.get("refused") else f"**failed**: {s.get('error', '—')}"
+                tab = ", ".join(f"{v:.3g} at {n}" for n, v in s.get("var_loglik", [])) or "—"
+                sd = (f"{np.median(np.sqrt(np.diag(s['laplace_cov_free']))) * UM:.3g}"
+                      if "laplace_cov_free" in s else "—")
+                md += (f"| {cap} | {s['accel_std']:.4g} | {what} | {tab} | {sd} | "
+                       f"{s.get('laplace_fit_samples_used', '—')} |\n")
+            errs = [s["error"] for _, s in refused if s.get("refused")]
+            if errs:
+                md += f"\nThe error, e.g. for {refused[0][0]}: \"{errs[0]}\"\n\n"
+        if ok:
+            md += ("| capture | sigma_a (m/s^2) | N | Var[log p_N] at N | log-ratio noise sd rho=0 / 0.9 | warm-up | "
+                   "draws/chain | RW acceptance | indep. acceptance | positions: ESS bulk / tail | positions: R-hat | "
+                   "log-lik estimate: R-hat | converged | wall s | CPU s | Laplace: max / RMS \\|z\\| | "
+                   "Laplace/MCMC sd ratio | Laplace agrees | Laplace fit: samples used | mode: from post. / Laplace mean "
+                   "(without log-det: from Laplace) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+                   "---|---|---|---|\n")
+            for cap, s in ok:
+                la, th, rn, mc = s["laplace_agreement"], s["theta_only"], s["ratio_noise_sd"], s["mode_check"]
+                md += (f"| {cap} | {s['accel_std']:.4g} | {s['n_draws']} | "
+                       f"{', '.join(f'{v:.2g} at {n}' for n, v in s['var_loglik'])} | "
+                       f"{rn['0.0']:.2g} / {rn['0.9']:.2g} | {s['warmup_per_chain']} | {s['draws_per_chain']} | "
+                       f"{min(s['acceptance_random_walk']):.0%}-{max(s['acceptance_random_walk']):.0%} | "
+                       f"{np.nanmin(s['acceptance_independence']):.0%}-{np.nanmax(s['acceptance_independence']):.0%} | "
+                       f"{th['ess_bulk_min']:.0f} / {th['ess_tail_min']:.0f} | {th['rhat_max']:.3f} | "
+                       f"{s['rhat_loglik_estimate']:.3f} | {'yes' if s['converged'] else '**no**'} | "
+                       f"{s['seconds']:.0f} | {s['cpu_seconds']:.0f} | {la['max_abs_mean_z']:.2f} / {la['rms_mean_z']:.2f} | "
+                       f"{la['sd_ratio_min']:.2f}-{la['sd_ratio_max']:.2f} | {'yes' if la['agrees'] else 'no'} | "
+                       f"{s['laplace_fit_samples_used']} | "
+                       f"{mc['with_logdet']['max_abs_z_vs_posterior_mean']:.2f} / "
+                       f"{mc['with_logdet']['max_abs_z_vs_laplace_mean']:.2f} "
+                       f"({mc['without_logdet']['max_abs_z_vs_laplace_mean']:.2f}) |\n")
+            md += "\n"
+        mls = [(cap, s["ml"]) for cap, s in recs if "ml" in s]
+        if mls:
+            md += ("ML(all) on every usable sample:\n\n| capture | usable | samples used | NIS before -> after | s |\n"
+                   "|---|---|---|---|---|\n")
+            for cap, m in mls:
+                md += (f"| {cap} | {m['usable']} | {m['samples_used']} | {m['nis_before']:.4g} -> "
+                       f"{m['nis_after']:.4g} | {m['seconds']:.1f} |\n")
+            md += "\n"
+        srcs = {estimate(s)[2] for _, s in recs if estimate(s) is not None}
+        what = ("posterior" if srcs == {"posterior"} else "**Laplace approximation (not a posterior)**"
+                if srcs == {"Laplace"} else "posterior or **Laplace approximation** (column source)")
+        md += (f"### Per IMU\n\n{what[0].upper() + what[1:]}: mean (mm) and std (um) of each "
+               "free IMU; ML(all): the ML estimate on every usable sample (mm) and its CRB std (um); z = (mean - "
+               "ML) / std.\n\n| IMU | capture | source | mean x, y, z (mm) | std x, y, z (um) | ML(all) x, y, z (mm) | "
+               "CRB x, y, z (um) | z vs ML |\n|---|---|---|---|---|---|---|---|\n")
         for j, kk in enumerate(free):
             for cap, s in recs:
-                if "mean_free" not in s:
+                e = estimate(s)
+                if e is None:
                     continue
                 sl = slice(3 * j, 3 * j + 3)
-                m = np.array(s["mean_free"])[sl]
-                sd = np.sqrt(np.diag(s["cov_free"]))[sl]
+                m, sd = e[0][sl], np.sqrt(np.diag(e[1]))[sl]
                 if "ml" in s:
                     ml = np.array(s["ml"]["theta"])[sl]
                     crb = np.sqrt(np.diag(s["ml"]["crb_free"]))[sl]
@@ -497,163 +960,44 @@ def markdown(results, comps, names, nominal, free, args, total_s, header: str | 
                            ", ".join(f"{v:+.1f}" for v in (m - ml) / sd))
                 else:
                     mlt = ("—", "—", "—")
-                md += (f"| {names[kk]} | {cap} | {', '.join(f'{v * MM:.3f}' for v in m)} | "
+                md += (f"| {names[kk]} | {cap} | {e[2]} | {', '.join(f'{v * MM:.3f}' for v in m)} | "
                        f"{', '.join(f'{v * UM:.3g}' for v in sd)} | {mlt[0]} | {mlt[1]} | {mlt[2]} |\n")
         c = comps.get(label) or {}
-        if c.get("pairs"):
-            md += "\n### Between captures\n\n"
-            md += ("Scatter of the posterior means across the captures (sample std, um) against the RMS posterior "
-                   "std (um), per coordinate:\n\n| IMU | " + " | ".join(
-                       f"{a}: scatter | {a}: post. std | {a}: ratio" for a in axes) + " |\n|---|"
-                   + "---|---|---|" * 3 + "\n")
+        if c.get("pairs") and "scatter_um" in c:
+            md += f"\n### Between captures ({what})\n\n"
+            md += ("Scatter of the means across the captures (sample std, um) against the RMS std (um), per "
+                   "coordinate:\n\n| IMU | " + " | ".join(
+                       f"{a}: scatter | {a}: std | {a}: ratio" for a in axes) + " |\n|---|" + "---|---|---|" * 3 + "\n")
             for j, kk in enumerate(free):
                 cells = []
                 for a in range(3):
                     q = 3 * j + a
-                    cells.append(f"{c['scatter_um'][q]:.3g} | {c['posterior_sd_rms_um'][q]:.3g} | "
-                                 f"{c['scatter_over_sd'][q]:.3g}")
+                    cells.append(f"{c['scatter_um'][q]:.3g} | {c['sd_rms_um'][q]:.3g} | {c['scatter_over_sd'][q]:.3g}")
                 md += f"| {names[kk]} | " + " | ".join(cells) + " |\n"
-            md += ("\nPairs: chi2 of the 21 free coordinates with the combined posterior covariance, its p-value, "
-                   "the largest and median |z|, and the IMUs whose own 3-dof chi2 has p < 0.01.\n\n"
+            md += ("\nPairs: chi2 of the 21 free coordinates with the combined covariance, its p-value, the largest "
+                   "and median |z|, and the IMUs whose own 3-dof chi2 has p < 0.01.\n\n"
                    "| pair | chi2 (21 dof) | p | max \\|z\\| | median \\|z\\| | IMUs with p < 0.01 |\n"
                    "|---|---|---|---|---|---|\n")
             for p in c["pairs"]:
                 bad = [n for n, v in p["imu"].items() if v["p"] < 0.01]
-                md += (f"| {p['pair'][0]} - {p['pair'][1]} | {p['chi2']:.4g} | {p['p']:.2g} | {p['max_abs_z']:.3g} | "
+                md += (f"| {p['pair'][0]} - {p['pair'][1]} | {p['chi2']:.4g} | {_p(p['p'])} | {p['max_abs_z']:.3g} | "
                        f"{p['median_abs_z']:.3g} | {', '.join(bad) if bad else 'none'} |\n")
-            if "ml" in c:
-                mlc = c["ml"]
-                md += (f"\nML(all) vs posterior: posterior mean - ML {mlc['post_minus_ml_rms_um']:.3g} um RMS over "
-                       f"coordinates and captures; |z| in posterior stds per capture: "
+            if "ml" in c and c["ml"].get("ml_scatter_um") is not None:
+                m = c["ml"]
+                md += (f"\nML(all) vs {what}: mean - ML {m['minus_ml_rms_um']:.3g} um RMS over coordinates and "
+                       "captures; |z| per capture: "
                        + ", ".join(f"{cap} max {mx:.2g} (RMS {rm:.2g})" for cap, mx, rm in
-                                   zip(c["captures"], mlc["max_abs_z_per_capture"], mlc["rms_z_per_capture"]))
-                       + f". CRB median {mlc['crb_sd_median_um']:.3g} um vs posterior std median "
-                       f"{mlc['post_sd_median_um']:.3g} um; the ML estimates themselves scatter between captures "
-                       f"by {np.sqrt(np.mean(np.square(mlc['ml_scatter_um']))):.3g} um RMS, "
-                       f"{mlc['ml_scatter_over_crb_median']:.3g}x their CRB (median over coordinates).\n")
-        mo = c.get("moving_only")
-        if mo:
-            ps = np.array([p["p"] for p in mo["pairs"]])
-            shift = [np.sqrt(np.mean((np.array(r["moving_only"]["settings"][label]["mean_free"])
-                                      - np.array(r["settings"][label]["mean_free"])) ** 2)) * UM
-                     for r in results if "mean_free" in r["settings"].get(label, {})]
-            md += ("\n### Diagnostic: the same on moving samples only (Laplace, no chains)\n\n"
-                   f"{args.samples} samples spread evenly over each capture's usable samples with mean |gyro| > "
-                   f"{MOVING_RAD_S} rad/s instead of over all usable ones (the static poses left out), and the "
-                   "Laplace approximation (ML + CRB + prior) instead of the chains, which agree with it where "
-                   f"the Laplace agreement above says so. Std median {mo['sd_median_um']:.3g} um; between captures "
-                   f"the means scatter by {np.sqrt(np.mean(np.square(mo['scatter_um']))):.3g} um RMS per coordinate, "
-                   f"{np.median(mo['scatter_over_sd']):.3g}x the std (median; {min(mo['scatter_over_sd']):.2g}-"
-                   f"{max(mo['scatter_over_sd']):.2g}x); {int(np.sum(ps < 0.01))} of {len(ps)} pairs with p < 0.01 "
-                   f"(p {ps.min():.2g}-{ps.max():.2g}); pooled z RMS {mo['pooled_z_rms']:.3g}. Moving-only Laplace mean "
-                   f"minus the posterior on the CLI's selection: {min(shift):.3g}-{max(shift):.3g} um RMS per "
-                   "capture.\n\n| pair | chi2 (21 dof) | p | max \\|z\\| | median \\|z\\| |\n|---|---|---|---|---|\n")
-            for p in mo["pairs"]:
-                md += (f"| {p['pair'][0]} - {p['pair'][1]} | {p['chi2']:.4g} | {p['p']:.2g} | {p['max_abs_z']:.3g} | "
-                       f"{p['median_abs_z']:.3g} |\n")
+                                   zip(c["captures"], m["max_abs_z_per_capture"], m["rms_z_per_capture"]))
+                       + f". CRB median {m['crb_sd_median_um']:.3g} um vs std median {c['sd_median_um']:.3g} um; the "
+                       f"ML estimates scatter between captures by {np.sqrt(np.mean(np.square(m['ml_scatter_um']))):.3g} "
+                       f"um RMS, {m['ml_scatter_over_crb_median']:.3g}x their CRB (median over coordinates).\n")
         md += "\n"
     return md
 
 
-def reading(results, comps, args) -> str:
-    """What the numbers say, in words (every number computed from this run's records)."""
-    ok = {lab: [r["settings"][lab] for r in results if "mean_free" in r["settings"].get(lab, {})] for lab in SETTINGS}
-    if not all(ok.values()) or not all(comps.get(lab, {}).get("pairs") for lab in SETTINGS):
-        return ""
-    sig = {lab: ok[lab][0]["accel_std"] for lab in SETTINGS}
-    ratio = {lab: float(np.median(comps[lab]["scatter_over_sd"])) for lab in SETTINGS}
-    mo_ratio = {lab: float(np.median(comps[lab]["moving_only"]["scatter_over_sd"])) if comps[lab].get("moving_only")
-                else float("nan") for lab in SETTINGS}
-    ab = [r for r in results if all("mean_free" in r["settings"].get(lab, {}) for lab in SETTINGS)]
-    d_ab = [np.sqrt(np.mean((np.array(r["settings"]["a"]["mean_free"]) - np.array(r["settings"]["b"]["mean_free"])) ** 2))
-            * UM for r in ab]
-    z_ab = [np.max(np.abs(np.array(r["settings"]["a"]["mean_free"]) - np.array(r["settings"]["b"]["mean_free"]))
-                   / np.sqrt(np.diag(r["settings"]["b"]["cov_free"]))) for r in ab]
-    ind_b = max(np.nanmax(s["acceptance_independence"]) for s in ok["b"])
-    lap_b = [s["laplace_agreement"]["max_abs_mean_z"] for s in ok["b"]]
-    th = {lab: [s["theta_only"] for s in ok[lab]] for lab in SETTINGS}
-    rl = {lab: [s["rhat_loglik_estimate"] for s in ok[lab]] for lab in SETTINGS}
-    var1024 = {lab: [s["var_loglik"][1024] for s in ok[lab]] for lab in SETTINGS}
-    mcse = [1 / np.sqrt(t["ess_bulk_min"]) for t in th["b"]]
-    pb = np.array([p["p"] for p in comps["b"]["pairs"]])
-    pool = {lab: comps[lab]["pooled_z_rms"] for lab in SETTINGS}
-    md = "## Reading\n\n"
-    md += (f"- **Do the captures agree?** No, in neither setting. (a): the six posteriors are {ratio['a']:.3g}x "
-           f"(median) too narrow for their scatter, pooled pairwise z RMS {pool['a']:.3g}. (b), the paper's "
-           f"inflated sigma_a: much closer but still not consistent -- scatter {ratio['b']:.3g}x the posterior std "
-           f"(median; up to {max(comps['b']['scatter_over_sd']):.2g}x), pooled z RMS {pool['b']:.3g}, and every one of "
-           f"the {len(pb)} pairs rejects at p < 0.01 (largest p {pb.max():.2g}); the 3-dof test per IMU rejects in "
-           f"{sum(sum(v['p'] < 0.01 for v in p['imu'].values()) for p in comps['b']['pairs'])} of "
-           f"{sum(len(p['imu']) for p in comps['b']['pairs'])} IMU-pairs.\n")
-    md += (f"- **What the scatter says about the noise model**: the posterior std scales about with sigma_a, so the "
-           f"sigma_a at which the posterior std would match the scatter is about {sig['a']:.3g} x {ratio['a']:.3g} = "
-           f"{sig['a'] * ratio['a']:.2g} m/s^2 from (a) and {sig['b']:.3g} x {ratio['b']:.3g} = "
-           f"{sig['b'] * ratio['b']:.2g} m/s^2 from (b) on the CLI's sample selection, and "
-           f"{sig['a'] * mo_ratio['a']:.2g} / {sig['b'] * mo_ratio['b']:.2g} m/s^2 on moving samples only (the "
-           "diagnostic sections). That is the size of the accelerometer misfit of the nominal model while the array "
-           "is twisted (benchmarks/results/real_data_geometry.md: accelerometer residual RMS 1.3-1.6 m/s^2 on the "
-           "motion phase after the ML position fit), far above the white noise (0.045) and above the paper's "
-           "0.79. carlsson2021 calibrated offsets, scale factors and misalignments of both triads before "
-           "(Sec. IV-B); the description here has none of them, so 0.79 m/s^2 does not cover this board's misfit. "
-           "The misfit is also not white: the estimate moves with which samples are used (posterior on the CLI "
-           "selection vs ML(all) vs the moving-only Laplace: hundreds of um apart, sections below) and with the "
-           f"noise model (posterior mean (a) vs (b): {min(d_ab):.3g}-{max(d_ab):.3g} um RMS per capture, up to "
-           f"{max(z_ab):.2g} (b)-stds), so a larger sigma_a widens the posterior without making it right.\n")
-    md += (f"- **ML / CRB**: the ML on every usable sample scatters between captures by "
-           f"{comps['a']['ml']['ml_scatter_over_crb_median']:.3g}x its CRB in (a) "
-           f"(CRB {comps['a']['ml']['crb_sd_median_um']:.2g} um; as in real_data_geometry.md) and "
-           f"{comps['b']['ml']['ml_scatter_over_crb_median']:.3g}x in (b); the posterior means are "
-           f"{comps['a']['ml']['post_minus_ml_rms_um']:.3g} um (a) / {comps['b']['ml']['post_minus_ml_rms_um']:.3g} um "
-           f"(b) RMS from it, |z| up to {max(comps['a']['ml']['max_abs_z_per_capture']):.3g} (a) / "
-           f"{max(comps['b']['ml']['max_abs_z_per_capture']):.2g} (b) posterior stds. Neither agrees with the "
-           "posteriors.\n")
-    md += ("- **Sample selection**: the CLI's selection (`select_samples`) takes 500 samples evenly over the "
-           "usable ones, and with uncalibrated accelerometer biases the static poses pass its rotation test, so "
-           "only ~15 % of them are from the twisting (Samples section). It does not change the verdict: on 500 "
-           f"moving samples the captures disagree too ({mo_ratio['a']:.3g}x / {mo_ratio['b']:.3g}x in (a) / (b)).\n")
-    md += ("- **Sampler on real data**: no failure (no CalibrationError, no singular matrix: eq. 30's sample "
-           "covariance was positive definite at every selected sample; no selected sample has a clipped reading, "
-           "though the selected gyroscope readings reach 0.95-1.00 of the clip level). But: "
-           f"(1) N cannot be tuned: Var[log p_N] at N = 1024 is {min(var1024['a']):.3g}-{max(var1024['a']):.3g} (a), "
-           f"{min(var1024['b']):.3g}-{max(var1024['b']):.3g} (b), against the target 0.1 -- the CLI would run at N = "
-           "1024 with a very sticky chain; N = 16 and rho = 0.99 were used instead (Choices). "
-           f"(2) The random numbers mix slowly: R-hat of the log-likelihood estimate {min(rl['a']):.2f}-{max(rl['a']):.2f} "
-           f"(a), {min(rl['b']):.2f}-{max(rl['b']):.2f} (b), so `sample_posterior` declares no posterior converged; in "
-           f"{NAME}_trace_a.png the log posterior of every chain keeps rising through the warm-up and the sampling "
-           "(the random numbers still drifting toward the likelihood-overestimating region the pseudo-marginal "
-           "target puts them in, which with Var[log p_N] ~ 100 is far from where they start). The positions "
-           f"themselves look stationary in (a) (R-hat {min(t['rhat_max'] for t in th['a']):.3f}-"
-           f"{max(t['rhat_max'] for t in th['a']):.3f}, ESS {min(t['ess_bulk_min'] for t in th['a']):.0f}-"
-           f"{max(t['ess_bulk_min'] for t in th['a']):.0f}) and agree with the Laplace approximation. "
-           + (f"(3) In (b) the independence proposal is never accepted (0 % in every chain) and the Laplace "
-              if ind_b == 0 else f"(3) In (b) the independence proposal is hardly accepted (at most {ind_b:.0%}) and the Laplace ")
-           + f"approximation is {min(lap_b):.2g}-{max(lap_b):.2g} posterior stds off: `laplace` computes the ML and "
-           "CRB with the gyroscope *noise model*, while the posterior uses eq. 30's sample covariance of the "
-           "gyroscopes, a different model. The sampler starts from it and shrinks its proposals toward it, so "
-           f"(b) mixes by the random walk alone: ESS {min(t['ess_bulk_min'] for t in th['b']):.0f}-"
-           f"{max(t['ess_bulk_min'] for t in th['b']):.0f} of {ok['b'][0]['chains'] * ok['b'][0]['draws_per_chain']} "
-           f"draws, R-hat {min(t['rhat_max'] for t in th['b']):.3f}-{max(t['rhat_max'] for t in th['b']):.3f} for the "
-           f"positions. Their Monte Carlo error in the means is {min(mcse):.2f}-{max(mcse):.2f} posterior stds, and "
-           "the std estimates are uncertain by about as much: enough to blur the per-pair p-values, not the "
-           "verdict (pairwise |z| up to "
-           f"{max(p['max_abs_z'] for p in comps['b']['pairs']):.2g}). "
-           f"(4) Time: {min(s['seconds'] for lab in SETTINGS for s in ok[lab]):.0f}-"
-           f"{max(s['seconds'] for lab in SETTINGS for s in ok[lab]):.0f} s wall per posterior "
-           f"({args.max_warmup} + {args.max_iterations} iterations per chain, {args.chains} chains on "
-           f"{args.workers} worker processes, the 2 cores shared with other jobs), even with these caps; the CLI "
-           "defaults (N tuned to the cap 1024, up to 40000 + 400000 iterations) would take hours per posterior.\n\n")
-    return md
-
-
-def _var_range(results, label, n) -> str:
-    v = [r["settings"][label]["var_loglik"][n] for r in results
-         if label in r["settings"] and "var_loglik" in r["settings"][label]]
-    return f"{min(v):.3g}-{max(v):.3g}" if v else "—"
-
-
 def plots(results, names, nominal, free, out_dir: Path, args, traces: bool = True) -> list[str]:
-    """The ellipse figure per setting (from the means and covariances) and, with ``traces``, the trace plot of
-    the posterior with the lowest ESS (needs the chains)."""
+    """The ellipse figure per setting with posteriors (from the means and covariances) and, with ``traces``,
+    the trace plot of its posterior with the lowest ESS (needs the chains)."""
     from imu_array_ros.calibration.bayes import PACKAGE_SIZE, PRIOR_STD
     from imu_array_ros.calibration.bayes_report import ellipse_radius, plot_ellipses, plot_trace
 
@@ -675,7 +1019,6 @@ def plots(results, names, nominal, free, out_dir: Path, args, traces: bool = Tru
                 worst = (r["capture"], s)
         if not est:
             continue
-        # the view: the package outline and every ellipse (the 3 mm prior, drawn, reaches beyond it)
         extent = max(float(np.max(np.abs(pos[1:, :2] - nominal[1:, :2])
                                   + ellipse_radius(0.5) * np.sqrt(np.einsum("kii->ki", cov[1:, :2, :2]))))
                      for pos, cov in est.values()) * MM
@@ -685,7 +1028,7 @@ def plots(results, names, nominal, free, out_dir: Path, args, traces: bool = Tru
                       title=f"({label}) {text}: 50 % credible ellipses (x-y) of the position posteriors, one colour "
                             f"per capture, T = {args.samples}; mm relative to nominal")
         written.append(path.name)
-        if not traces:
+        if not traces or "_post" not in worst[1]:
             continue
         path = out_dir / f"{NAME}_trace_{label}.png"
         plot_trace(path, worst[1]["_post"])
@@ -698,13 +1041,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--captures", type=int, nargs="*", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
-    ap.add_argument("--samples", type=int, default=500)
-    ap.add_argument("--draws", type=int, default=16)
+    ap.add_argument("--samples", type=int, default=500, help="T, samples per capture (default 500)")
     ap.add_argument("--chains", type=int, default=4)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--ess", type=float, default=400.0)
-    ap.add_argument("--max-warmup", type=int, default=3000)
-    ap.add_argument("--max-iterations", type=int, default=6000)
+    ap.add_argument("--max-warmup", type=int, default=10000, help="warm-up cap per chain (library default 40000)")
+    ap.add_argument("--max-iterations", type=int, default=40000,
+                    help="sampling cap per chain (library default 400000)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--report-only", action="store_true",
                     help="rebuild bayes_real.md from bayes_real.json (no sampling; the PNGs are left as they are)")
@@ -722,14 +1065,12 @@ def main() -> int:
     if args.report_only:
         record = json.loads((args.out / f"{NAME}.json").read_text())
         results, pngs, total = record["captures"], record["figures"], record["seconds"]
-        for r in results:
-            for st in r["settings"].values():
-                if "var_loglik" in st:
-                    st["var_loglik"] = {int(n): v for n, v in st["var_loglik"].items()}
         out_dir = args.out
         args = argparse.Namespace(**{**record["args"], "out": out_dir, "report_only": True})
-        old = (out_dir / f"{NAME}.md").read_text()
-        header = old[:old.index("\n", old.index("- code:")) + 1]  # the run's header, up to its code line
+        old = (out_dir / f"{NAME}.md").read_text() if (out_dir / f"{NAME}.md").exists() else ""
+        # the run's header, up to its code line (without one: a new header, whose command is this one)
+        header = old[:old.index("\n", old.index("- code:")) + 1] if "- code:" in old else (
+            machine_header(TITLE) + f"- run time: {total:.0f} s (the run that wrote {NAME}.json)\n- code: {_commit()}\n")
         header += (f"- report text and ellipse figures rebuilt from {NAME}.json by `--report-only` on "
                    f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} (same numbers, no new sampling)\n\n")
         plots(results, names, nominal, free, out_dir, args, traces=False)
@@ -740,25 +1081,31 @@ def main() -> int:
             results.append(run_capture(i, desc, model, args))
         args.out.mkdir(parents=True, exist_ok=True)
         pngs = plots(results, names, nominal, free, args.out, args)
+        for stale in sorted(args.out.glob(f"{NAME}_*.png")):  # figures of an earlier run that this one has not
+            if stale.name not in pngs:
+                stale.unlink()
+                say(f"removed {stale.name} (no posterior for it in this run)")
         total = time.perf_counter() - t_start
     comps = {label: compare(results, label, names, free) for label in SETTINGS}
-    md = markdown(results, comps, names, nominal, free, args, total, header)
-    md += "## Figures\n\n" + "\n".join(f"- `{p}`" for p in pngs) + "\n"
-    md += ("\n`bayes_real_ellipses_{a,b}.png`: carlsson2021 Fig. 5 style, one panel per IMU as on the board "
-           "(top side left, underside right, seen from above), 50 % ellipses of each capture's posterior, the "
-           "prior (cyan) and the 4 x 4 mm package outline (dashed). `bayes_real_trace_{a,b}.png`: the chains of "
-           "the posterior with the lowest ESS in that setting (ArviZ trace of its six worst coordinates, the log "
-           "posterior, and the discarded warm-up).\n")
     for r in results:
         for st in r["settings"].values():
             st.pop("_post", None)
     record = {"script": "benchmarks/bayes_real.py", "args": {k: (str(v) if isinstance(v, Path) else v)
                                                              for k, v in vars(args).items() if k != "report_only"},
-              "rho": RHO, "settings": {k: v[2] for k, v in SETTINGS.items()}, "names": names,
-              "nominal": nominal.tolist(), "free": [names[f] for f in free], "units": "m, m^2",
+              "settings": {k: v[2] for k, v in SETTINGS.items()}, "names": names,
+              "nominal": nominal.tolist(), "free": [names[f] for f in free], "units": "m, m^2, m/s^2",
               "captures": results, "comparisons": comps, "figures": pngs, "seconds": total}
-    if not getattr(args, "report_only", False):
+    if not getattr(args, "report_only", False):  # the numbers first: --report-only can rebuild the text
         atomic_write_text(args.out / f"{NAME}.json", json.dumps(json_safe(record), indent=1) + "\n")
+    md = markdown(results, comps, names, free, args, total, header)
+    md += "## Figures\n\n" + ("\n".join(f"- `{p}`" for p in pngs) if pngs else "none (no posterior)") + "\n"
+    if pngs:
+        md += ("\n`bayes_real_ellipses_<setting>.png`: carlsson2021 Fig. 5 style, one panel per IMU as on the board "
+               "(top side left, underside right, seen from above), 50 % ellipses of each capture's posterior, the "
+               "prior (cyan) and the 4 x 4 mm package outline (dashed). `bayes_real_trace_<setting>.png`: the chains "
+               "of the posterior with the lowest ESS in that setting (ArviZ trace of its six worst coordinates, the "
+               "log posterior, and the discarded warm-up). Settings whose sampler refused have no figures (no "
+               "chains; their Laplace approximations are in the tables).\n")
     atomic_write_text(args.out / f"{NAME}.md", md)
     say(f"wrote {args.out / (NAME + '.md')}{'' if getattr(args, 'report_only', False) else ' and .json'} "
         f"in {time.perf_counter() - t_start:.0f} s")

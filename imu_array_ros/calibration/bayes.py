@@ -464,8 +464,31 @@ def laplace(problem: BayesProblem, stamps, accel, gyro, model: SensorModel, *, m
         cov = np.linalg.inv(info)
         mean = cov @ (np.linalg.solve(crb, ml) + pr.mean / pr.std ** 2)
     else:
-        cov, mean = crb, np.clip(ml, pr.mean - pr.std, pr.mean + pr.std)
+        cov, mean = crb, ml
+    mean = _logdet_correction(problem, mean, cov)
+    if pr.kind == "uniform":
+        mean = np.clip(mean, pr.mean - pr.std, pr.mean + pr.std)
     return Laplace(mean=mean, covariance=0.5 * (cov + cov.T), ml=ml, crb=crb)
+
+
+def _logdet_correction(problem: BayesProblem, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The ML estimate maximises the profile likelihood (motion fitted); the posterior's marginal
+    likelihood integrates the linear motion out, which adds -T/2 log|H^T Omega H| (eq. 23), a function of
+    the positions that pulls towards a smaller array.  One Newton step on the sum, from the Gaussian
+    combination of ML and prior (where the rest of the gradient is zero), with the Laplace covariance
+    as the inverse Hessian.  (One step only: repeating it with this term's gradient alone would add the
+    same shift again.)"""
+    t, d = problem.n_samples, len(mean)
+    h = 1e-7
+    grad = np.empty(d)
+    for j in range(d):  # d small (3 per IMU); quadratic() is one product
+        e = np.zeros(d)
+        e[j] = h
+        up, down = problem.quadratic(mean + e), problem.quadratic(mean - e)
+        if up is None or down is None:
+            return mean
+        grad[j] = (up[3] - down[3]) / (2 * h)
+    return mean + cov @ (-0.5 * t * grad)
 
 
 # --------------------------------------------------------------------------- the chain
