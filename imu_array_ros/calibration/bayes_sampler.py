@@ -419,8 +419,8 @@ def _untunable(table: list, target: float) -> CalibrationError:
     return CalibrationError(
         f"the log-likelihood estimate is too noisy to sample: Var = {v1:.3g} at N = {n1} (target {target:g}; "
         f"{v0:.3g} at N = {n0}), so N ~ {need:.2g} draws per sample would be needed. The readings disagree with "
-        "the noise model: calibrate the intrinsics first (imu-array calibrate all), widen the noise "
-        "(--accel-std, --omega-covariance sample), or give --draws to run anyway (the chains will mix slowly)")
+        "the noise model: calibrate the intrinsics first (imu-array calibrate all), widen the accelerometer noise "
+        "(--accel-std), or give --draws to run anyway (the chains will mix slowly)")
 
 
 def sample_posterior(problem: BayesProblem, laplace: Laplace, settings: SamplerSettings | None = None,
