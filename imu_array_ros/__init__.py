@@ -8,11 +8,11 @@ The small public API (the README's Python example)::
     from imu_array_ros import load_description, read_imu_recording, LinearArrayModel, fuse
 """
 
-__version__ = "0.1.0"
+from imu_array_ros.version import __version__
 
 from imu_array_ros.errors import ImuArrayError
-from imu_array_ros.estimation.ml_fusion import FusionConfig, MLFusion, fuse
-from imu_array_ros.estimation.stream import fuse_chunked
+from imu_array_ros.fusion.ml_fusion import FusionConfig, MLFusion, fuse
+from imu_array_ros.fusion.stream import fuse_chunked
 from imu_array_ros.io.rosbag.recording import (
     read_fused_recording,
     read_imu_recording,
@@ -22,7 +22,7 @@ from imu_array_ros.io.rosbag.recording import (
 )
 from imu_array_ros.model.description import ArrayDescription, load_description, save_description
 from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 
 __all__ = [
     "__version__",

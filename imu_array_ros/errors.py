@@ -16,6 +16,7 @@ __all__ = [
     "FusionError",
     "CalibrationError",
     "OutputError",
+    "MissingDependencyError",
 ]
 
 
@@ -51,3 +52,7 @@ class CalibrationError(ImuArrayError):
 
 class OutputError(ImuArrayError):
     """An output path is unsafe to write: it exists, is an input, or holds other files."""
+
+
+class MissingDependencyError(ImuArrayError):
+    """A command needs an optional dependency (an extra of the package) that is not installed."""

@@ -70,7 +70,7 @@ def assert_user_error(result, *fragments):
 
 def perturbed(desc, rng, scales=None):
     """``desc`` with seeded errors in its terms (``perturb``; default sizes), as a description."""
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
     from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
 
     scales = DEFAULT_ERROR_SCALES if scales is None else scales

@@ -14,7 +14,7 @@ from imu_array_ros.calibration import bayes
 from imu_array_ros.calibration import bayes_sampler as bs
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.description import load_description, save_description
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.kinematics import skew
 from imu_array_ros.model.layouts import grid_array32, tetrahedron4
 from imu_array_ros.simulation.simulator import simulate_gaussian

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from imu_array_ros.calibration import bayes, bayes_report as br, bayes_sampler as bs
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.layouts import grid_array32, planar_square4
 from imu_array_ros.simulation.simulator import simulate_gaussian
 

@@ -181,7 +181,7 @@ def test_calibration_reaches_the_fusion_node(ros, caller, tmp_path):
     reloads it, and what it publishes from then on is the offline fusion with the calibrated
     description -- sample for sample, and measurably not the fusion with the nominal one."""
     from imu_array_ros.cli.commands import load_array
-    from imu_array_ros.estimation.live import build_fusion
+    from imu_array_ros.fusion.live import build_fusion
     from imu_array_ros.io.rosbag.recording import read_imu_recording
     from imu_array_ros.model.description import load_description
 

@@ -19,12 +19,12 @@ import pytest
 import yaml
 
 from imu_array_ros.cli import main
-from imu_array_ros.estimation.ml_fusion import fuse
-from imu_array_ros.estimation.model_fusion import fuse_model
+from imu_array_ros.fusion.ml_fusion import fuse
+from imu_array_ros.fusion.model_fusion import fuse_model
 from imu_array_ros.io.rosbag.recording import read_fused_recording, read_imu_recording, read_truth, write_imu_recording
 from imu_array_ros.model.description import load_description, save_description
-from imu_array_ros.model.forward import SensorModel
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.model.linear import LinearArrayModel
 from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
 from imu_array_ros.simulation.simulator import simulate_twist
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from imu_array_ros.model.description import load_description
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 
 from conftest import ARRAY32, START, assert_user_error, cli
 

@@ -16,8 +16,9 @@ import pytest
 
 from imu_array_ros.cli import main
 from imu_array_ros.errors import OutputError
-from imu_array_ros.io import atomic
-from imu_array_ros.io.atomic import atomic_path, atomic_write_text, check_output
+from imu_array_ros.util import files as atomic
+from imu_array_ros.io.outputs import check_output
+from imu_array_ros.util.files import atomic_path, atomic_write_text
 from imu_array_ros.io.rosbag.recording import read_fused_recording, read_imu_recording
 from imu_array_ros.model.description import load_description
 

@@ -8,7 +8,7 @@ import yaml
 
 from imu_array_ros.calibration.static import STATIC_TERMS, reframe_accelerometers
 from imu_array_ros.model.description import load_description
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 
 from conftest import ARRAY32, REPO, START, assert_user_error, cli
 

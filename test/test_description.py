@@ -104,7 +104,7 @@ def test_save_is_atomic_and_keeps_previous_on_failure(tmp_path, array32, monkeyp
     path = tmp_path / "good.yaml"
     save_description(array32, path)
     before = path.read_bytes()
-    import imu_array_ros.io.atomic as atomic
+    import imu_array_ros.util.files as atomic
 
     def boom(*a, **k):
         raise OSError("disk full")
@@ -132,7 +132,7 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from imu_array_ros.model.description import description_from_dict, dump_description, term_fields  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
+from imu_array_ros.model.sensor_model import SensorModel  # noqa: E402
 from imu_array_ros.model.terms import REGISTRY  # noqa: E402
 
 _FINITE = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)

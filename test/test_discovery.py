@@ -16,9 +16,9 @@ import yaml
 from conftest import assert_user_error, cli
 from imu_array_ros.discovery.discover import DiscoveryOptions, discover
 from imu_array_ros.discovery.explain import evaluate_candidates
-from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms, score_blocks
+from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
 from imu_array_ros.model.description import load_description
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import term_names
 from imu_array_ros.simulation.concealed import Scenario, build, score, standard_suite
 

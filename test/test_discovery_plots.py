@@ -10,7 +10,7 @@ import pytest
 matplotlib = pytest.importorskip("matplotlib")
 
 from imu_array_ros.discovery import plots  # noqa: E402
-from imu_array_ros.errors import OutputError  # noqa: E402
+from imu_array_ros.errors import MissingDependencyError, OutputError  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 NAMES = [f"imu_{i + 1}" for i in range(8)]
@@ -177,6 +177,6 @@ def test_failed_write_leaves_nothing(tmp_path, figures, monkeypatch):
 
 def test_without_matplotlib(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
-    with pytest.raises(OutputError, match="matplotlib"):
+    with pytest.raises(MissingDependencyError, match=r"matplotlib.*imu_array_ros\[plots\]"):
         plots.plot_time([0.0, 1.0], [1.0, 2.0], None, tmp_path / "t.png")
     assert list(tmp_path.iterdir()) == []

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.estimation.fit_terms import _Problem, fit_terms
-from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
+from imu_array_ros.fitting.engine import _Problem, fit_terms
+from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.layouts import grid_array32, make_description
 from imu_array_ros.model.samples import MotionTruth
 from imu_array_ros.model.terms import REGISTRY

@@ -9,14 +9,14 @@ import pytest
 
 from imu_array_ros.model.description import description_from_dict, description_to_dict, load_description, save_description
 from imu_array_ros.model.layouts import make_description
-from imu_array_ros.estimation.crb import crb, fisher_information, square_array_omega_information
+from imu_array_ros.fusion.crb import crb, fisher_information, square_array_omega_information
 from imu_array_ros.errors import ConfigError, FusionError, IdentifiabilityError
-from imu_array_ros.estimation.ml_fusion import MLFusion, fuse
+from imu_array_ros.fusion.ml_fusion import MLFusion, fuse
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.model.samples import ImuSamples
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
-from imu_array_ros.estimation.tensor_method import tensor_method
+from imu_array_ros.fusion.tensor_method import tensor_method
 
 from conftest import perturbed
 
@@ -217,7 +217,7 @@ def test_shape_mismatch_is_an_error(array32, rng):
 
 
 def test_batched_3x3_helpers_match_numpy(rng):
-    from imu_array_ros.estimation.batched_linalg import inv_sym3, solve_sym3
+    from imu_array_ros.fusion.batched_linalg import inv_sym3, solve_sym3
 
     a = rng.normal(size=(100, 3, 3))
     h = a @ np.swapaxes(a, 1, 2) + 1e-3 * np.eye(3)

@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imu_array_ros.estimation.ml_fusion import FusionStats, MLFusion
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.fusion.ml_fusion import FusionStats, MLFusion
+from imu_array_ros.model.linear import LinearArrayModel
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
 

@@ -11,9 +11,9 @@ import pytest
 from imu_array_ros.calibration.geometry import calibrate_and_write, calibrate_geometry
 from imu_array_ros.calibration.output import backup_path
 from imu_array_ros.errors import CalibrationError, OutputError
-from imu_array_ros.estimation.model_fusion import ModelFusion
+from imu_array_ros.fusion.model_fusion import ModelFusion
 from imu_array_ros.model.description import load_description, save_description
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.layouts import grid_array32, tetrahedron4
 from imu_array_ros.model.samples import MotionTruth
 from imu_array_ros.simulation.perturb import perturb

@@ -8,7 +8,7 @@ import pytest
 from imu_array_ros.io.rosbag.recording import read_imu_recording, read_truth
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.description import load_description
-from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
+from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.layouts import NILSSON14_NOT_WORKING, nilsson14
 from imu_array_ros.simulation.icosahedron import icosahedron_face_normals, simulate_icosahedron
 from imu_array_ros.simulation.motion import quat_multiply

@@ -14,7 +14,7 @@ from imu_array_ros.model.kinematics import (
     specific_force_at,
 )
 from imu_array_ros.simulation.motion import TwistTrajectory, quat_to_matrix
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from conftest import ARRAY32, REPO
-from imu_array_ros.estimation.live import LiveFusion, build_fusion
-from imu_array_ros.estimation.stream import fuse_chunked
+from imu_array_ros.fusion.live import LiveFusion, build_fusion
+from imu_array_ros.fusion.stream import fuse_chunked
 from imu_array_ros.io.messages import decode_fused, decode_raw_imu, fused_payloads, raw_imu_payloads
 from imu_array_ros.io.rosbag.recording import read_imu_recording
 from imu_array_ros.io.sync import SampleAssembler

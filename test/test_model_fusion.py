@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imu_array_ros.estimation.model_fusion import ModelFusion, fuse_model
-from imu_array_ros.estimation.stream import fuse_chunked
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.fusion.model_fusion import ModelFusion, fuse_model
+from imu_array_ros.fusion.stream import fuse_chunked
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.simulation.simulator import simulate_twist
 

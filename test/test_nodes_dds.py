@@ -120,7 +120,7 @@ def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_pat
     from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import Imu
 
-    from imu_array_ros.estimation.live import build_fusion
+    from imu_array_ros.fusion.live import build_fusion
     from imu_array_ros.io.messages import decode_fused, raw_imu_payloads
     from imu_array_ros.io.rosbag.cdr_columns import encode_imu
     from imu_array_ros.io.rosbag.recording import imu_topic, read_imu_recording
@@ -206,7 +206,7 @@ def test_serial_chain_with_corruption_and_unplug(ros_env, tmp_path):
     """fake device (pty) -> driver_node (serial) -> fusion_node -> probe, with garbage, bit
     errors, dropped bytes and one unplug: every fused sample published is the fusion of a
     packet the device sent intact, corrupt frames are counted, the driver reconnects by itself."""
-    from imu_array_ros.estimation.live import build_fusion
+    from imu_array_ros.fusion.live import build_fusion
     from imu_array_ros.io.openshoe.fake_device import FakeArrayDevice
     from imu_array_ros.io.openshoe.framing import counts_to_si
     from imu_array_ros.model.description import load_description

@@ -11,7 +11,7 @@ import imu_array_ros.calibration.pca as pca_mod
 from imu_array_ros.calibration.pca import ARRAY_TERMS, calibration_error, pca_array, pca_calibrate
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
-from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.layouts import ROT_180_ABOUT_Y_EQ_X, grid_array32, tetrahedron4
 from imu_array_ros.simulation.perturb import perturb
 

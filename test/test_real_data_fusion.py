@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from imu_array_ros.model.description import load_description
-from imu_array_ros.estimation.ml_fusion import MLFusion
+from imu_array_ros.fusion.ml_fusion import MLFusion
 from imu_array_ros.io.openshoe.framing import si_saturation_level
 from imu_array_ros.io.openshoe.capture import import_capture
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 
 from conftest import REPO, SHARED_DATA
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imu_array_ros.model.forward import SensorModel, motion_context
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
+from imu_array_ros.model.linear import LinearArrayModel
 from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.model.kinematics import quadratic_monomials

@@ -10,7 +10,7 @@ from scipy.signal import hilbert, welch
 from scipy.spatial.transform import Rotation
 
 from imu_array_ros.model.description import load_description
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.simulation.effects import EFFECTS, add_colored_noise, add_vibration, narrowband_process
 from imu_array_ros.simulation.simulator import simulate_twist

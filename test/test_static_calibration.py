@@ -13,9 +13,9 @@ import pytest
 from imu_array_ros.calibration.static import (ACCELEROMETER_TERMS, STATIC_TERMS, calibrate_static, consistency,
                                               consistency_db, reframe_accelerometers)
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.estimation.motion_models import StaticMotion
+from imu_array_ros.fitting.motion_models import StaticMotion
 from imu_array_ros.model.constants import STANDARD_GRAVITY
-from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.layouts import nilsson14
 from imu_array_ros.model.terms.triad import decompose_triad, triad_matrix
 from imu_array_ros.simulation.icosahedron import icosahedron_face_normals

@@ -12,7 +12,7 @@ from imu_array_ros.calibration.still import MIN_EIGENVALUE, StillPoses, check_po
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.description import load_description
-from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.layouts import nilsson14
 from imu_array_ros.model.samples import MotionTruth
 from imu_array_ros.simulation.icosahedron import simulate_icosahedron

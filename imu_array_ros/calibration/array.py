@@ -11,7 +11,7 @@
 3. **Moving stage**: with the static result applied, the accelerometer
    positions and the gyroscopes' gain and misalignment, jointly with every
    sample's motion, by the fitting engine
-   (:func:`~imu_array_ros.estimation.fit_terms.fit_terms`) on the samples
+   (:func:`~imu_array_ros.fitting.engine.fit_terms`) on the samples
    outside the still intervals that rotate enough (the geometry calibration's
    sample selection).  A common scale of the gyroscopes and of the positions
    is not observable from motion alone (engine docstring: omega (1 + e),
@@ -34,7 +34,7 @@ import numpy as np
 from imu_array_ros.calibration.output import provenance
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["MOVING_TERMS", "ArrayCalibration", "calibrate_array", "array_description"]
 
@@ -115,7 +115,7 @@ def calibrate_array(stamps, accel, gyro, model: SensorModel, *, reference=None, 
     from imu_array_ros.calibration.geometry import MIN_EXCITATION, _check_excitation, _select
     from imu_array_ros.calibration.static import MIN_POSES, STATIC_TERMS, calibrate_static
     from imu_array_ros.calibration.still import check_poses, find_still_poses
-    from imu_array_ros.estimation.fit_terms import fit_terms
+    from imu_array_ros.fitting.engine import fit_terms
 
     say = progress or (lambda text: None)
     t0 = time.perf_counter()

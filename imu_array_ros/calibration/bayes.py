@@ -3,7 +3,7 @@
 The target is p(theta | y_1:T), theta the positions of every IMU but the
 reference (held: only relative positions are observable), under the array
 model (carlsson2021 eq. 5) extended to the whole linear sensor model of
-:class:`~imu_array_ros.model.forward.SensorModel`: with every term affine
+:class:`~imu_array_ros.model.sensor_model.SensorModel`: with every term affine
 (gains, misalignments, non-orthogonalities, biases and their drifts held at
 their calibrated values) IMU k's accelerometer reads y_k = M_k f(r_k) + o_k
 and its gyroscope g_k = G_k omega + o'_k, so the compensated readings
@@ -51,7 +51,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.kinematics import skew
 
 __all__ = ["BayesProblem", "Prior", "ChainState", "ChunkResult", "affine_model", "build_problem", "select_samples",

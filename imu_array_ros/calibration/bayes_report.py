@@ -35,7 +35,6 @@ Everything is written atomically (a temporary sibling renamed over the target).
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import re
 import textwrap
@@ -45,7 +44,9 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from imu_array_ros.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text, json_safe
+from imu_array_ros.util.files import atomic_path, atomic_write_text
+from imu_array_ros.util.plotting import pyplot, save_png
+from imu_array_ros.util.jsontools import json_safe
 
 __all__ = ["ellipse_points", "ellipse_radius", "plot_ellipses", "panel_layout", "plot_trace", "plot_autocorr",
            "lowest_ess_coords", "diagnostics_table", "disagreements", "write_report", "Z_LIMIT", "SD_RATIO_RANGE",
@@ -165,18 +166,6 @@ def _colors(labels: Sequence[str], colors) -> dict[str, str]:
     return {lab: colors[i % len(colors)] for i, lab in enumerate(labels)}
 
 
-def _save(fig, path) -> None:
-    """PNG of ``fig`` written atomically; the figure is closed."""
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    try:
-        fig.savefig(buf, format="png", dpi=110)
-    finally:
-        plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
-
-
 def plot_ellipses(path: str | Path, names: Sequence[str], nominal, estimates: Mapping[str, tuple], *,
                   prior_std=None, prior_mean=None, package=(4e-3, 4e-3, 1e-3), truth=None,
                   reference: str | None = None, level: float = 0.5, colors=None, title: str | None = None,
@@ -203,7 +192,7 @@ def plot_ellipses(path: str | Path, names: Sequence[str], nominal, estimates: Ma
     -------
     {name: (row, column)} of each panel (:func:`panel_layout`).
     """
-    plt = _plotting(path)
+    plt = pyplot(path)
     from matplotlib.lines import Line2D
     from matplotlib.patches import Rectangle
     from matplotlib.ticker import MaxNLocator
@@ -338,14 +327,8 @@ def plot_ellipses(path: str | Path, names: Sequence[str], nominal, estimates: Ma
     if note_lines:
         fig.text(0.5, (leg_in + 0.03) / height, "\n".join(note_lines), ha="center", va="bottom", fontsize=7,
                  color="0.3")
-    _save(fig, path)
+    save_png(fig, path)
     return {names[i]: place[i] for i in range(k)}
-
-
-def _plotting(path):
-    from imu_array_ros.calibration.plots import _pyplot
-
-    return _pyplot(path)
 
 
 # --------------------------------------------------------------------------- chains
@@ -413,7 +396,7 @@ def plot_trace(path: str | Path, post, coords: Iterable | None = None, max_coord
     """PNG of ArviZ's trace plot of ``coords`` ((imu, axis) pairs or 'position[imu, axis]' labels; default
     the ``max_coords`` with the lowest bulk ESS) in um relative to nominal, plus the log posterior, and
     the log posterior of the discarded warm-up.  Returns the coordinates shown."""
-    plt = _plotting(path)
+    plt = pyplot(path)
     what = "chosen coordinates" if coords is not None else "coordinates with the lowest bulk ESS"
     coords = _chosen(post, coords, max_coords)
     az, data = _coord_data(post, coords, lp=True)
@@ -449,14 +432,14 @@ def plot_trace(path: str | Path, post, coords: Iterable | None = None, max_coord
         ax.tick_params(labelsize=7)
     fig.suptitle(f"trace of the {len(coords)} {what} (µm relative to nominal) and the log posterior\n"
                  f"{_chain_summary(post)}", fontsize=10)
-    _save(fig, path)
+    save_png(fig, path)
     return coords
 
 
 def plot_autocorr(path: str | Path, post, coords: Iterable | None = None, max_coords: int = 6) -> list[tuple[str, str]]:
     """PNG of ArviZ's autocorrelation plot of ``coords`` (as :func:`plot_trace`), one panel per chain and
     coordinate, up to a lag of about five integrated autocorrelation times.  Returns the coordinates."""
-    plt = _plotting(path)
+    plt = pyplot(path)
     what = "chosen coordinates" if coords is not None else "coordinates with the lowest bulk ESS"
     coords = _chosen(post, coords, max_coords)
     az, data = _coord_data(post, coords, lp=False)
@@ -487,7 +470,7 @@ def plot_autocorr(path: str | Path, post, coords: Iterable | None = None, max_co
                  f"lags up to {max_lag}\n{_chain_summary(post)}",
                  fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / (1.8 * rows + 0.9)))
-    _save(fig, path)
+    save_png(fig, path)
     return coords
 
 

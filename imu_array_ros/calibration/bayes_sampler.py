@@ -593,7 +593,7 @@ def install_scores(post: BayesPosterior, stamps, accel, gyro, model, level: floa
     from scipy.stats import chi2
 
     from imu_array_ros.calibration.geometry import window_loglik
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
 
     new = window_loglik(stamps, accel, gyro, model.with_terms(position=post.positions_mean()))
 

@@ -3,7 +3,7 @@
 Problem (carlsson2017 eq. 1-4, with the whole sensor model): every array
 sample n has an unknown motion x_n = [omega, omega_dot, s]; accelerometer k
 reads h_k(x_n, p_k) (rotated sensor frame, calibrated intrinsics: every term
-of the :class:`~imu_array_ros.model.forward.SensorModel`), the gyroscopes read
+of the :class:`~imu_array_ros.model.sensor_model.SensorModel`), the gyroscopes read
 omega.  The positions p_k (the reference IMU's held: only relative positions
 are observable) and the motion are estimated jointly by maximum likelihood.
 
@@ -11,7 +11,7 @@ Two solvers of the same problem:
 
 * ``"bcd"`` -- block coordinate descent, carlsson2017 Alg. 1.  Alternate
   (a) the ML motion of every sample for the current positions, with the fusion
-  core (:class:`~imu_array_ros.estimation.model_fusion.ModelFusion`, vectorised
+  core (:class:`~imu_array_ros.fusion.model_fusion.ModelFusion`, vectorised
   over samples) and (b) the least-squares positions for that motion.  Step (b)
   is eq. 9 generalised to the sensor model: with the weighted position Jacobian
   J_nk = W_k dh_k/dp_k (for the bare model J_nk = R_k^T C_n / sigma,
@@ -20,7 +20,7 @@ Two solvers of the same problem:
   same one for every IMU when their noise is equal and isotropic and their
   intrinsics orthogonal, as in the paper).  The readings are affine in p_k for
   every linear term, so this is the exact minimiser of step (b), O(N).
-* ``"joint"`` -- the fitting engine (:func:`~imu_array_ros.estimation.fit_terms.fit_terms`
+* ``"joint"`` -- the fitting engine (:func:`~imu_array_ros.fitting.engine.fit_terms`
   with ``free=["position"]``): Gauss-Newton on positions and motion together,
   the motion eliminated by the Schur complement, also O(N) per iteration.
 
@@ -54,9 +54,9 @@ from typing import Callable
 import numpy as np
 
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms
-from imu_array_ros.estimation.model_fusion import ModelFusion
-from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
+from imu_array_ros.fitting.engine import fit_motion, fit_terms
+from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 
 __all__ = ["GeometryCalibration", "calibrate_geometry", "calibrate_and_write", "window_loglik", "METHODS", "DEFAULT_METHOD",
            "MIN_SAMPLES", "MIN_EXCITATION"]
@@ -344,7 +344,7 @@ def _profile(stamps, accel, gyro, model: SensorModel) -> _Profile:
     """The window under ``model`` with the motion at its ML estimate: cost, log-likelihood, per-IMU
     accelerometer residual RMS.  The fusion is that estimate when every term is linear; with a
     non-linear term (time offsets, ...) it only compensates, so the engine's motion-only Gauss-Newton
-    refines it (:func:`~imu_array_ros.estimation.fit_terms.fit_motion`)."""
+    refines it (:func:`~imu_array_ros.fitting.engine.fit_motion`)."""
     fused, _ = ModelFusion(model).fuse(stamps, accel, gyro)
     rows = np.searchsorted(stamps, fused.stamps)
     motion = np.concatenate([fused.omega, fused.omega_dot, fused.specific_force], axis=1)

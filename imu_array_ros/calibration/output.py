@@ -3,7 +3,7 @@
 :func:`install_calibration` is what the calibration node and ``imu-array
 calibrate geometry`` call to put a calibrated description at ``out``:
 
-* ``out`` absent: written atomically (:func:`~imu_array_ros.io.atomic.atomic_write_text`);
+* ``out`` absent: written atomically (:func:`~imu_array_ros.io.outputs.atomic_write_text`);
 * ``out`` present and a description of the same IMUs: scored on the same
   window as the new calibration (``score``, e.g. the window's log-likelihood
   with the motion fitted); if it scores higher, nothing is written and
@@ -28,7 +28,7 @@ from typing import Callable
 import numpy as np
 
 from imu_array_ros.errors import CalibrationError, ConfigError, OutputError
-from imu_array_ros.io.atomic import atomic_write_bytes, atomic_write_text
+from imu_array_ros.util.files import atomic_write_bytes, atomic_write_text
 from imu_array_ros.model.description import ArrayDescription, dump_description, load_description
 
 __all__ = ["Installed", "install_calibration", "backup_path", "geometry_description", "positions_description", "provenance", "fit_statistics",
@@ -43,7 +43,7 @@ def provenance() -> dict:
     """The ``software`` and ``time`` (UTC, ISO 8601) entries of every ``calibration:`` record."""
     import datetime
 
-    from imu_array_ros import __version__
+    from imu_array_ros.version import __version__
 
     return {"software": f"imu_array_ros {__version__}",
             "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}

@@ -50,7 +50,7 @@ huge (``benchmarks/results/rupniewski_fig34.md`` for Algorithm 2, ``test_pca_arr
 Arrays (:func:`pca_array`): the 3K accelerometer axes of K IMUs are m = 3K sensors with v_j = s_j, the
 specific force of pose j in the array frame.  The block of IMU k of a^T is T_k = M_k Rbar_k^T with
 M_k = K_k L_k (I + [xi_k]x) (nilsson2014 eq. 1-2: gain, unit lower-triangular non-orthogonality,
-first-order misalignment; the chain of :mod:`imu_array_ros.model.forward`) and Rbar_k the nominal
+first-order misalignment; the chain of :mod:`imu_array_ros.model.sensor_model`) and Rbar_k the nominal
 sensor -> array rotation.  PCA gives T_hat_k = T_k Omega^T, s_hat = Omega s for an unknown orthogonal
 Omega.  xi_ref = 0 defines the array frame, i.e. M_ref = T_hat_ref Omega Rbar_ref is lower triangular with
 positive diagonal: the LQ decomposition T_hat_ref Rbar_ref = L Q gives Omega = Rbar_ref Q^T Rbar_ref^T
@@ -126,7 +126,7 @@ class ArrayPca:
     seconds: float
 
     def calibrated(self, model):
-        """``model`` (a :class:`~imu_array_ros.model.forward.SensorModel`) with these values set."""
+        """``model`` (a :class:`~imu_array_ros.model.sensor_model.SensorModel`) with these values set."""
         return model.with_terms(**self.values)
 
 

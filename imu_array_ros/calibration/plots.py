@@ -6,28 +6,16 @@ from pathlib import Path
 
 import numpy as np
 
-from imu_array_ros.errors import OutputError
-from imu_array_ros.io.atomic import atomic_path
+from imu_array_ros.util.plotting import pyplot, save_png
 
 __all__ = ["plot_geometry", "plot_static"]
-
-
-def _pyplot(path):
-    try:
-        import matplotlib
-    except ImportError:
-        raise OutputError(f"{path}: writing a plot needs matplotlib (pip install 'matplotlib>=3.7')") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def plot_static(result, path: str | Path) -> None:
     """PNG of a static calibration (an :class:`~imu_array_ros.calibration.array.ArrayCalibration` with a
     static stage): the poses' gravity directions on the sphere (two hemispheres), the four accelerometer
     parameters per IMU with 3-sigma bars, and the residual RMS per IMU."""
-    plt = _pyplot(path)
+    plt = pyplot(path)
     st, poses = result.static, result.poses
     names = list(st.names)
     k = np.arange(len(names))
@@ -63,20 +51,13 @@ def plot_static(result, path: str | Path) -> None:
     ax.set_title(f"static ({st.method}): {st.poses} poses, consistency {st.improvement_db:+.1f} dB, "
                  f"NIS {st.nis_after:.3g}", fontsize=9)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def plot_geometry(result, path: str | Path) -> None:
     """PNG of a :class:`~imu_array_ros.calibration.geometry.GeometryCalibration`: per IMU the position
     change (x, y, z, mm) with its 3-sigma bar, and the accelerometer residual RMS before and after."""
-    try:
-        import matplotlib
-    except ImportError:
-        raise OutputError(f"{path}: writing a plot needs matplotlib (pip install 'matplotlib>=3.7')") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot(path)
 
     names = list(result.names)
     k = np.arange(len(names))
@@ -97,6 +78,4 @@ def plot_geometry(result, path: str | Path) -> None:
     ax2.set_xticks(k, names, rotation=90, fontsize=7)
     ax2.legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_png(fig, path)

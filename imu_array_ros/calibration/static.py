@@ -14,8 +14,8 @@ s_n (2 degrees of freedom: its direction).  Its gyroscope reads its bias.
 Methods:
 
 * ``"ml"`` -- maximum likelihood with the one fitting engine
-  (:func:`~imu_array_ros.estimation.fit_terms.fit_terms`) and the static motion
-  model (:class:`~imu_array_ros.estimation.motion_models.StaticMotion`: the
+  (:func:`~imu_array_ros.fitting.engine.fit_terms`) and the static motion
+  model (:class:`~imu_array_ros.fitting.motion_models.StaticMotion`: the
   pose nuisance of nilsson2014, profiled out by the Schur complement); the
   noise of a pose average is the description's noise / sqrt(samples
   averaged).  Started from the nominal values (the paper's) or from the PCA
@@ -48,10 +48,10 @@ import numpy as np
 from imu_array_ros.calibration.geometry import _reference_index
 from imu_array_ros.calibration.output import fit_statistics
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms
-from imu_array_ros.estimation.motion_models import StaticMotion
+from imu_array_ros.fitting.engine import fit_motion, fit_terms
+from imu_array_ros.fitting.motion_models import StaticMotion
 from imu_array_ros.model.constants import STANDARD_GRAVITY
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms.triad import triad_matrix, triads_in_reference_frame
 
 __all__ = ["ACCELEROMETER_TERMS", "STATIC_TERMS", "METHODS", "StaticCalibration", "calibrate_static",

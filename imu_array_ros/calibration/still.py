@@ -78,7 +78,7 @@ import numpy as np
 
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["StillPoses", "find_still_poses", "check_poses", "NOISE_FACTOR", "GYRO_FLOOR", "ACCEL_FLOOR",
            "MIN_EIGENVALUE", "POSES_FULL_MODEL", "POSES_WITHOUT_MISALIGNMENT"]

@@ -7,7 +7,7 @@
 
 User mistakes (bad options, bad files, unsafe outputs) print one line
 ``imu-array: error: ...`` and exit with status 2; nothing is half-written and
-nothing the user did not name is replaced (:func:`imu_array_ros.io.atomic.check_output`).
+nothing the user did not name is replaced (:func:`imu_array_ros.io.outputs.check_output`).
 """
 
 from imu_array_ros.cli.parser import build_parser, main

@@ -5,7 +5,7 @@ positions (carlsson2017; :mod:`imu_array_ros.calibration.geometry`), the same
 function the calibration node's ``/calibrate_geometry`` service runs.
 
 ``calibrate fit`` is the general one: maximum likelihood of any set of sensor-model
-terms jointly with the motion (:func:`imu_array_ros.estimation.fit_terms.fit_terms`),
+terms jointly with the motion (:func:`imu_array_ros.fitting.engine.fit_terms`),
 written as the description schema with every fitted field, its ``_std`` (the
 Cramér-Rao bound of the joint problem) and a ``calibration:`` block.
 """
@@ -19,7 +19,7 @@ import numpy as np
 from imu_array_ros.calibration.output import fit_statistics, provenance
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import CalibrationError, OutputError
-from imu_array_ros.io.atomic import check_output
+from imu_array_ros.io.outputs import check_output
 
 __all__ = ["calibrate_bayes", "calibrate_fit", "calibrate_geometry", "calibrate_static", "calibrate_all", "parse_list", "write_calibrated"]
 
@@ -50,9 +50,9 @@ def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibr
                   force: bool = False, quiet: bool = False) -> int:
     """Fit the sensor-model ``terms`` (comma-separated registry names) to ``recording``; write ``out``."""
     from imu_array_ros.cli.commands import check_fusable, load_array
-    from imu_array_ros.estimation.fit_terms import check_terms, fit_terms
+    from imu_array_ros.fitting.engine import check_terms, fit_terms
     from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
     from imu_array_ros.model.terms import REGISTRY
 
     try:  # before reading anything
@@ -219,7 +219,7 @@ def _calibrate_and_install(recording: Path, array: Path, out: Path, calibration:
     from imu_array_ros.calibration.array import array_description, calibrate_array
     from imu_array_ros.calibration.output import install_calibration
     from imu_array_ros.calibration.static import static_loglik
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
 
     inputs = [recording, array, calibration]
     out = check_output(out, inputs, "yaml", force)
@@ -285,7 +285,7 @@ def calibrate_all(recording: Path, array: Path, out: Path, *, calibration: Path 
 
     terms = MOVING_TERMS if moving_terms is None else tuple(parse_list(moving_terms) or ())
     if terms:
-        from imu_array_ros.estimation.fit_terms import check_terms
+        from imu_array_ros.fitting.engine import check_terms
 
         check_terms(terms)
     return _calibrate_and_install(
@@ -328,7 +328,7 @@ def calibrate_bayes(recording: Path, array: Path, out: Path, *, calibration: Pat
     """Posterior of the accelerometer positions (carlsson2021 PmMH) from ``samples`` samples of ``recording``."""
     from imu_array_ros.calibration import bayes, bayes_sampler
     from imu_array_ros.calibration.output import install_calibration, positions_description
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
 
     inputs = [recording, array, calibration]
     out = check_output(out, inputs, "yaml", force)

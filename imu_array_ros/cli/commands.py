@@ -3,7 +3,7 @@
 Each function takes the values the command line gives, already validated by
 the parser's types, returns the exit status (0), and raises an
 :class:`~imu_array_ros.errors.ImuArrayError` subclass for a user mistake.
-Every output is checked by :func:`imu_array_ros.io.atomic.check_output` before
+Every output is checked by :func:`imu_array_ros.io.outputs.check_output` before
 any work starts, and written atomically.
 
 stdout carries only what was asked for (``residuals --tables``, ``--json -``);
@@ -22,7 +22,8 @@ import numpy as np
 
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import ConfigError, FusionError, ImuArrayError, OutputError
-from imu_array_ros.io.atomic import check_output, json_safe
+from imu_array_ros.io.outputs import check_output
+from imu_array_ros.util.jsontools import json_safe
 from imu_array_ros.model.description import ArrayDescription, load_description, save_description
 from imu_array_ros.model.identifiability import check_identifiable
 
@@ -59,8 +60,8 @@ def _read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet
     Returns (description, ModelFusion, ImuSamples, ReadStats, FusedSamples, FusionStats);
     the fusion carries every term of the description (``fusion.model``).
     """
-    from imu_array_ros.estimation.live import build_fusion
-    from imu_array_ros.estimation.stream import fuse_chunked
+    from imu_array_ros.fusion.live import build_fusion
+    from imu_array_ros.fusion.stream import fuse_chunked
     from imu_array_ros.io.rosbag.recording import read_imu_recording
 
     desc, _ = load_array(array, calibration)
@@ -71,7 +72,7 @@ def _read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet
 
 
 def _write_text(path: Path, text: str, option: str) -> None:
-    from imu_array_ros.io.atomic import atomic_write_text
+    from imu_array_ros.util.files import atomic_write_text
 
     try:
         atomic_write_text(path, text)
@@ -120,7 +121,7 @@ def simulate(
     each rest tilted by ``tilt_std_deg`` (default 1) per axis, and rejects ``duration``.
     """
     from imu_array_ros.io.rosbag.recording import write_imu_recording
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
     from imu_array_ros.simulation.icosahedron import FACES, simulate_icosahedron
     from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
     from imu_array_ros.simulation.simulator import simulate_random, simulate_twist
@@ -292,8 +293,9 @@ def residuals(
     on stdout; ``json_out`` writes the summary as strict JSON (``"-"``: stdout),
     a ratio over no samples being ``null``.
     """
-    from imu_array_ros.discovery.residuals import normalized_residuals, simulate_same_motion
-    from imu_array_ros.estimation.stream import fuse_chunked
+    from imu_array_ros.fusion.residuals import normalized_residuals
+    from imu_array_ros.simulation.simulator import simulate_same_motion
+    from imu_array_ros.fusion.stream import fuse_chunked
 
     to_stdout = json_out is not None and str(json_out) == "-"
     if json_out is not None and not to_stdout:

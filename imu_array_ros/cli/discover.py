@@ -17,7 +17,7 @@ from imu_array_ros.calibration.output import provenance
 from imu_array_ros.cli.calibrate import parse_list, write_calibrated
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.errors import CalibrationError, OutputError
-from imu_array_ros.io.atomic import check_output
+from imu_array_ros.io.outputs import check_output
 
 __all__ = ["discover_command"]
 
@@ -53,7 +53,7 @@ def discover_command(recording: Path, array: Path, report: Path, *, calibration:
     from imu_array_ros.discovery.discover import DiscoveryOptions, discover
     from imu_array_ros.discovery.report import write_report
     from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
 
     validate = list(validate or [])
     inputs = [recording, array, calibration, sim, *validate]

@@ -16,7 +16,7 @@ from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 from typing import Callable
 
-from imu_array_ros import __version__
+from imu_array_ros.version import __version__
 from imu_array_ros.cli import calibrate, commands, discover, fake_device
 from imu_array_ros.errors import ImuArrayError
 

@@ -3,7 +3,7 @@
 :func:`discover` runs the workflow of ``imu-array discover``:
 
 1. **Fit** the recording with the model as given: the ML motion of every
-   sample (:func:`~imu_array_ros.estimation.fit_terms.fit_motion`).
+   sample (:func:`~imu_array_ros.fitting.engine.fit_motion`).
 2. **Simulate**: the model's prediction of every reading for that motion; the
    residual recording - simulation is whitened by the noise model.  With a
    user's own simulation of the same run (``sim``), the localisation reads
@@ -14,7 +14,7 @@
    candidate, tested with the fitting engine (score test with the motion
    profiled out, block-robust test, held-out blocks, BIC); greedy selection at a
    Bonferroni-corrected level, each finding confirmed by an exact refit
-   (:func:`~imu_array_ros.estimation.fit_terms.fit_terms` with ``only``), and
+   (:func:`~imu_array_ros.fitting.engine.fit_terms` with ``only``), and
    confounded candidates reported as indistinguishable.
 5. **Model what the library lacks** (:mod:`.empirical`): cells still in excess
    after the findings get a sparse regression on motion features, scored on
@@ -38,9 +38,9 @@ import scipy.stats
 
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.estimation.fit_terms import fit_motion, fit_terms, score_blocks
+from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
 from imu_array_ros.model.constants import STANDARD_GRAVITY
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, term_names
 
 __all__ = ["DiscoveryOptions", "Discovery", "Finding", "discover", "fit_summary"]
@@ -439,7 +439,7 @@ def _validate(label, other, model: SensorModel, found: SensorModel, still_thresh
 def _unexplained(loc, sb, motion, samples, model, blocks, fold_of_block):
     """Entries of the localisation after the findings, each with the empirical models of its cells."""
     from imu_array_ros.discovery.empirical import fit_empirical, motion_features
-    from imu_array_ros.discovery.residuals import AXES
+    from imu_array_ros.fusion.residuals import AXES
 
     entries = loc.entries()
     if not entries:

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
-from imu_array_ros.discovery.residuals import AXES
+from imu_array_ros.fusion.residuals import AXES
 
 __all__ = ["EmpiricalModel", "motion_features", "fit_empirical", "block_folds", "stlsq"]
 

@@ -2,7 +2,7 @@
 
 A *candidate* is one registered term (:data:`~imu_array_ros.model.terms.REGISTRY`)
 on one IMU, every other parameter held.  From one pass of the fitting engine
-(:func:`~imu_array_ros.estimation.fit_terms.score_blocks`) at the current
+(:func:`~imu_array_ros.fitting.engine.score_blocks`) at the current
 model and its ML motion, each candidate c has, per time block b, a score g_b
 and an information S_b with every sample's motion profiled out (Schur
 complement: the part of the term's signature the motion cannot absorb).  With
@@ -114,7 +114,7 @@ def _reduced(S: np.ndarray):
 
 
 def evaluate_candidates(sb, names, folds: np.ndarray, *, terms=None, exclude=(), step: int = 0) -> list[Candidate]:
-    """Every candidate (term x IMU) of ``sb`` (:class:`~imu_array_ros.estimation.fit_terms.ScoreBlocks`) not in
+    """Every candidate (term x IMU) of ``sb`` (:class:`~imu_array_ros.fitting.engine.ScoreBlocks`) not in
     ``exclude`` ((term, k) pairs); folds (B,) fold of every block."""
     terms = sb.terms if terms is None else terms
     n_obs = max(sb.valid_axes, 2)

@@ -1,7 +1,7 @@
 """Where the residuals exceed the noise: by sensor, axis, motion regime, time, frequency and geometry.
 
 Input: the normalised residuals ``r = (y - h(theta_hat)) / sigma`` of a fitted model,
-(N, K, 6) for N samples, K IMUs and the axes :data:`~imu_array_ros.discovery.residuals.AXES`
+(N, K, 6) for N samples, K IMUs and the axes :data:`~imu_array_ros.fusion.residuals.AXES`
 (NaN = masked), and their expectation under the model ``E[r^2] = 1 - leverage``
 (same shape, NaN where masked).  Every statistic below compares an observed sum
 ``O = sum r^2`` with its expected value ``E = sum E[r^2]`` over a set of readings:
@@ -56,8 +56,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import welch
 
-from imu_array_ros.discovery.residuals import AXES
-from imu_array_ros.io.atomic import json_safe as _json
+from imu_array_ros.fusion.residuals import AXES
+from imu_array_ros.util.jsontools import json_safe as _json
 
 __all__ = ["REGIMES", "Localization", "RigidTest", "localize", "rigid_body_test", "relative_psd"]
 

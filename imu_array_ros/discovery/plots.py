@@ -2,10 +2,10 @@
 
 Every quantity plotted is a *ratio to the noise level*, so 1 means "the model
 explains the data down to the white sensor noise" and 100 means residuals ten
-times the noise (:mod:`imu_array_ros.discovery.residuals`):
+times the noise (:mod:`imu_array_ros.fusion.residuals`):
 
 * :func:`plot_residual_maps`: observed / expected squared normalised residual per
-  IMU and axis (:data:`~imu_array_ros.discovery.residuals.AXES`), before and
+  IMU and axis (:data:`~imu_array_ros.fusion.residuals.AXES`), before and
   after the discovered terms, as two heatmaps on one shared logarithmic colour scale;
 * :func:`plot_spectra`: power spectral density of the normalised residual relative
   to white noise (1 = white at the noise level), for the worst cells -- a narrowband
@@ -14,7 +14,7 @@ times the noise (:mod:`imu_array_ros.discovery.residuals`):
   term, accepted ones highlighted, against the per-step significance threshold;
 * :func:`plot_time`: the residual ratio per time window, with shaded spans.
 
-PNG files are written atomically (:func:`~imu_array_ros.io.atomic.atomic_path`):
+PNG files are written atomically (:func:`~imu_array_ros.util.plotting.save_png`):
 a failed plot leaves no partial file and no temporary behind; the figure is
 always closed.  Without matplotlib the functions raise
 :class:`~imu_array_ros.errors.OutputError`.
@@ -27,9 +27,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from imu_array_ros.discovery.residuals import AXES
-from imu_array_ros.calibration.plots import _pyplot  # the lazy matplotlib import, one copy
-from imu_array_ros.io.atomic import atomic_path
+from imu_array_ros.fusion.residuals import AXES
+from imu_array_ros.util.plotting import pyplot, save_png  # the lazy matplotlib import, one copy
 
 __all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "EVIDENCE_FLOOR"]
 
@@ -37,11 +36,6 @@ __all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "
 EVIDENCE_FLOOR = 0.1
 _NAN_COLOR = "0.82"
 _DPI = 110
-
-
-def _save(fig, path) -> None:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=_DPI)
 
 
 def _fmt(v: float) -> str:
@@ -81,7 +75,7 @@ def plot_residual_maps(before, after, names: Sequence[str], path: str | Path, *,
     maps = [("before", _ratio_map(before, names, "before"))]
     if after is not None:
         maps.append(("after", _ratio_map(after, names, "after")))
-    plt = _pyplot(path)
+    plt = pyplot(path)
     from matplotlib.colors import LogNorm
 
     finite = np.concatenate([m[np.isfinite(m) & (m > 0)] for _, m in maps])
@@ -113,7 +107,7 @@ def plot_residual_maps(before, after, names: Sequence[str], path: str | Path, *,
                      label="observed / expected residual² (1 = noise level)")
         if title:
             fig.suptitle(title, fontsize=11)
-        _save(fig, path)
+        save_png(fig, path, _DPI, close=False)
     finally:
         plt.close(fig)
 
@@ -152,7 +146,7 @@ def plot_spectra(freqs, psd_before, psd_after, names: Sequence[str], path: str |
         for k, a in cells:
             if not (0 <= k < shape[0] and 0 <= a < shape[1]):
                 raise ValueError(f"cell {(k, a)} outside the {shape[0]} IMUs x {shape[1]} axes")
-    plt = _pyplot(path)
+    plt = pyplot(path)
     n = max(len(cells), 1)
     cols = min(3, n)
     rows = -(-n // cols)
@@ -182,7 +176,7 @@ def plot_spectra(freqs, psd_before, psd_after, names: Sequence[str], path: str |
             ax.legend(fontsize=7)
         for ax in flat[len(cells):] if cells else flat[1:]:
             ax.set_axis_off()
-        _save(fig, path)
+        save_png(fig, path, _DPI, close=False)
     finally:
         plt.close(fig)
 
@@ -211,7 +205,7 @@ def plot_evidence(candidates: Sequence[dict], path: str | Path, *, threshold: fl
         return -d if np.isfinite(d) else (np.inf if np.isnan(d) else -d)
 
     shown = sorted(candidates, key=key)[:max(int(top), 0)]
-    plt = _pyplot(path)
+    plt = pyplot(path)
     from matplotlib.patches import Patch
 
     fig, ax = plt.subplots(figsize=(8.0, max(2.5, 0.28 * len(shown) + 1.4)), constrained_layout=True)
@@ -219,7 +213,7 @@ def plot_evidence(candidates: Sequence[dict], path: str | Path, *, threshold: fl
         if not shown:
             _no_data(ax, "no candidates")
             ax.set_title("candidate evidence", fontsize=10)
-            _save(fig, path)
+            save_png(fig, path, _DPI, close=False)
             return
         delta = np.array([float(c.get("delta_loglik", np.nan)) for c in shown])
         accepted = np.array([bool(c.get("accepted", False)) for c in shown])
@@ -245,7 +239,7 @@ def plot_evidence(candidates: Sequence[dict], path: str | Path, *, threshold: fl
         ax.set_xlabel("Δ log-likelihood (log scale)")
         ax.set_title(f"candidate evidence (top {len(shown)} of {len(candidates)})", fontsize=10)
         ax.legend(handles=handles, fontsize=8, loc="lower right")
-        _save(fig, path)
+        save_png(fig, path, _DPI, close=False)
     finally:
         plt.close(fig)
 
@@ -272,7 +266,7 @@ def plot_time(windows, ratio_before, ratio_after, path: str | Path, *, spans=())
     for s in spans:
         if len(s) not in (2, 3):
             raise ValueError(f"span {s!r} is not (t0, t1) or (t0, t1, label)")
-    plt = _pyplot(path)
+    plt = pyplot(path)
     fig, ax = plt.subplots(figsize=(9.0, 3.6), constrained_layout=True)
     try:
         drawn = False
@@ -294,6 +288,6 @@ def plot_time(windows, ratio_before, ratio_after, path: str | Path, *, spans=())
         ax.set_xlabel("time (s)")
         ax.set_ylabel("observed / expected residual²")
         ax.set_title("residual ratio per window", fontsize=10)
-        _save(fig, path)
+        save_png(fig, path, _DPI, close=False)
     finally:
         plt.close(fig)

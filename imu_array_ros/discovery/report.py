@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from imu_array_ros.discovery.residuals import AXES
-from imu_array_ros.io.atomic import atomic_write_text, json_safe
+from imu_array_ros.fusion.residuals import AXES
+from imu_array_ros.util.files import atomic_write_text
+from imu_array_ros.util.jsontools import json_safe
 from imu_array_ros.model.terms import REGISTRY
 
 __all__ = ["write_report", "markdown", "PLOTS"]

@@ -6,7 +6,7 @@
    column-wise (:func:`~imu_array_ros.io.messages.decode_raw_imu`), counts and
    drops undecodable ones, wrong ``frame_id`` and non-finite values, and puts
    the rest into the stamp-keyed :class:`~imu_array_ros.io.sync.SampleAssembler`
-   (:class:`~imu_array_ros.io.sync.RawIntake`, the input of :class:`~imu_array_ros.estimation.live.LiveFusion` too);
+   (:class:`~imu_array_ros.io.sync.RawIntake`, the input of :class:`~imu_array_ros.fusion.live.LiveFusion` too);
 2. :meth:`SampleWindow.step` moves the ready array samples into a ring buffer
    that keeps the latest ``window_samples`` samples, or (``window_samples`` 0)
    the samples of the last ``window_s`` seconds of stamps (the buffer grows by

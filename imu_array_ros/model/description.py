@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from imu_array_ros.io.atomic import atomic_write_text
+from imu_array_ros.util.files import atomic_write_text
 from imu_array_ros.errors import ConfigError
 from imu_array_ros.model.terms import REGISTRY, Field, term_names
 
@@ -111,7 +111,7 @@ class ArrayDescription:
     Ranges and clip levels are magnitudes of the raw readings: m/s^2 for the
     accelerometers, rad/s for the gyroscopes.  ``*_clip`` (None: the range) is
     where a reading clips, ``*_lsb`` (None: unquantised floats) its
-    quantisation step; see :func:`imu_array_ros.model.sensor_model.unsaturated`.
+    quantisation step; see :func:`imu_array_ros.model.linear.unsaturated`.
     """
 
     frame_id: str
@@ -295,7 +295,7 @@ def description_from_dict(data: Any, source: str = "<memory>") -> ArrayDescripti
 
 def load_description(path: str | Path) -> ArrayDescription:
     """Read and validate an array description YAML file."""
-    from imu_array_ros.io.yamlfile import load_yaml_file  # YAML read errors are worded in one place
+    from imu_array_ros.util.files import load_yaml_file  # YAML read errors are worded in one place
 
     path = Path(path)
     data = load_yaml_file(path, ConfigError, "array description")

@@ -1,168 +1,246 @@
-"""The fusion's fast linear form of the sensor model (:class:`LinearArrayModel`).
+"""THE forward model of the array: nominal geometry + noise + ordered terms.
 
-The one forward model is :class:`~imu_array_ros.model.forward.SensorModel`
-(nominal geometry + noise + ordered terms).  For the fusion it *linearises* to
-this form: with z = [q(omega), omega_dot, s] (12; q the quadratic monomials of
-omega, skog2016 eq. 5), every accelerometer axis and gyroscope axis of IMU k reads
+Each sensor of IMU k is a chain that starts from the motion in the nominal
+sensor frame and passes every term acting on that sensor, in ``order``::
 
-    accelerometer:  y_a = D_k z + b_a,k + n_a,     D_k (3, 12)
-    gyroscope:      y_g = B_k omega + b_g,k + n_g,  B_k (3, 3)
+    accelerometer:  x = R^T s  -> position -> axis_offsets -> time_offset -> misalignment
+                      -> nonorthogonality -> nonlinearity -> gain -> bias -> bias_drift
+    gyroscope:      x = R^T omega -> time_offset -> misalignment -> nonorthogonality
+                      -> gain -> g_sensitivity -> bias -> bias_drift
 
-Every term flagged ``linear`` (position, axis_offsets, misalignment,
-non-orthogonality, gain, bias) keeps the readings of this form, so
-:func:`linear_design` obtains D_k, B_k and the biases *exactly* by evaluating
-the model's linear terms on 13 probe motions; a new linear term needs nothing
-here.  Per-axis lever arms (``axis_offsets``) thus enter exactly: each
-accelerometer row gets the lever arm of its own proof mass.  With only the
-nilsson2014 terms, D_k = A_k [M(r_k), -[r_k]x, I] with A_k = K L (I + [xi]x) R_k^T.
-Terms that are not linear (nonlinearity, g-sensitivity, time offset, drift)
-are compensated on the readings before the linear solve
-(:func:`imu_array_ros.estimation.model_fusion.fuse_model`).
-
-``n`` is white Gaussian noise with the description's standard deviations, and
-readings at the sensor's clip level are saturated (clipped by the simulator,
-dropped by the fusion; see :func:`unsaturated`).
+(with every term at its identity value this is skog2016 eq. 1-5; with the
+nilsson2014 terms it is y = K L (I + [xi]x) R^T s(r) + b).  :meth:`SensorModel.predict`
+is what the simulator measures with and what residuals compare against;
+:meth:`SensorModel.jacobians` chains the terms' analytic derivatives backwards
+into d y / d theta (per term, per IMU) and d y / d [omega, omega_dot, s] (per
+sample) for the fitting engine and the discovery tool.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Iterable, Sequence
 
 import numpy as np
 
-from imu_array_ros.model.description import ArrayDescription
-from imu_array_ros.model.forward import SensorModel, motion_context
-from imu_array_ros.model.kinematics import centripetal_matrix, euler_matrix
-from imu_array_ros.model.saturation import CLIP_RELATIVE_TOLERANCE, clip_tolerance, unsaturated
-from imu_array_ros.model.terms.triad import nonorthogonality_matrix
+from imu_array_ros.model.saturation import unsaturated
+from imu_array_ros.model.terms import REGISTRY, SENSORS, MotionContext, Term, term_names
 
-__all__ = ["LinearArrayModel", "nonorthogonality_matrix", "linear_design", "CLIP_RELATIVE_TOLERANCE", "unsaturated"]
+__all__ = ["SensorModel", "ModelJacobians", "motion_context", "motion_derivative"]
+
+
+def motion_context(stamps, omega, omega_dot, specific_force, rotations, *, t0_ns=None, omega_ddot=None,
+                   specific_force_dot=None, derivatives: bool = False) -> MotionContext:
+    """A :class:`MotionContext` from arrays (N, 3) in the array frame; rotations (K, 3, 3).
+
+    ``derivatives``: fill omega_ddot and specific_force_dot (when not given) by
+    differentiating omega_dot and specific_force over the stamps (second-order
+    central differences, one-sided at the ends; :func:`numpy.gradient`).  This is
+    how the simulator and the fitting engine obtain the derivatives the
+    ``time_offset`` term needs, so both see the same first-order model.
+    """
+    f = lambda a: None if a is None else np.asarray(a, dtype=float).reshape(-1, 3)  # noqa: E731
+    if derivatives:
+        omega_ddot = motion_derivative(stamps, omega_dot) if omega_ddot is None else omega_ddot
+        specific_force_dot = motion_derivative(stamps, specific_force) if specific_force_dot is None else specific_force_dot
+    return MotionContext(stamps=np.asarray(stamps, dtype=np.int64).reshape(-1), omega=f(omega), omega_dot=f(omega_dot),
+                         specific_force=f(specific_force), rotations=np.asarray(rotations, dtype=float),
+                         t0_ns=t0_ns, omega_ddot=f(omega_ddot), specific_force_dot=f(specific_force_dot))
+
+
+def motion_derivative(stamps, values) -> np.ndarray:
+    """d values / dt (N, 3) over integer ns ``stamps`` (N,); zeros for fewer than two samples."""
+    values = np.asarray(values, dtype=float).reshape(-1, 3)
+    if len(values) < 2:
+        return np.zeros_like(values)
+    t = (np.asarray(stamps, dtype=np.int64) - int(stamps[0])) * 1e-9
+    return np.gradient(values, t, axis=0)
+
+
+@dataclass
+class ModelJacobians:
+    """Predictions and Jacobians of every reading, rows [acc x, y, z, gyro x, y, z] per IMU.
+
+    predicted (N, K, 6); motion (N, K, 6, 9) d y / d [omega, omega_dot, s] (None when not asked for);
+    params: term name -> (N, K, 6, P) d y / d theta_k (IMU k's P parameters).
+    """
+
+    predicted: np.ndarray
+    motion: np.ndarray | None
+    params: dict[str, np.ndarray] = field(default_factory=dict)
+
 
 @dataclass(frozen=True)
-class LinearArrayModel:
-    """Array-wide linear measurement model (see module docstring).
+class SensorModel:
+    """Nominal geometry, noise and every registered term (at its identity value unless set).
 
-    positions (K, 3) m, array frame; acc_matrix (K, 3, 3) sensor <- array incl.
-    calibration (the s columns of D); acc_design (K, 3, 12) D_k (default: from
-    acc_matrix and positions, one lever arm per IMU); acc_bias (K, 3) m/s^2; gyro_matrix (K, 3, 3); gyro_bias (K, 3)
-    rad/s; acc_std, gyro_std (K, 3) noise standard deviations per sensor axis;
-    acc_range, gyro_range: nominal full-scale ranges (m/s^2, rad/s);
-    acc_clip, gyro_clip: magnitude at which the raw readings clip (default: the
-    range); acc_clip_tolerance, gyro_clip_tolerance: a reading with
-    ``|y| >= clip - tolerance`` is saturated (default
-    ``CLIP_RELATIVE_TOLERANCE * clip``; half an LSB for quantised sensors).
+    names (K,); rotations (K, 3, 3) nominal sensor -> array; acc_std, gyro_std
+    (K, 3) white-noise standard deviations; terms: registry name -> :class:`Term`;
+    acc_clip, gyro_clip: magnitude the raw readings clip at (inf: never);
+    acc_clip_tolerance, gyro_clip_tolerance: a reading with |y| >= clip - tolerance
+    is saturated (None: :func:`~imu_array_ros.model.saturation.clip_tolerance`; half an LSB when quantised).
     """
 
     names: tuple[str, ...]
     frame_id: str
-    positions: np.ndarray
-    acc_matrix: np.ndarray
-    acc_bias: np.ndarray
-    gyro_matrix: np.ndarray
-    gyro_bias: np.ndarray
+    rotations: np.ndarray
     acc_std: np.ndarray
     gyro_std: np.ndarray
-    acc_range: float
-    gyro_range: float
-    acc_clip: float | None = None
-    gyro_clip: float | None = None
+    terms: dict[str, Term]
+    acc_clip: float = np.inf
+    gyro_clip: float = np.inf
     acc_clip_tolerance: float | None = None
     gyro_clip_tolerance: float | None = None
-    acc_design: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.acc_design is None:
-            d = np.concatenate([centripetal_matrix(self.positions), euler_matrix(self.positions),
-                                np.broadcast_to(np.eye(3), (len(self.positions), 3, 3))], axis=2)
-            object.__setattr__(self, "acc_design", np.einsum("kij,kjl->kil", self.acc_matrix, d))
-        for sensor in ("acc", "gyro"):
-            clip = getattr(self, f"{sensor}_clip")
-            clip = float(getattr(self, f"{sensor}_range") if clip is None else clip)
-            tol = clip_tolerance(clip, getattr(self, f"{sensor}_clip_tolerance"))
-            if not (clip > 0 and np.isfinite(tol) and 0 <= tol < clip):
-                raise ValueError(f"{sensor}: need clip > 0 and 0 <= tolerance < clip, got {clip!r}, {tol!r}")
-            object.__setattr__(self, f"{sensor}_clip", clip)
-            object.__setattr__(self, f"{sensor}_clip_tolerance", tol)
 
     @property
     def n_imus(self) -> int:
         return len(self.names)
 
+    @property
+    def positions(self) -> np.ndarray:
+        """(K, 3) accelerometer positions (the ``position`` term's values), m."""
+        return self.terms["position"].values
+
     def acc_unsaturated(self, values: np.ndarray) -> np.ndarray:
-        """Raw accelerometer readings (any shape, m/s^2) that are finite and not clipped (:func:`unsaturated`)."""
+        """Raw accelerometer readings (any shape) that are finite and not clipped."""
         return unsaturated(values, self.acc_clip, self.acc_clip_tolerance)
 
     def gyro_unsaturated(self, values: np.ndarray) -> np.ndarray:
-        """Raw gyroscope readings (any shape, rad/s) that are finite and not clipped (:func:`unsaturated`)."""
+        """Raw gyroscope readings (any shape) that are finite and not clipped."""
         return unsaturated(values, self.gyro_clip, self.gyro_clip_tolerance)
 
-    @classmethod
-    def from_description(cls, desc: ArrayDescription) -> "LinearArrayModel":
-        """The linear form of the description's sensor model (see :meth:`from_sensor_model`)."""
-        return cls.from_sensor_model(SensorModel.from_description(desc), desc.accelerometer_range,
-                                     desc.gyroscope_range)
+    def valid(self, accel: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+        """(N, K, 6) True for the axes that carry information (finite, not saturated),
+        rows [acc x, y, z, gyro x, y, z] as in :class:`ModelJacobians`."""
+        return np.concatenate([self.acc_unsaturated(accel), self.gyro_unsaturated(gyro)], axis=-1)
+
+    @property
+    def std(self) -> np.ndarray:
+        """(K, 6) noise standard deviations, rows as in :meth:`valid`."""
+        return np.concatenate([self.acc_std, self.gyro_std], axis=1)
 
     @classmethod
-    def from_sensor_model(cls, model: SensorModel, acc_range: float | None = None,
-                          gyro_range: float | None = None) -> "LinearArrayModel":
-        """The exact linear form of ``model``'s linear terms (its other terms are left out)."""
-        design, acc_bias, gyro_matrix, gyro_bias = linear_design(model)
-        return cls(
-            names=model.names,
-            frame_id=model.frame_id,
-            positions=model.positions.copy(),
-            acc_matrix=design[:, :, 9:12].copy(),
-            acc_bias=acc_bias,
-            gyro_matrix=gyro_matrix,
-            gyro_bias=gyro_bias,
-            acc_std=model.acc_std.copy(),
-            gyro_std=model.gyro_std.copy(),
-            acc_range=float(model.acc_clip if acc_range is None else acc_range),
-            gyro_range=float(model.gyro_clip if gyro_range is None else gyro_range),
-            acc_clip=model.acc_clip,
-            gyro_clip=model.gyro_clip,
-            acc_clip_tolerance=model.acc_clip_tolerance,
-            gyro_clip_tolerance=model.gyro_clip_tolerance,
-            acc_design=design,
-        )
+    def from_description(cls, desc) -> "SensorModel":
+        """Every term's values from the description's fields (identity where absent)."""
+        k = len(desc.imus)
+        terms = {}
+        for name in term_names():
+            tc = REGISTRY[name]
+            values = tc.default_values(k)
+            for i, imu in enumerate(desc.imus):
+                values[i] = np.concatenate([np.asarray(imu.value(f.key), dtype=float).ravel() for f in tc.fields])
+            terms[name] = tc(values)
+        half = lambda lsb: None if lsb is None else 0.5 * lsb  # noqa: E731
+        return cls(names=desc.names, frame_id=desc.frame_id, rotations=desc.orientations,
+                   acc_std=np.full((k, 3), desc.accelerometer_noise_std),
+                   gyro_std=np.full((k, 3), desc.gyroscope_noise_std), terms=terms,
+                   acc_clip=float(desc.accelerometer_clip or desc.accelerometer_range),
+                   gyro_clip=float(desc.gyroscope_clip or desc.gyroscope_range),
+                   acc_clip_tolerance=half(desc.accelerometer_lsb), gyro_clip_tolerance=half(desc.gyroscope_lsb))
 
-    def select(self, index: Sequence[int]) -> "LinearArrayModel":
-        """A sub-array of the IMUs at ``index`` (e.g. to test an IMU dropping out)."""
-        idx = np.asarray(index)
-        return replace(
-            self,
-            names=tuple(self.names[i] for i in idx),
-            positions=self.positions[idx],
-            acc_matrix=self.acc_matrix[idx],
-            acc_bias=self.acc_bias[idx],
-            gyro_matrix=self.gyro_matrix[idx],
-            gyro_bias=self.gyro_bias[idx],
-            acc_std=self.acc_std[idx],
-            gyro_std=self.gyro_std[idx],
-            acc_design=self.acc_design[idx],
-        )
+    def to_description(self, desc, names: Iterable[str] | None = None, stds: dict[str, np.ndarray] | None = None):
+        """``desc`` (an :class:`~imu_array_ros.model.description.ArrayDescription` of the same
+        IMUs) with the values of the terms ``names`` (default: every term that is not at
+        its identity value) written into its fields, and ``stds`` (term name -> (K, P)
+        standard deviations; NaN entries are left out) written as ``<field>_std``."""
+        if tuple(desc.names) != tuple(self.names):
+            raise ValueError("the description's IMUs differ from the model's")
+        names = [n for n in self.terms if not self.terms[n].is_identity] if names is None else list(names)
+        stds = stds or {}
+        imus = []
+        for i, imu in enumerate(desc.imus):
+            values, sd = {}, {}
+            for name in names:
+                for key, v in self.terms[name].split().items():
+                    values[key] = v[i]
+                if name in stds:
+                    for key, v in type(self.terms[name])(np.asarray(stds[name])).split().items():
+                        if np.all(np.isfinite(v[i])):
+                            sd[key] = v[i]
+            imus.append(imu.with_values(values, sd))
+        return desc.with_imus(imus)
 
+    def linear_part(self) -> "SensorModel":
+        """A copy with every term that is not ``linear`` at its identity value."""
+        return replace(self, terms={n: (t if t.linear else type(t).identity(self.n_imus)) for n, t in self.terms.items()})
 
-def linear_design(model: SensorModel) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(D (K, 3, 12), accelerometer bias (K, 3), B (K, 3, 3), gyroscope bias (K, 3)) of
-    ``model``'s linear terms, read off 13 probe motions (see module docstring):
-    zero; omega = e_x, e_y, e_z, e_x+e_y, e_x+e_z, e_y+e_z; omega_dot = e_j; s = e_j."""
-    lin = model.linear_part()
-    eye = np.eye(3)
-    omega = np.zeros((13, 3))
-    omega[1:4] = eye
-    omega[4:7] = [[1, 1, 0], [1, 0, 1], [0, 1, 1]]
-    omega_dot = np.zeros((13, 3))
-    omega_dot[7:10] = eye
-    s = np.zeros((13, 3))
-    s[10:13] = eye
-    acc, gyr = lin.predict(motion_context(np.arange(13), omega, omega_dot, s, model.rotations))
-    b = acc[0]
-    d = np.empty((model.n_imus, 3, 12))
-    d[:, :, 0:3] = np.moveaxis(acc[1:4] - b, 0, 2)  # q = wx^2, wy^2, wz^2
-    for col, (probe, i, j) in enumerate(((4, 1, 2), (5, 1, 3), (6, 2, 3))):  # q = wx wy, wx wz, wy wz
-        d[:, :, 3 + col] = acc[probe] - acc[i] - acc[j] + b
-    d[:, :, 6:9] = np.moveaxis(acc[7:10] - b, 0, 2)
-    d[:, :, 9:12] = np.moveaxis(acc[10:13] - b, 0, 2)
-    return d, b.copy(), np.moveaxis(gyr[1:4] - gyr[0], 0, 2), gyr[0].copy()
+    @property
+    def nonlinear_terms(self) -> list[str]:
+        """Names of the terms that are not linear and not at their identity value."""
+        return [n for n, t in self.terms.items() if not t.linear and not t.is_identity]
+
+    def with_terms(self, **values: np.ndarray) -> "SensorModel":
+        """A copy with some terms' values (K, P) replaced."""
+        terms = dict(self.terms)
+        for name, v in values.items():
+            terms[name] = terms[name].with_values(np.asarray(v, dtype=float).reshape(self.n_imus, -1))
+        return replace(self, terms=terms)
+
+    def chain(self, sensor: str, keep: Iterable[str] = ()) -> list[Term]:
+        """The terms acting on ``sensor`` in order; identity terms left out unless in ``keep``."""
+        keep = set(keep)
+        out = [t for t in self.terms.values() if sensor in t.sensors and (t.name in keep or not t.is_identity)]
+        return sorted(out, key=lambda t: t.order)
+
+    def _prepare(self, ctx: MotionContext) -> MotionContext:
+        ctx.positions = self.terms["position"].values
+        return ctx
+
+    def _base(self, ctx: MotionContext, sensor: str) -> np.ndarray:
+        v = ctx.specific_force if sensor == "accelerometer" else ctx.omega
+        k = len(ctx.rotations)  # R_k^T v_n for all (n, k) as one matrix product: (N, 3) @ (3, 3K)
+        return (v @ ctx.rotations.transpose(1, 0, 2).reshape(3, 3 * k)).reshape(len(v), k, 3)
+
+    def predict(self, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free readings (accelerometers, gyroscopes), each (N, K, 3), sensor frames, unclipped."""
+        ctx = self._prepare(ctx)
+        out = []
+        for sensor in SENSORS:
+            x = self._base(ctx, sensor)
+            for term in self.chain(sensor):
+                x = term.apply(x, ctx, sensor)
+            out.append(x)
+        return out[0], out[1]
+
+    def jacobians(self, ctx: MotionContext, free: Sequence[str] = (), *, motion: bool = True) -> ModelJacobians:
+        """Predictions and analytic Jacobians (motion, and the ``free`` terms' parameters);
+        ``motion=False``: the parameters' only (``ModelJacobians.motion`` is None), e.g. for a
+        parameter step with the motion held (the geometry calibration's block coordinate descent)."""
+        with_motion = motion
+        unknown = [n for n in free if n not in self.terms]
+        if unknown:
+            raise KeyError(f"unknown term {unknown[0]!r} (known: {', '.join(term_names())})")
+        ctx = self._prepare(ctx)
+        n, k = ctx.n, self.n_imus
+        predicted = np.empty((n, k, 6))
+        motion = np.zeros((n, k, 6, 9)) if with_motion else None
+        params = {name: np.zeros((n, k, 6, self.terms[name].dim())) for name in free}
+        for s, sensor in enumerate(SENSORS):
+            rows = slice(3 * s, 3 * s + 3)
+            chain = self.chain(sensor, keep=free)
+            x = self._base(ctx, sensor)
+            inputs = []
+            for term in chain:
+                inputs.append(x)
+                x = term.apply(x, ctx, sensor)
+            predicted[:, :, rows] = x
+            d = None  # d y / d (signal after the current term); None: the identity (no product needed)
+            times = lambda a: a if d is None else d @ a  # noqa: E731
+            for term, x_in in zip(reversed(chain), reversed(inputs)):
+                if term.name in params:
+                    params[term.name][:, :, rows] += times(term.d_params(x_in, ctx, sensor))
+                dm = term.d_motion(x_in, ctx, sensor) if with_motion else None
+                if dm is not None:
+                    motion[:, :, rows] += times(dm)
+                if "position" in params:
+                    dp = term.d_positions(x_in, ctx, sensor)  # terms that read the positions
+                    if dp is not None:
+                        params["position"][:, :, rows] += times(dp)
+                di = term.d_input(x_in, ctx, sensor)
+                if di is not None:
+                    d = times(di)
+            base = 6 if sensor == "accelerometer" else 0  # R^T s or R^T omega
+            if with_motion:
+                motion[:, :, rows, base:base + 3] += times(ctx.rot_t[None])
+        return ModelJacobians(predicted=predicted, motion=motion, params=params)
+

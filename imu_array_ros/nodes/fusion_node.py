@@ -5,7 +5,7 @@ Subscribes ``<topic_prefix>/<name>/data_raw`` for every IMU of the description;
 publishes ``<topic_prefix>/fused/imu`` (Imu) and ``<topic_prefix>/fused/accel``
 (AccelWithCovarianceStamped), exactly as ``imu-array fuse`` writes them, and
 ``/diagnostics``.  Parameters: :data:`imu_array_ros.nodes.parameters.FUSION_PARAMS`.
-All the work is :class:`imu_array_ros.estimation.live.LiveFusion`; the
+All the work is :class:`imu_array_ros.fusion.live.LiveFusion`; the
 subscriptions take the serialized messages (``raw=True``) and only queue them.
 """
 
@@ -20,7 +20,7 @@ from sensor_msgs.msg import Imu
 
 from imu_array_ros.cli.commands import load_array
 from imu_array_ros.errors import ImuArrayError
-from imu_array_ros.estimation.live import LiveFusion
+from imu_array_ros.fusion.live import LiveFusion
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer

@@ -27,7 +27,7 @@ def main(argv=None) -> int:
     from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import Imu
 
-    from imu_array_ros.io.atomic import atomic_write_bytes
+    from imu_array_ros.util.files import atomic_write_bytes
     from imu_array_ros.io.messages import concat_payloads, decode_fused
     from imu_array_ros.io.rosbag.cdr_columns import decode_accel_with_covariance_stamped, decode_imu
     from imu_array_ros.nodes.runtime import qos

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.terms import REGISTRY
 from imu_array_ros.simulation.icosahedron import simulate_icosahedron
 from imu_array_ros.simulation.perturb import TERM_TEST_SIZES

@@ -1,6 +1,6 @@
 """Physics the sensor model cannot describe, added to simulated measurements.
 
-The forward model (:class:`~imu_array_ros.model.forward.SensorModel` and its
+The forward model (:class:`~imu_array_ros.model.sensor_model.SensorModel` and its
 term library :mod:`imu_array_ros.model.terms`) assumes a *rigid* array whose
 sensors see deterministic functions of the rigid-body motion plus *white*
 Gaussian noise.  The effects here break that assumption on purpose, so a
@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import lfilter
 
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.samples import ImuSamples
 
 __all__ = ["add_vibration", "add_colored_noise", "narrowband_process", "EFFECTS", "SENSOR_KINDS"]

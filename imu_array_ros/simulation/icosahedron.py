@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.description import ArrayDescription
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.samples import ImuSamples, MotionTruth
 from imu_array_ros.simulation.motion import TwistTrajectory, quat_exp, quat_multiply, quat_to_matrix
 from imu_array_ros.simulation.simulator import as_sensor_model, simulate_measurements

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, term_names
 
 __all__ = ["DEFAULT_ERROR_SCALES", "TERM_TEST_SIZES", "perturb"]

@@ -1,12 +1,12 @@
 """Simulated array measurements through THE forward model.
 
 ``simulate_measurements`` evaluates :meth:`SensorModel.predict
-<imu_array_ros.model.forward.SensorModel.predict>` (every term of the model:
+<imu_array_ros.model.sensor_model.SensorModel.predict>` (every term of the model:
 geometry, calibration, time offsets, g-sensitivity, ...) for the true motion,
 adds white Gaussian noise with the model's standard deviations and clips at
 the sensors' clip levels (``accelerometer_clip``/``gyroscope_clip``, default the
 ranges).  The derivatives the ``time_offset`` term needs are those of
-:func:`~imu_array_ros.model.forward.motion_context` with ``derivatives=True``,
+:func:`~imu_array_ros.model.sensor_model.motion_context` with ``derivatives=True``,
 the same the fitting engine uses.  Bias drifts count from the first stamp.
 """
 
@@ -15,11 +15,12 @@ from __future__ import annotations
 import numpy as np
 
 from imu_array_ros.model.description import ArrayDescription
-from imu_array_ros.model.forward import SensorModel, motion_context
-from imu_array_ros.model.samples import ImuSamples, MotionTruth
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
+from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
 from imu_array_ros.simulation.motion import TwistTrajectory, gaussian_motion, random_motion
 
-__all__ = ["simulate_measurements", "simulate_twist", "simulate_random", "simulate_gaussian", "as_sensor_model"]
+__all__ = ["simulate_measurements", "simulate_twist", "simulate_random", "simulate_gaussian", "as_sensor_model",
+           "simulate_same_motion"]
 
 
 def as_sensor_model(model: SensorModel | ArrayDescription) -> SensorModel:
@@ -72,3 +73,20 @@ def simulate_gaussian(model: SensorModel | ArrayDescription, n: int, rng: np.ran
     truth = gaussian_motion(n, omega_std, omega_dot_std, specific_force_std, rng, rate_hz=rate_hz,
                             start_ns=start_ns)
     return simulate_measurements(model, truth, rng, saturate=False), truth
+
+
+def simulate_same_motion(fused: FusedSamples, model: SensorModel, rng: np.random.Generator,
+                         like: ImuSamples | None = None) -> ImuSamples:
+    """Simulated recording of the motion estimated in ``fused``, measured by ``model``.
+
+    With ``like``, IMUs/axes missing there are missing here too, so both
+    recordings are analysed on the same footing.
+    """
+    truth = MotionTruth(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force)
+    sim = simulate_measurements(model, truth, rng)
+    if like is not None:
+        idx = np.searchsorted(like.stamps, fused.stamps)
+        missing = ~np.isfinite(like.accel[idx]) | ~np.isfinite(like.gyro[idx])
+        sim.accel[missing] = np.nan
+        sim.gyro[missing] = np.nan
+    return sim

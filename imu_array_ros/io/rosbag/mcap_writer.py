@@ -10,7 +10,7 @@ so writing costs no per-message Python.  Output: MCAP with profile
 ``offered_qos_profiles`` / ``topic_type_hash`` metadata, message indexes,
 chunk indexes, statistics and a ``rosbag2`` metadata record; for a
 directory also a rosbag2 Jazzy (version 9) ``metadata.yaml``.  Files are
-written atomically (:func:`imu_array_ros.io.atomic.atomic_path`).
+written atomically (:func:`imu_array_ros.util.files.atomic_path`).
 
 Format constants and compressors: :mod:`imu_array_ros.io.rosbag.mcap_format`;
 reading: :mod:`imu_array_ros.io.rosbag.mcap_reader` (one file),
@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 from numpy.lib.stride_tricks import sliding_window_view
 
-from imu_array_ros.io.atomic import atomic_path
+from imu_array_ros.util.files import atomic_path
 from imu_array_ros.errors import RecordingError
 from imu_array_ros.io.rosbag.mcap_format import (
     DEFAULT_CHUNK_SIZE,

@@ -43,7 +43,7 @@ from mcap.records import Channel, Chunk, DataEnd, Message, MessageIndex, Schema,
 from mcap.stream_reader import StreamReader, read_magic
 
 from imu_array_ros.errors import RecordingError
-from imu_array_ros.io.atomic import check_output
+from imu_array_ros.io.outputs import check_output
 from imu_array_ros.io.rosbag.cdr_columns import gather_bytes
 from imu_array_ros.io.rosbag.mcap_format import OP_CHANNEL, OP_CHUNK, OP_MESSAGE, OP_SCHEMA
 from imu_array_ros.io.rosbag.mcap_locate import locate_messages, message_batch
@@ -381,7 +381,7 @@ def recover_recording(
     RecordingError
         ``src`` is missing or not MCAP, or nothing can be salvaged.
     OutputError
-        ``out`` is unsafe to write (see :func:`imu_array_ros.io.atomic.check_output`).
+        ``out`` is unsafe to write (see :func:`imu_array_ros.io.outputs.check_output`).
     """
     src_path, files, info = _inputs(Path(src))
     out = check_output(out, [src_path, *files], "recording", force)

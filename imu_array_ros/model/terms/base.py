@@ -4,7 +4,7 @@ A *term* is one piece of sensor physics acting on one sensor type of every IMU
 (accelerometer, gyroscope or both): a named, per-IMU parameter vector with units and
 an identity default, stored in the description under the YAML fields it owns,
 and its effect on the signal as it passes along that sensor's measurement
-chain (:mod:`imu_array_ros.model.sensor_model`)::
+chain (:mod:`imu_array_ros.model.linear`)::
 
     x  <-  term.apply(x, ctx, sensor)   x: (N, K, 3) the signal at the term's stage
 

@@ -1,7 +1,7 @@
 """Geometry of the ML fusion per pattern of valid accelerometer axes (skog2016 eq. 8-11, 14-15).
 
 The accelerometer readings are linear in ``z = [q(omega), omega_dot, s]``:
-``y_a - b = D z + n`` (see :mod:`imu_array_ros.estimation.ml_fusion`).  For a
+``y_a - b = D z + n`` (see :mod:`imu_array_ros.fusion.ml_fusion`).  For a
 pattern of valid axes (zero weight on the others), ``F = D^T W D`` split into
 the q- and phi = [omega_dot, s]-blocks gives all the solver needs that does not
 depend on the sample: ``E = F_pp^-1 F_pq``, ``F~ = F_qq - F_qp E``, ``F_pp^-1``
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from imu_array_ros.estimation.batched_linalg import inv_spd6, row_times
-from imu_array_ros.estimation.validity import valid_sum
+from imu_array_ros.fusion.batched_linalg import inv_spd6, row_times
+from imu_array_ros.fusion.validity import valid_sum
 from imu_array_ros.model.kinematics import quadratic_monomials_jacobian
 
 __all__ = ["MAX_COND", "Geometry", "shared_geometry", "stacked_geometry", "dropout_masks", "dropout_table"]
@@ -126,8 +126,8 @@ def stacked_geometry(valid: np.ndarray, f_imu: np.ndarray, f_axis: np.ndarray) -
     f_axis (3K, 144): ``F = D^T W D`` (12 x 12, flat) of each single sensor
     axis; f_imu (K, 144): of each whole IMU.  The matrices of
     :func:`shared_geometry`, stacked: ``F`` with zero weight on invalid axes
-    (:func:`~imu_array_ros.estimation.validity.valid_sum`), ``F_pp`` inverted by a
-    batched Cholesky (:func:`~imu_array_ros.estimation.batched_linalg.inv_spd6`),
+    (:func:`~imu_array_ros.fusion.validity.valid_sum`), ``F_pp`` inverted by a
+    batched Cholesky (:func:`~imu_array_ros.fusion.batched_linalg.inv_spd6`),
     everything else by batched products, so the cost is linear in M whatever
     the number of distinct patterns.  Returns the geometry (M', ...) of the
     identifiable samples and their row indices (M',) into ``valid``.
@@ -153,7 +153,7 @@ def dropout_masks(k: int, depth: int) -> np.ndarray:
 
     Rows: all IMUs valid (0); all but IMU i (1 + i); with depth 2, all but IMUs
     i < j (1 + K + pair index in ``np.triu_indices(K, 1)`` order, see
-    :meth:`~imu_array_ros.estimation.validity.Invalid.table_index`).
+    :meth:`~imu_array_ros.fusion.validity.Invalid.table_index`).
     """
     masks = [np.ones((1, k), dtype=bool), ~np.eye(k, dtype=bool)]
     if depth == 2:

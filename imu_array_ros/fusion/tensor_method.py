@@ -14,7 +14,7 @@ import numpy as np
 
 from imu_array_ros.errors import IdentifiabilityError
 from imu_array_ros.model.samples import ImuSamples
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 
 __all__ = ["tensor_method"]
 

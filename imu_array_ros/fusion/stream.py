@@ -1,8 +1,8 @@
 """Fusion of a whole stream of array samples in bounded chunks.
 
 The command line (``imu-array fuse``/``residuals``) calls :func:`fuse_chunked`
-and the fusion node :class:`~imu_array_ros.estimation.live.LiveFusion`, both on
-the fusion object :func:`~imu_array_ros.estimation.live.build_fusion` makes.
+and the fusion node :class:`~imu_array_ros.fusion.live.LiveFusion`, both on
+the fusion object :func:`~imu_array_ros.fusion.live.build_fusion` makes.
 Each sample is fused on its own, so chunking changes a value only by rounding
 (a few vectorised sums run in another order for another batch size: within
 1e-12 relative on ``bags/twist32_sample``, test_live_fusion.py).
@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from imu_array_ros.estimation.ml_fusion import FusionStats, MLFusion
+from imu_array_ros.fusion.ml_fusion import FusionStats, MLFusion
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 
 __all__ = ["fuse_chunked", "concatenate_fused", "DEFAULT_CHUNK"]

@@ -6,7 +6,7 @@ Sample n (n = 1..N) of IMU k reads six axes r = [acc x, y, z, gyro x, y, z]::
 
     y_nkr = h_kr(x_n, theta_k) + e_nkr,    e_nkr ~ N(0, sigma_kr^2) white,
 
-with h the sensor model (:class:`~imu_array_ros.model.forward.SensorModel`),
+with h the sensor model (:class:`~imu_array_ros.model.sensor_model.SensorModel`),
 x_n = [omega, omega_dot, s] (9) the motion of sample n and theta_k the free
 terms' parameters of IMU k (IMU k's parameters move only IMU k's readings).
 Saturated and missing axes carry no information and get weight 0, as in the
@@ -80,7 +80,7 @@ Approximation
 -------------
 The ``time_offset`` term reads the time derivatives omega_ddot and ds/dt of the
 motion.  They are recomputed from the current motion estimate at every
-iteration (:func:`~imu_array_ros.model.forward.motion_derivative`, as the
+iteration (:func:`~imu_array_ros.model.sensor_model.motion_derivative`, as the
 simulator does) and held fixed within the iteration, in the Jacobians and in
 the cost of the trial step: the dependence of sample n's reading on its
 neighbours' motion through those derivatives is neglected (keeps the normal
@@ -98,8 +98,8 @@ import numpy as np
 import scipy.linalg
 
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.estimation.motion_models import RigidMotion
-from imu_array_ros.model.forward import SensorModel, motion_context, motion_derivative
+from imu_array_ros.fitting.motion_models import RigidMotion
+from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.terms import REGISTRY, term_names
 
 __all__ = ["FitResult", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms", "GAUGE_ORDER"]
@@ -190,9 +190,9 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     progress(iteration, cost): called once per iteration, cost = sum of
     squared normalised residuals / 2;
     motion_model: how each sample's motion is parametrised
-    (:mod:`~imu_array_ros.estimation.motion_models`; default
-    :class:`~imu_array_ros.estimation.motion_models.RigidMotion`, any motion;
-    :class:`~imu_array_ros.estimation.motion_models.StaticMotion` for poses at
+    (:mod:`~imu_array_ros.fitting.motion_models`; default
+    :class:`~imu_array_ros.fitting.motion_models.RigidMotion`, any motion;
+    :class:`~imu_array_ros.fitting.motion_models.StaticMotion` for poses at
     rest on gravity of known magnitude); sigma: (N, K, 6) standard deviations
     of the readings [acc, gyro] replacing the model's noise figures (e.g. of
     averages over still intervals, or robust reweighting); only: term -> IMUs

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from imu_array_ros.estimation.batched_linalg import BLOCK
+from imu_array_ros.fusion.batched_linalg import BLOCK
 
 __all__ = ["valid_sum", "masked_product", "weight_sum", "Invalid", "pattern_summary"]
 
@@ -171,7 +171,7 @@ class Invalid:
         return out
 
     def table_index(self, k: int, depth: int) -> np.ndarray:
-        """(R,) row of the fusion's dropout table (:func:`~imu_array_ros.estimation.pattern_geometry.dropout_masks`)
+        """(R,) row of the fusion's dropout table (:func:`~imu_array_ros.fusion.pattern_geometry.dropout_masks`)
         for each sample: 1 + i for IMU i missing, 1 + K + pair index for IMUs i < j (in ``np.triu_indices(K, 1)``
         order); -1 with partly invalid IMUs or more than ``depth`` missing."""
         if self.flat is None:

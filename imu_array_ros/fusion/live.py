@@ -8,18 +8,18 @@ to data happens here, ROS-free and testable without DDS:
    counts undecodable ones, wrong ``frame_id`` and non-finite values, and puts
    the rest into the stamp-keyed :class:`~imu_array_ros.io.sync.SampleAssembler`;
 2. :meth:`LiveFusion.step` takes the ready array samples and fuses them, at most
-   ``max_batch`` at a time, with :class:`~imu_array_ros.estimation.model_fusion.ModelFusion`
+   ``max_batch`` at a time, with :class:`~imu_array_ros.fusion.model_fusion.ModelFusion`
    -- the object ``imu-array fuse`` uses, built the same way -- and returns the
    fused payloads (:func:`~imu_array_ros.io.messages.fused_payloads`, the
    writer of fused recordings);
 3. the last ``window_ns`` of samples is kept for the diagnostics: the NIS ratio
-   of the residuals (:func:`~imu_array_ros.discovery.residuals.normalized_residuals`,
+   of the residuals (:func:`~imu_array_ros.fusion.residuals.normalized_residuals`,
    as ``imu-array residuals``), rates, and output latency.
 
 Same numbers as the offline command: each sample is fused on its own, so
 batching changes a value only by rounding (within 1e-12 relative, tested; a few vectorised
 sums run in another order for another batch size), with one exception stated in
-:mod:`~imu_array_ros.estimation.model_fusion`: a time-offset term compensates with
+:mod:`~imu_array_ros.fusion.model_fusion`: a time-offset term compensates with
 time derivatives of the estimate taken across neighbouring samples, which at a
 batch edge are one-sided.  Bias drift counts from the first stamp fused, as
 offline (the recording's first stamp).
@@ -37,13 +37,13 @@ from typing import Sequence
 import numpy as np
 
 from imu_array_ros.errors import ConfigError
-from imu_array_ros.estimation.ml_fusion import FusionStats
-from imu_array_ros.estimation.model_fusion import ModelFusion
-from imu_array_ros.estimation.stream import concatenate_fused
+from imu_array_ros.fusion.ml_fusion import FusionStats
+from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.fusion.stream import concatenate_fused
 from imu_array_ros.io.messages import fused_payloads
 from imu_array_ros.io.sync import InputCounts, RawIntake
 from imu_array_ros.model.description import ArrayDescription
-from imu_array_ros.model.forward import SensorModel
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.identifiability import check_identifiable
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 
@@ -159,7 +159,7 @@ class LiveFusion:
 
     def summary(self, now_ns: int) -> WindowSummary:
         """Rates, NIS ratio and latency over the last window (the node's /diagnostics)."""
-        from imu_array_ros.discovery.residuals import normalized_residuals
+        from imu_array_ros.fusion.residuals import normalized_residuals
 
         self._trim(now_ns)
         span = self.window_ns / 1e9

@@ -1,7 +1,7 @@
 """Maximum-likelihood fusion of an inertial sensor array (skog2016 Sec. II-III).
 
 Model (skog2016 eq. 3-5, with the calibrated sensor frames of
-:mod:`imu_array_ros.model.sensor_model`): for accelerometer triad ``i``
+:mod:`imu_array_ros.model.linear`): for accelerometer triad ``i``
 
     y_i - b_i = A_i ( s + Omega_w^2 r_i - Omega_{r_i} omega_dot ) + n_i
 
@@ -43,10 +43,10 @@ per-pattern Python loop.
 This module holds :class:`FusionConfig`, :class:`FusionStats`, :class:`MLFusion`
 (valid axes of each sample, ``beta`` and the gyro terms, grouping by pattern
 with its geometry cache, estimate and blockwise CRB) and :func:`fuse`.  It
-builds on :mod:`~imu_array_ros.estimation.validity` (sums over the valid axes,
-invalid entries, patterns), :mod:`~imu_array_ros.estimation.pattern_geometry`
-(``F~``, ``E``, ``F_pp^-1`` per pattern), :mod:`~imu_array_ros.estimation.gauss_newton`
-(the solver) and :mod:`~imu_array_ros.estimation.batched_linalg` (batched 3x3
+builds on :mod:`~imu_array_ros.fusion.validity` (sums over the valid axes,
+invalid entries, patterns), :mod:`~imu_array_ros.fusion.pattern_geometry`
+(``F~``, ``E``, ``F_pp^-1`` per pattern), :mod:`~imu_array_ros.fusion.gauss_newton`
+(the solver) and :mod:`~imu_array_ros.fusion.batched_linalg` (batched 3x3
 and 6x6 inverses).
 """
 
@@ -57,21 +57,21 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from imu_array_ros.estimation.batched_linalg import BLOCK, inv_sym3, row_times, solve_sym3, take_rows
-from imu_array_ros.estimation.gauss_newton import gauss_newton
-from imu_array_ros.estimation.pattern_geometry import (
+from imu_array_ros.fusion.batched_linalg import BLOCK, inv_sym3, row_times, solve_sym3, take_rows
+from imu_array_ros.fusion.gauss_newton import gauss_newton
+from imu_array_ros.fusion.pattern_geometry import (
     Geometry,
     dropout_masks,
     dropout_table,
     shared_geometry,
     stacked_geometry,
 )
-from imu_array_ros.estimation.validity import Invalid, masked_product, pattern_summary, weight_sum
+from imu_array_ros.fusion.validity import Invalid, masked_product, pattern_summary, weight_sum
 from imu_array_ros.model.identifiability import check_identifiable
 from imu_array_ros.errors import FusionError
 from imu_array_ros.model.kinematics import quadratic_monomials
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 
 __all__ = ["FusionConfig", "FusionStats", "MLFusion", "fuse"]
 
@@ -214,7 +214,7 @@ class MLFusion:
         one cached geometry.  All others get their own geometry, taken from a
         precomputed table when up to two whole IMUs are missing
         (:meth:`_dropout_table`) and built in one batch otherwise
-        (:func:`~imu_array_ros.estimation.pattern_geometry.stacked_geometry`),
+        (:func:`~imu_array_ros.fusion.pattern_geometry.stacked_geometry`),
         so the cost does not grow with the number of distinct patterns (IMU
         dropouts, saturation).
         """

@@ -1,8 +1,8 @@
 """ML fusion with the whole sensor model: the linear solve plus compensation of the
 terms that are not linear.
 
-The fusion (:class:`~imu_array_ros.estimation.ml_fusion.MLFusion`) solves the
-model's exact linear form (:class:`~imu_array_ros.model.sensor_model.LinearArrayModel`:
+The fusion (:class:`~imu_array_ros.fusion.ml_fusion.MLFusion`) solves the
+model's exact linear form (:class:`~imu_array_ros.model.linear.LinearArrayModel`:
 positions, per-axis lever arms, misalignment, non-orthogonality, gain, bias).
 The other terms (accelerometer nonlinearity, gyroscope g-sensitivity, time
 offsets, bias drift) are *compensated on the readings*: with the motion
@@ -10,14 +10,14 @@ estimate x_hat of the previous pass,
 
     y_compensated = y - [h(x_hat) - h_linear(x_hat)]
 
-where h is :meth:`SensorModel.predict <imu_array_ros.model.forward.SensorModel.predict>`
+where h is :meth:`SensorModel.predict <imu_array_ros.model.sensor_model.SensorModel.predict>`
 with every term and h_linear with the non-linear terms at identity; then the
 linear solve runs again.  The approximation: the correction is evaluated at the
 estimate rather than the true motion, so its error is d(h - h_linear)/dx times
 the estimation error -- e.g. g-sensitivity G (~1e-3 (rad/s)/(m/s^2)) times the
 specific-force error, or a time offset times the error of ds/dt, which is
 differentiated from the estimated specific force (central differences over the
-stamps, :func:`~imu_array_ros.model.forward.motion_context`).  Terms that need no
+stamps, :func:`~imu_array_ros.model.sensor_model.motion_context`).  Terms that need no
 motion (drift, nonlinearity of the readings' own size) are exact up to the
 same second-order effect.  The first pass fuses the raw readings; ``passes``
 (default 2) further passes follow.  Saturation is decided on the raw readings:
@@ -34,10 +34,10 @@ from __future__ import annotations
 import numpy as np
 
 from imu_array_ros.errors import FusionError
-from imu_array_ros.estimation.ml_fusion import FusionConfig, FusionStats, MLFusion
-from imu_array_ros.model.forward import SensorModel, motion_context
+from imu_array_ros.fusion.ml_fusion import FusionConfig, FusionStats, MLFusion
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 
 __all__ = ["ModelFusion", "fuse_model"]
 

@@ -2,7 +2,7 @@
 
 The cost of omega with phi = [omega_dot, s] concentrated out is the quartic
 ``J(omega) = q^T F~ q - 2 q^T beta~ + omega^T W_g omega - 2 omega^T g`` in the
-quadratic monomials ``q = q(omega)`` (see :mod:`imu_array_ros.estimation.ml_fusion`
+quadratic monomials ``q = q(omega)`` (see :mod:`imu_array_ros.fusion.ml_fusion`
 for ``F~``, ``beta~``, ``W_g``, ``g``).  :func:`gauss_newton` iterates
 
     ``omega += (Jq^T F~ Jq + W_g)^{-1} (Jq^T (beta~ - F~ q) + g - W_g omega)``
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imu_array_ros.estimation.batched_linalg import row_times, solve_sym3, take_rows
+from imu_array_ros.fusion.batched_linalg import row_times, solve_sym3, take_rows
 from imu_array_ros.model.kinematics import quadratic_monomials
 
 __all__ = ["gauss_newton"]

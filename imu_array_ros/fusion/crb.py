@@ -1,7 +1,7 @@
 """Cramér-Rao bound of the array fusion problem (skog2016 Sec. IV).
 
 Written directly from eq. 13-15, independently of the algebra inside
-:mod:`imu_array_ros.estimation.ml_fusion`, so that each can check the other
+:mod:`imu_array_ros.fusion.ml_fusion`, so that each can check the other
 (the accelerometer rows come from the model's design D_k, which tests check
 against eq. 13 for one lever arm per IMU):
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from imu_array_ros.model.kinematics import quadratic_monomials_jacobian
-from imu_array_ros.model.sensor_model import LinearArrayModel
+from imu_array_ros.model.linear import LinearArrayModel
 
 __all__ = ["jacobian_rows", "fisher_information", "crb", "square_array_omega_information"]
 

@@ -1,6 +1,6 @@
 """How well a model explains a recording: normalised residuals (NIS).
 
-For every fused sample the model (:class:`~imu_array_ros.model.forward.SensorModel`,
+For every fused sample the model (:class:`~imu_array_ros.model.sensor_model.SensorModel`,
 every term) predicts each valid sensor axis from the ML estimate
 theta_hat = [omega, omega_dot, s] (skog2016 eq. 5).  The normalised
 squared residual of axis a is ``z^2 = (y_a - h_a(theta_hat))^2 / sigma_a^2``.  If
@@ -19,11 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imu_array_ros.model.forward import SensorModel, motion_context
-from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
-from imu_array_ros.simulation.simulator import simulate_measurements
+from imu_array_ros.model.sensor_model import SensorModel, motion_context
+from imu_array_ros.model.samples import FusedSamples, ImuSamples
 
-__all__ = ["ResidualReport", "normalized_residuals", "simulate_same_motion", "AXES"]
+__all__ = ["ResidualReport", "normalized_residuals", "AXES"]
 
 AXES = ("acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z")
 
@@ -134,20 +133,3 @@ def normalized_residuals(samples: ImuSamples, model: SensorModel, fused: FusedSa
         samples={"still": int(np.count_nonzero(~moving)), "moving": int(np.count_nonzero(moving))},
         nis=nis, nis_expected=nis_exp, moving=moving,
     )
-
-
-def simulate_same_motion(fused: FusedSamples, model: SensorModel, rng: np.random.Generator,
-                         like: ImuSamples | None = None) -> ImuSamples:
-    """Simulated recording of the motion estimated in ``fused``, measured by ``model``.
-
-    With ``like``, IMUs/axes missing there are missing here too, so both
-    recordings are analysed on the same footing.
-    """
-    truth = MotionTruth(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force)
-    sim = simulate_measurements(model, truth, rng)
-    if like is not None:
-        idx = np.searchsorted(like.stamps, fused.stamps)
-        missing = ~np.isfinite(like.accel[idx]) | ~np.isfinite(like.gyro[idx])
-        sim.accel[missing] = np.nan
-        sim.gyro[missing] = np.nan
-    return sim

@@ -1,139 +1,31 @@
-"""Safe outputs: atomic writes, and the one rule that decides what may be replaced.
+"""The one rule that decides what an output may replace (every command that writes calls it first).
 
-* :func:`atomic_path` / :func:`atomic_write_bytes` / :func:`atomic_write_text`:
-  write to a temporary sibling, then rename over the target.  A reader never
-  sees a half-written file or directory, a failed write leaves the previous
-  content untouched, and no temporary (``.*.tmp``) or backup (``.*.old``) path
-  is left behind, whether the write succeeds or fails.
-* :func:`check_output`: whether an output path may be written at all.  An
-  output is never an input, never contains one and never lies inside one; an
-  existing output is replaced only with ``force`` and only when it is itself a
-  file of the kind being written (an MCAP file, a rosbag2 directory holding
-  nothing but its own files, a YAML or JSON file).  Every command that writes
-  calls it before doing any work.
+:func:`check_output`: whether an output path may be written at all.  An
+output is never an input, never contains one and never lies inside one; an
+existing output is replaced only with ``force`` and only when it is itself a
+file of the kind being written (an MCAP file, a rosbag2 directory holding
+nothing but its own files, a YAML or JSON file, a PNG).  The write itself is
+atomic (:mod:`imu_array_ros.util.files`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import shutil
-import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable
 
 from imu_array_ros.errors import OutputError
 from imu_array_ros.io.rosbag.mcap_format import MAGIC as MCAP_MAGIC
+from imu_array_ros.util.files import unnamed
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "check_output", "json_safe", "OUTPUT_KINDS"]
+__all__ = ["check_output", "OUTPUT_KINDS"]
 
 #: What :func:`check_output` knows how to recognise (and therefore may replace).
 OUTPUT_KINDS = ("recording", "yaml", "json", "png")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 _MAX_TEXT_BYTES = 64 << 20  # a YAML/JSON output larger than this is not one of ours
-
-
-def _bad_name(target: Path) -> bool:
-    return target.name in ("", ".", "..")
-
-
-def _fsync_dir(path: Path) -> None:
-    """Make a rename in ``path`` durable (best effort: not every platform allows it)."""
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _remove(path: Path) -> None:
-    """Remove a temporary path of ours, file or directory; never raises."""
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        with contextlib.suppress(OSError):
-            path.unlink()
-
-
-def _replace_directory(tmp: Path, target: Path, parent: Path) -> None:
-    """Put the complete directory ``tmp`` in place of the existing directory ``target``.
-
-    The old directory is moved aside into a fresh holder directory, the new one
-    renamed in, then the old one deleted.  If the second rename fails the old
-    directory is moved back, so ``target`` is never lost and nothing is left over.
-    """
-    holder = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=parent))
-    aside = holder / "previous"
-    try:
-        os.rename(target, aside)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            holder.rmdir()
-        raise
-    try:
-        os.rename(tmp, target)
-    except BaseException:
-        os.rename(aside, target)  # put the previous content back
-        with contextlib.suppress(OSError):
-            holder.rmdir()
-        raise
-    shutil.rmtree(holder, ignore_errors=True)
-
-
-@contextlib.contextmanager
-def atomic_path(target: str | os.PathLike, *, directory: bool = False) -> Iterator[Path]:
-    """Yield a temporary path beside ``target``; on success rename it onto ``target``.
-
-    With ``directory=True`` the temporary path is an (empty) directory and an
-    existing target directory is replaced as a whole, only once the new one is
-    complete.  On any exception the temporary path is removed and the target is
-    left as it was; no ``.tmp``/``.old`` path stays behind.  ``target`` must
-    have a name (not ``.``, ``..`` or a root); whether it may be replaced at all
-    is :func:`check_output`'s business, not this function's.
-    """
-    target = Path(target)
-    if _bad_name(target):
-        raise OutputError(f"{target}: not a name an output can be written to; give a file or directory name")
-    parent = target.parent if str(target.parent) else Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-    if directory:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=parent))
-    else:
-        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=parent)
-        os.close(fd)
-        tmp = Path(name)
-    try:
-        yield tmp
-        if directory:
-            os.chmod(tmp, 0o755)
-            if target.is_dir() and not target.is_symlink():
-                _replace_directory(tmp, target, parent)
-            else:
-                os.rename(tmp, target)
-        else:
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, target)
-        _fsync_dir(parent)
-    except BaseException:
-        _remove(tmp)
-        raise
-
-
-def atomic_write_bytes(target: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``target`` atomically (fsync before rename)."""
-    with atomic_path(target) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-
-
-def atomic_write_text(target: str | os.PathLike, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``target`` atomically."""
-    atomic_write_bytes(target, text.encode("utf-8"))
 
 
 # --------------------------------------------------------------------------- what may be replaced
@@ -266,7 +158,7 @@ def check_output(
     if kind not in OUTPUT_KINDS:
         raise ValueError(f"unknown output kind {kind!r} (known: {', '.join(OUTPUT_KINDS)})")
     out = Path(out)
-    if _bad_name(out):
+    if unnamed(out):
         raise OutputError(f"{out}: {option} must name a file or directory, not {str(out)!r}")
     real = _real(out)
     cwd = _real(Path.cwd())
@@ -305,19 +197,3 @@ def check_output(
     if not force:
         raise OutputError(f"{out}: already exists (use --force to replace it)")
     return out
-
-
-def json_safe(obj):
-    """JSON-ready copy for strict JSON (``allow_nan=False``): non-finite floats become ``None`` (``null``),
-    tuples and numpy arrays lists, numpy scalars Python scalars, keys strings."""
-    if isinstance(obj, dict):
-        return {str(k): json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if hasattr(obj, "tolist") and not isinstance(obj, (str, bytes)):  # numpy arrays and scalars
-        obj = obj.tolist()
-        if isinstance(obj, list):
-            return json_safe(obj)
-    if isinstance(obj, float) and not (obj == obj and abs(obj) != float("inf")):
-        return None
-    return obj
