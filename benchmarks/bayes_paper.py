@@ -16,15 +16,14 @@ at the Laplace mean to Var[log p_N] <= 0.1, ESS >= 400, R-hat <= 1.01).
 4. The Laplace (CRB + prior) approximation against the chains, also under weak excitation (omega_std =
    100 deg/s, omega_dot_std = 3500 deg/s^2).
 
-    python benchmarks/bayes_paper.py [--seed 2021] [--replicates 1000] [--no-baseline]
+    python -m benchmarks.bayes_paper [--seed 2021] [--replicates 1000] [--no-baseline]
 """
 
 from __future__ import annotations
 
-import os
+from benchmarks.harness import RESULTS, machine_header, say, single_threaded_blas, write_results
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+single_threaded_blas()
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
@@ -36,11 +35,6 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
 NAME = "bayes_paper"
 TS = (5, 50, 500)
 NS = (1, 2, 4, 8, 16, 32, 64)
@@ -62,10 +56,6 @@ COLORS = {5: "tab:red", 50: "tab:green", 500: "tab:blue"}
 UM = 1e6
 
 
-def say(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
-
-
 def _rusage() -> float:
     """CPU seconds of this process and of its waited-for children (the pool's workers, start-up included)."""
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -73,7 +63,7 @@ def _rusage() -> float:
 
 
 def setting(seed: int):
-    from imu_array_ros.model.forward import SensorModel
+    from imu_array_ros.model.sensor_model import SensorModel
     from imu_array_ros.model.layouts import grid_array32
 
     nominal = dataclasses.replace(SensorModel.from_description(grid_array32()), acc_clip=np.inf, gyro_clip=np.inf)
@@ -139,9 +129,9 @@ def fig2(problems: dict, replicates: int, seed: int) -> dict:
 
 
 def plot_fig2(path: Path, fig2_data: dict) -> None:
-    from imu_array_ros.calibration.plots import _pyplot
+    from imu_array_ros.util.plotting import pyplot, save_png
 
-    plt = _pyplot(path)
+    plt = pyplot(path)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), sharey=True)
     n = np.array(NS, dtype=float)
     for ax, where in zip(axes, ("prior mean", "Laplace mean")):
@@ -160,8 +150,7 @@ def plot_fig2(path: Path, fig2_data: dict) -> None:
     axes[0].set_ylabel("Var[log p_N(y | theta)]")
     fig.suptitle("carlsson2021 Fig. 2: variance of the log-likelihood estimate (dots; lines: c/N)", fontsize=11)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_png(fig, path)
 
 
 # --------------------------------------------------------------------------- 3. Figs. 4/5
@@ -183,9 +172,9 @@ def concentration(post, true_pos) -> dict:
 
 
 def plot_fig4(path: Path, posts: dict, nominal, true_pos) -> None:
-    from imu_array_ros.calibration.plots import _pyplot
+    from imu_array_ros.util.plotting import pyplot, save_png
 
-    plt = _pyplot(path)
+    plt = pyplot(path)
     k = list(nominal.names).index(IMU2)
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     for i, (ax, axis) in enumerate(zip(axes, "xyz")):
@@ -213,8 +202,7 @@ def plot_fig4(path: Path, posts: dict, nominal, true_pos) -> None:
     fig.suptitle(f"carlsson2021 Fig. 4: posterior of {IMU2}'s position (histograms: chains; dashed: Laplace)",
                  fontsize=11)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_png(fig, path)
 
 
 # --------------------------------------------------------------------------- 4. Laplace vs MCMC
@@ -253,6 +241,7 @@ def main() -> int:
 
     from imu_array_ros.calibration import bayes_sampler as bs
     from imu_array_ros.calibration.bayes_report import plot_ellipses, plot_trace
+    from imu_array_ros.util.files import atomic_write_text
 
     t_start = time.perf_counter()
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -431,8 +420,8 @@ def main() -> int:
             f"{v['rhat_max']:.4f}, {fmt_s(v['wall_s'])} wall, {v['cpu_s']:.1f} core-s" for k, v in weak_runs.items()) + "\n"
     md += "\n"
 
-    (RESULTS / f"{NAME}.md").write_text(md)
-    (RESULTS / f"{NAME}.json").write_text(json.dumps(record, indent=1, default=float) + "\n")
+    write_results(RESULTS / f"{NAME}.md", md)
+    atomic_write_text(RESULTS / f"{NAME}.json", json.dumps(record, indent=1, default=float) + "\n")
     say(f"wrote {RESULTS / (NAME + '.md')} and .json ({record['total_wall_s']:.0f} s)")
     return 0
 

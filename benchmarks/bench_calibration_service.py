@@ -18,7 +18,7 @@ trip), and the rate at which the window kept receiving array samples while a
 calibration ran (the node's /diagnostics ``samples_received_while_calibrating``
 / ``calibrating_for_s``).
 
-    python benchmarks/bench_calibration_service.py [--duration 10] [--rate 200] [--repeat 5]
+    python -m benchmarks.bench_calibration_service [--duration 10] [--rate 200] [--repeat 5]
                                                    [--out benchmarks/results/calibration_service.md]
 """
 
@@ -38,11 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-from bench_nodes import machine_cpu, proc_cpu_s  # noqa: E402
+from benchmarks.harness import REPO, RESULTS, load_average, machine_header, write_results
+from benchmarks.nodes.cpu import machine_cpu, proc_cpu_s
 
-REPO = Path(__file__).resolve().parents[1]
 ARRAY = REPO / "config" / "array32.yaml"
 BIN = Path(sys.executable).parent
 DONE = re.compile(r"calibration done in ([0-9.]+) s")
@@ -57,13 +55,6 @@ def true_array(work: Path) -> Path:
                            for imu in desc.imus])
     save_description(true, work / "true.yaml")
     return work / "true.yaml"
-
-
-def loadavg() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return "?"
 
 
 class Others:
@@ -289,9 +280,9 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=200.0, help="array sample rate, Hz (default 200)")
     ap.add_argument("--repeat", type=int, default=5, help="service calls and in-process runs (default 5)")
     ap.add_argument("--workdir", help="keep the recording and the node logs here (default: a temp dir, removed)")
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "calibration_service.md"))
+    ap.add_argument("--out", default=str(RESULTS / "calibration_service.md"))
     args = ap.parse_args()
-    load_start = loadavg()
+    load_start = load_average()
     work = Path(args.workdir or tempfile.mkdtemp(prefix="imu_bench_calsrv_"))
     work.mkdir(parents=True, exist_ok=True)
     try:
@@ -299,8 +290,8 @@ def main() -> None:
     finally:
         if not args.workdir:
             shutil.rmtree(work, ignore_errors=True)
-    text = report(args, res, (load_start, loadavg()))
-    Path(args.out).write_text(text)
+    text = report(args, res, (load_start, load_average()))
+    write_results(args.out, text)
     print(text)
     print(f"wrote {args.out}")
 

@@ -10,30 +10,24 @@ in < 1 min, one core).
 Baseline in the same run: one ML motion fit (``fit_motion``) of the same recording, so the ratio says how
 many motion fits discovery costs.  Single-threaded BLAS.
 
-    python benchmarks/bench_discovery.py [--skip-real]
+    python -m benchmarks.bench_discovery [--skip-real]
 """
 
 from __future__ import annotations
 
-import os
+from benchmarks.harness import DATA, REPO, RESULTS, machine_header, say, single_threaded_blas, write_results
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+single_threaded_blas()
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
 
 from imu_array_ros.discovery.discover import DiscoveryOptions, discover  # noqa: E402
-from imu_array_ros.estimation.fit_terms import fit_motion  # noqa: E402
+from imu_array_ros.fitting.engine import fit_motion  # noqa: E402
 from imu_array_ros.simulation.concealed import Scenario, build  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-OUT = REPO / "benchmarks" / "results" / "discovery.md"
+OUT = RESULTS / "discovery.md"
 
 
 def _time(samples, model):
@@ -42,7 +36,7 @@ def _time(samples, model):
     base = time.perf_counter() - t0
     t0 = time.perf_counter()
     d = discover(samples, model, options=DiscoveryOptions(),
-                 progress=lambda s: print(f"  {s}", file=sys.stderr, flush=True))
+                 progress=lambda s: say(f"  {s}"))
     return base, time.perf_counter() - t0, d
 
 
@@ -64,10 +58,10 @@ def main() -> int:
     if not args.skip_real:
         from imu_array_ros.io.openshoe.capture import import_capture
         from imu_array_ros.model.description import load_description
-        from imu_array_ros.model.forward import SensorModel
+        from imu_array_ros.model.sensor_model import SensorModel
 
-        data = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt" / "exp_1.bin"
-        desc = load_description(REPO / "benchmarks" / "results" / "real_data_terms" / "exp_1.yaml")
+        data = DATA / "exp_1.bin"
+        desc = load_description(RESULTS / "real_data_terms" / "exp_1.yaml")
         samples = import_capture(data, load_description(REPO / "config" / "mimu4444bt_corners.yaml"))[0]
         base, total, d = _time(samples, SensorModel.from_description(desc))
         n = len(samples.stamps)
@@ -77,7 +71,7 @@ def main() -> int:
         text += "\nTime per stage of the real capture: " + ", ".join(f"{k} {v:.1f} s" for k, v in d.timings.items())
         text += "\n"
         print(text.splitlines()[-3])
-    OUT.write_text(text)
+    write_results(OUT, text)
     print(f"wrote {OUT}")
     return 0
 

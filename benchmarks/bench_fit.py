@@ -19,39 +19,32 @@ test/test_sensor_terms.py); runs with new motion each time (RMS z, whitened erro
 runs with one motion and new noise (per-parameter RMSE over the runs vs the CRB).
 Writes benchmarks/results/fit.md.
 
-    taskset -c 0 python benchmarks/bench_fit.py [--seconds 20] [--repeat 3] [--joint-runs 5]
+    taskset -c 0 python -m benchmarks.bench_fit [--seconds 20] [--repeat 3] [--joint-runs 5]
                                                 [--joint-small-runs 60] [--mc-runs 100]
 """
 
 from __future__ import annotations
 
-import os
+from benchmarks.harness import REPO, RESULTS, cpu_affinity, machine_header, single_threaded_blas, timed, write_results
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+single_threaded_blas()
 
 import argparse  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 import tracemalloc  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
 from imu_array_ros.errors import CalibrationError  # noqa: E402
-from imu_array_ros.estimation.fit_terms import NOISE_SHARE, fit_terms  # noqa: E402
+from imu_array_ros.fitting.engine import NOISE_SHARE, fit_terms  # noqa: E402
 from imu_array_ros.model.description import load_description  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
+from imu_array_ros.model.sensor_model import SensorModel  # noqa: E402
 from imu_array_ros.model.layouts import make_description  # noqa: E402
 from imu_array_ros.model.terms import REGISTRY  # noqa: E402
 from imu_array_ros.simulation.perturb import TERM_TEST_SIZES, perturb  # noqa: E402
 from imu_array_ros.simulation.motion import TwistTrajectory  # noqa: E402
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
 FREE = ("position", "gyroscope_gain", "gyroscope_misalignment", "gyroscope_g_sensitivity", "time_offset")
 #: true 1-sigma errors of the joint case (a realistic MEMS array, as test/test_model_fusion.py)
 JOINT_SIZES = {"position": 1e-3, "gyroscope_gain": 0.01, "gyroscope_misalignment": 5e-3,
@@ -91,11 +84,8 @@ def joint_case(seconds: float, repeat: int, runs: int, small_runs: int, rng: np.
     true = truth_in_gauge(nominal, perturb(nominal, rng, JOINT_SIZES), FREE)
     samples, _ = simulate_twist(true, seconds, 200.0, rng)
     args = (samples.stamps, samples.accel, samples.gyro, nominal, FREE)
-    times, res = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        res = fit_terms(*args)
-        times.append(time.perf_counter() - t0)
+    fits = timed(lambda: fit_terms(*args), repeat)
+    times, res = fits.wall, fits.result
     tracemalloc.start()
     fit_terms(*args)
     peak = tracemalloc.get_traced_memory()[1] / 2**20
@@ -108,7 +98,7 @@ def joint_case(seconds: float, repeat: int, runs: int, small_runs: int, rng: np.
         res_i = fit_terms(samples_i.stamps, samples_i.accel, samples_i.gyro, nominal, FREE)
         pooled.append(joint_errors(res_i, true_i))
         iterations.append(res_i.iterations)
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "unknown"
+    cpus = cpu_affinity()
     text = (f"## Joint case\n\n{len(samples.names)} IMUs (`config/array32.yaml`), {seconds:g} s at 200 Hz "
             f"({len(samples)} samples), simulated hand twisting (600 deg/s RMS); free: "
             + ", ".join(f"`{t}`" for t in FREE)
@@ -254,15 +244,14 @@ def main() -> None:
     ap.add_argument("--joint-small-runs", type=int, default=60, help="joint case on 8 IMUs, 2 s recordings")
     ap.add_argument("--mc-runs", type=int, default=100, help="Monte Carlo runs per term and setting (0: skip)")
     ap.add_argument("--seed", type=int, default=2017)
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "fit.md"))
+    ap.add_argument("--out", default=str(RESULTS / "fit.md"))
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     text = machine_header("Fitting engine: joint maximum likelihood of sensor-model terms and motion")
     text += joint_case(args.seconds, args.repeat, args.joint_runs, args.joint_small_runs, rng)
     if args.mc_runs:
         text += monte_carlo(args.mc_runs, rng)
-    Path(args.out).write_text(text)
-    print(f"wrote {args.out}")
+    print(f"wrote {write_results(args.out, text)}")
 
 
 if __name__ == "__main__":

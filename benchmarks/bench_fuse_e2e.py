@@ -6,7 +6,7 @@ message and deserializing it (typestore.deserialize_cdr), nothing else.
 Target (issue 2): fuse (read + fuse + write, whole process) >= 3x faster.
 Writes benchmarks/results/fuse_e2e.md.
 
-    python benchmarks/bench_fuse_e2e.py [--duration 60] [--workdir DIR]
+    python -m benchmarks.bench_fuse_e2e [--duration 60] [--workdir DIR]
 """
 
 from __future__ import annotations
@@ -20,10 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header, rosbags_plain_read  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
+from benchmarks.baselines import rosbags_plain_read
+from benchmarks.harness import REPO, RESULTS, machine_header, write_results
 
 
 def main() -> None:
@@ -67,8 +65,7 @@ def main() -> None:
         f"| `imu-array fuse` (process start, read, fuse, write) | {t_fuse:.2f} | {1e6 * t_fuse / count:.2f} | {count / 32 / t_fuse:,.0f} |\n\n"
         f"Ratio baseline / fuse: **{ratio:.2f}x** (target >= 3x). Peak RSS of the fuse process: {peak_mb:.0f} MB.\n"
     )
-    (REPO / "benchmarks" / "results" / "fuse_e2e.md").write_text(text)
-    print("wrote benchmarks/results/fuse_e2e.md")
+    print(f"wrote {write_results(RESULTS / 'fuse_e2e.md', text)}")
     if not args.workdir:
         shutil.rmtree(work, ignore_errors=True)
 

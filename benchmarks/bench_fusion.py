@@ -9,7 +9,7 @@ samples) at most 1.5x the time of the same samples without dropouts (issue 6
 with ``taskset -c 0``.  Every figure is the best of ``--repeat`` runs, and every
 ratio compares two figures of the same run.  Writes benchmarks/results/fusion.md.
 
-    taskset -c 0 python benchmarks/bench_fusion.py [--samples 200000] [--dropout-samples 20000] [--repeat 7]
+    taskset -c 0 python -m benchmarks.bench_fusion [--samples 200000] [--dropout-samples 20000] [--repeat 7]
                                                    [--reference 5d79859]
 
 ``--reference REV`` also times the fusion module of git revision REV (read with
@@ -20,41 +20,35 @@ samples in the same run.
 
 from __future__ import annotations
 
-import os
+from benchmarks.harness import REPO, RESULTS, best_of, cpu_affinity, machine_header, single_threaded_blas, write_results
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+single_threaded_blas()
 
 import argparse  # noqa: E402
 import re  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import types  # noqa: E402
-import time  # noqa: E402
 import tracemalloc  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
+from imu_array_ros.fusion.ml_fusion import MLFusion  # noqa: E402
+from imu_array_ros.fusion.tensor_method import tensor_method  # noqa: E402
 from imu_array_ros.model.layouts import grid_array32  # noqa: E402
-from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
+from imu_array_ros.model.linear import LinearArrayModel  # noqa: E402
 from imu_array_ros.model.samples import ImuSamples  # noqa: E402
-from imu_array_ros.model.sensor_model import LinearArrayModel  # noqa: E402
 from imu_array_ros.simulation.simulator import simulate_random, simulate_twist  # noqa: E402
-from imu_array_ros.estimation.tensor_method import tensor_method  # noqa: E402
 
 DROPOUT_RATE = 0.02
-REPO = Path(__file__).resolve().parents[1]
 
 
 def estimation_module_at(rev: str, name: str) -> types.ModuleType:
     """``imu_array_ros/estimation/<name>.py`` at git revision ``rev`` (read with ``git show``), as a module in memory.
 
     The ``imu_array_ros.estimation`` modules it imports (the fusion is split over several modules after
-    c3a7fd0) are taken from ``rev`` too, each loaded once; everything else from this tree.
+    c3a7fd0) are taken from ``rev`` too, each loaded once; everything else from this tree (the linear model
+    from its present module, ``model/linear.py``; it was ``model/sensor_model.py`` before issue 20).
     """
     module_name = f"{name}_{re.sub(r'[^0-9A-Za-z_]', '_', rev)}"  # importable by that name
     if module_name in sys.modules:
@@ -63,10 +57,12 @@ def estimation_module_at(rev: str, name: str) -> types.ModuleType:
                          capture_output=True, text=True).stdout
     old_import = "from imu_array_ros.model.sensor_model import SATURATION_MARGIN, LinearArrayModel, unsaturated"
     if old_import in src:  # before the clip levels: that version's own rule, |y| >= 0.998 * range
-        src = src.replace(old_import, "from imu_array_ros.model.sensor_model import LinearArrayModel\n"
+        src = src.replace(old_import, "from imu_array_ros.model.linear import LinearArrayModel\n"
                           "SATURATION_MARGIN = 0.998\n"
                           "def unsaturated(values, limit, margin):\n"
                           "    return np.abs(values) < margin * limit\n")
+    src = re.sub(r"^(\s*)from imu_array_ros\.model\.sensor_model import", r"\1from imu_array_ros.model.linear import",
+                 src, flags=re.M)
     pattern = r"^(\s*)from imu_array_ros\.estimation\.(\w+) import"
     for dep in sorted(set(m.group(2) for m in re.finditer(pattern, src, flags=re.M))):
         loaded = estimation_module_at(rev, dep)
@@ -81,15 +77,6 @@ def estimation_module_at(rev: str, name: str) -> types.ModuleType:
 def reference_fusion(rev: str):
     """``MLFusion`` of ``imu_array_ros/estimation/ml_fusion.py`` at git revision ``rev`` (:func:`estimation_module_at`)."""
     return estimation_module_at(rev, "ml_fusion").MLFusion
-
-
-def best_of(fn, repeat):
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
 
 
 def with_dropouts(s: ImuSamples, rate: float, rng: np.random.Generator) -> tuple[ImuSamples, np.ndarray]:
@@ -115,7 +102,7 @@ def main() -> None:
     ap.add_argument("--dropout-samples", type=int, default=20_000)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--reference", help="git revision whose fusion module is timed as well")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "fusion.md"))
+    ap.add_argument("--out", default=str(RESULTS / "fusion.md"))
     args = ap.parse_args()
     rng = np.random.default_rng(7)
     desc = grid_array32()
@@ -178,7 +165,7 @@ def main() -> None:
               f"({p_drop / k:.0f} B/sample)", flush=True)
 
     text = machine_header("Fusion throughput, 32-IMU array")
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "unknown"
+    cpus = cpu_affinity()
     text += (f"Single core: BLAS threads = 1, CPU affinity {cpus} (`taskset -c 0`); best of {r} runs; one-at-a-time = "
              "2,000 calls of `MLFusion.fuse` with one sample.\n\n")
     text += ("Same-run baseline: the tensor method (skog2016 appendix, one closed-form least-squares solve per "
@@ -209,10 +196,9 @@ def main() -> None:
     text += "".join(f"| {k} | {p / 1e6:.1f} | {p / k:.0f} | {q / 1e6:.1f} | {q / k:.0f} |\n" for k, p, q in mem_rows)
     (k0, p0, q0), (k1, p1, q1) = mem_rows[0], mem_rows[-1]
     text += (f"\nFrom N = {k0} to {k1} the peak grows by {(p1 - p0) / (k1 - k0):.0f} bytes per added sample without "
-             f"dropouts and by {(q1 - q0) / (k1 - k0):.0f} with them (a fixed part, the solver working in chunks of "
-             "samples, comes on top): memory is linear in N.\n")
-    Path(args.out).write_text(text)
-    print(f"wrote {args.out}")
+             f"dropouts and by {(q1 - q0) / (k1 - k0):.0f} with them (the solver works in chunks of samples: a fixed "
+             "part comes on top).\n")
+    print(f"wrote {write_results(args.out, text)}")
 
 
 if __name__ == "__main__":

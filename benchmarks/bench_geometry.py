@@ -18,45 +18,38 @@ shared: the load average is written next to the times.  Run time ~8.5 min (503 s
 2-4; the BCD at N = 100,000 -- 69 iterations, ~5 min, 3 GB -- is most of it; ``--bcd-max-n 10000``
 skips it).  Writes benchmarks/results/geometry.md.
 
-    python benchmarks/bench_geometry.py [--sizes 1000,10000,100000] [--repeat 7] [--repeat-large 2]
+    python -m benchmarks.bench_geometry [--sizes 1000,10000,100000] [--repeat 7] [--repeat-large 2]
                                         [--bcd-max-n 100000]
 """
 
 from __future__ import annotations
 
-import os
+from benchmarks.harness import REPO, RESULTS, load_average, machine_header, single_threaded_blas, timed, write_results
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+single_threaded_blas()
 
 import argparse  # noqa: E402
 import cProfile  # noqa: E402
 import io  # noqa: E402
 import pstats  # noqa: E402
 import resource  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
 from imu_array_ros.calibration.geometry import calibrate_geometry  # noqa: E402
-from imu_array_ros.estimation.model_fusion import ModelFusion  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
+from imu_array_ros.fusion.model_fusion import ModelFusion  # noqa: E402
+from imu_array_ros.model.sensor_model import SensorModel  # noqa: E402
 from imu_array_ros.model.layouts import grid_array32  # noqa: E402
 from imu_array_ros.simulation.perturb import perturb  # noqa: E402
 from imu_array_ros.simulation.simulator import simulate_random, simulate_twist  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
 RATE_HZ = 1000.0
 TARGET_N, TARGET_S = 1000, 1.0
 
 
 def load() -> str:
-    return "/".join(f"{x:.1f}" for x in os.getloadavg())
+    return "/".join(f"{float(x):.1f}" for x in load_average().split())
 
 
 def peak_rss_mb() -> float:
@@ -73,15 +66,10 @@ def case(nominal: SensorModel, n: int, data: str, rng: np.random.Generator):
     return true, samples, start
 
 
-def timed(fn, repeat: int):
+def repeated(fn, repeat: int):
     """(wall seconds (repeat,), CPU seconds of this process (repeat,), last result)."""
-    times, cpu, out = [], [], None
-    for _ in range(repeat):
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return np.array(times), np.array(cpu), out
+    t = timed(fn, repeat)
+    return np.array(t.wall), np.array(t.cpu), t.result
 
 
 def rmse(model: SensorModel, true: SensorModel) -> float:
@@ -93,14 +81,14 @@ def run_size(nominal, n, data, repeat, bcd: bool, rng, literal: bool = False) ->
     args = (s.stamps, s.accel, s.gyro, start)
     print(f"N = {n} ({data}): load {load()}", flush=True)
     out = dict(n=n, data=data, load_start=load())
-    out["fuse"], out["fuse_c"], _ = timed(lambda: ModelFusion(start).fuse(s.stamps, s.accel, s.gyro), max(repeat, 3))
-    out["joint_t"], out["joint_c"], out["joint"] = timed(lambda: calibrate_geometry(*args, method="joint"), repeat)
+    out["fuse"], out["fuse_c"], _ = repeated(lambda: ModelFusion(start).fuse(s.stamps, s.accel, s.gyro), max(repeat, 3))
+    out["joint_t"], out["joint_c"], out["joint"] = repeated(lambda: calibrate_geometry(*args, method="joint"), repeat)
     print(f"  joint wall {out['joint_t']} cpu {out['joint_c']} s, {out['joint'].iterations} it", flush=True)
     if bcd:
-        out["bcd_t"], out["bcd_c"], out["bcd"] = timed(lambda: calibrate_geometry(*args, method="bcd"), repeat)
+        out["bcd_t"], out["bcd_c"], out["bcd"] = repeated(lambda: calibrate_geometry(*args, method="bcd"), repeat)
         print(f"  bcd wall {out['bcd_t']} cpu {out['bcd_c']} s, {out['bcd'].iterations} it", flush=True)
     if literal:
-        out["lit_t"], out["lit_c"], out["lit"] = timed(
+        out["lit_t"], out["lit_c"], out["lit"] = repeated(
             lambda: calibrate_geometry(*args, method="bcd", recenter=False), 1)
         print(f"  literal wall {out['lit_t']} cpu {out['lit_c']} s, {out['lit'].iterations} it", flush=True)
     out["true"], out["load_end"], out["rss"] = true, load(), peak_rss_mb()
@@ -137,7 +125,7 @@ def main() -> None:
     ap.add_argument("--repeat-large", type=int, default=2, help="repetitions at N = 10000 (1 above that)")
     ap.add_argument("--bcd-max-n", type=int, default=100000, help="skip the BCD above this N")
     ap.add_argument("--seed", type=int, default=2017)
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "geometry.md"))
+    ap.add_argument("--out", default=str(RESULTS / "geometry.md"))
     args = ap.parse_args()
     t_start, load0 = time.perf_counter(), load()
     nominal = SensorModel.from_description(grid_array32())
@@ -237,7 +225,7 @@ def main() -> None:
              + "\n\n")
     text += ("## Where the time of one joint calibration goes (N = 1,000, twist, cProfile)\n\n"
              "Cumulative seconds under cProfile (slower than unprofiled), functions of the package:\n\n" + prof)
-    Path(args.out).write_text(text)
+    write_results(args.out, text)
     print(text)
     print(f"wrote {args.out}")
 

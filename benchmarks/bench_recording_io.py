@@ -19,7 +19,7 @@ Both must return the same arrays (checked by hash).
 
 Writes benchmarks/results/recording_io.md.
 
-    python benchmarks/bench_recording_io.py [--duration 60] [--workdir DIR] [--repeat 3]
+    python -m benchmarks.bench_recording_io [--duration 60] [--workdir DIR] [--repeat 3]
                                             [--ab-duration 20] [--ab-reads 20] [--old-rev 5d79859]
 """
 
@@ -40,37 +40,33 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from _common import machine_header, rosbags_plain_read  # noqa: E402
-
-from imu_array_ros.io.rosbag import mcap_format, mcap_writer  # noqa: E402
-from imu_array_ros.model.layouts import grid_array32  # noqa: E402
-from imu_array_ros.io.rosbag.cdr_columns import encode_imu  # noqa: E402
-from imu_array_ros.io.rosbag.recording import (  # noqa: E402
+from benchmarks.baselines import rosbags_plain_read
+from benchmarks.harness import REPO, RESULTS, machine_header, timed, write_results
+from imu_array_ros.io.rosbag import mcap_format, mcap_writer
+from imu_array_ros.io.rosbag.cdr_columns import encode_imu
+from imu_array_ros.io.rosbag.recording import (
     IMU_TYPE,
     NO_ORIENTATION,
     imu_topic,
     read_imu_recording,
     write_imu_recording,
 )
-from imu_array_ros.simulation.simulator import simulate_twist  # noqa: E402
+from imu_array_ros.model.layouts import grid_array32
+from imu_array_ros.simulation.simulator import simulate_twist
 
-RESULTS = Path(__file__).resolve().parent / "results" / "recording_io.md"
-REPO = Path(__file__).resolve().parents[1]
+OUT = RESULTS / "recording_io.md"
 
 
 # --------------------------------------------------------------------------- before / after, child processes
 
 
-#: A child interpreter: argv = root, recording.  Imports imu_array_ros from ``root`` (the old
-#: package extracted from git, or the working tree); for every line on stdin it times one
-#: read_imu_recording and prints one JSON line.
+#: A child interpreter: argv = root, recording; PYTHONPATH = root (see :class:`Child`), so it imports
+#: imu_array_ros from ``root`` (the old package extracted from git, or the working tree); for every
+#: line on stdin it times one read_imu_recording and prints one JSON line.
 CHILD = r"""
 import hashlib, json, sys, time
 from pathlib import Path
 root, path = sys.argv[1], sys.argv[2]
-sys.path[0] = root
 import imu_array_ros
 from imu_array_ros.io.rosbag.recording import read_imu_recording
 from imu_array_ros.model.layouts import grid_array32
@@ -116,7 +112,7 @@ class Child:
     """A child interpreter reading the recording on request (see :data:`CHILD`)."""
 
     def __init__(self, root: Path, path: Path) -> None:
-        env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+        env = {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, "PYTHONPATH": str(root)}
         self.proc = subprocess.Popen([sys.executable, "-c", CHILD, str(root), str(path)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, cwd=path.parent, env=env)
 
@@ -180,17 +176,6 @@ def before_after(work: Path, desc, samples, rev: str, reads: int) -> list[dict]:
     return rows
 
 
-def best_of(fn, repeat: int) -> tuple[float, list[float], object, float]:
-    """(best wall s, all wall s, last result, best CPU s of this process incl. helper threads)."""
-    times, cpu, result = [], [], None
-    for _ in range(repeat):
-        c0, t0 = time.process_time(), time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return min(times), times, result, min(cpu)
-
-
 def du(path: Path) -> int:
     if path.is_file():
         return path.stat().st_size
@@ -222,12 +207,14 @@ def main() -> None:
         def write():
             write_imu_recording(rec, samples, desc, truth=truth)
 
-        t_write, write_runs, _, _ = best_of(write, args.repeat)
+        w = timed(write, args.repeat)
+        t_write, write_runs = w.best, w.wall
         size = du(rec)
         print(f"write_imu_recording: {t_write:.2f} s (runs {', '.join(f'{t:.2f}' for t in write_runs)}), "
               f"{n_imu_msgs + 2 * len(truth.stamps)} messages, {size / 1e6:.0f} MB", flush=True)
 
-        t_ours, ours_runs, (back, stats), cpu_ours = best_of(lambda: read_imu_recording(rec, desc), args.repeat)
+        r = timed(lambda: read_imu_recording(rec, desc), args.repeat)  # CPU includes the helper threads
+        t_ours, ours_runs, (back, stats), cpu_ours = r.best, r.wall, r.result, r.best_cpu
         assert stats.messages == n_imu_msgs and stats.bad_messages == 0, stats
         assert np.array_equal(back.accel, samples.accel) and np.array_equal(back.gyro, samples.gyro)
         print(f"read_imu_recording: {t_ours:.2f} s (runs {', '.join(f'{t:.2f}' for t in ours_runs)}), "
@@ -245,8 +232,9 @@ def main() -> None:
         comp_rows = []
         for comp in ("zstd", "lz4", "none"):
             path = work / f"imu_{comp}.mcap"
-            t_w, _, _, _ = best_of(lambda: mcap_writer.write_recording(path, channels, compression=comp), 1)
-            t_r, _, _, c_r = best_of(lambda: read_imu_recording(path, desc), args.repeat)
+            t_w = timed(lambda: mcap_writer.write_recording(path, channels, compression=comp), 1).best
+            r = timed(lambda: read_imu_recording(path, desc), args.repeat)
+            t_r, c_r = r.best, r.best_cpu
             comp_rows.append((comp, t_w, t_r, c_r, path.stat().st_size))
             print(f"  {comp:5s}: write {t_w:.2f} s, read {t_r:.2f} s wall / {c_r:.2f} s CPU, "
                   f"{path.stat().st_size / 1e6:.0f} MB", flush=True)
@@ -310,9 +298,7 @@ def main() -> None:
         )
         + f".  Load average after the before/after runs: {ab_load:.2f}.\n"
     )
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text, encoding="utf-8")
-    print(f"wrote {RESULTS}")
+    print(f"wrote {write_results(OUT, text)}")
 
 
 if __name__ == "__main__":

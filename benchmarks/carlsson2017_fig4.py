@@ -34,35 +34,31 @@ Runs the realisations on ``--workers`` processes (BLAS single-threaded in each).
 wall measured on the shared machine at load 5-9).  Writes
 benchmarks/results/carlsson2017_fig4.md and .png (matplotlib, Agg).
 
-    python benchmarks/carlsson2017_fig4.py [--workers 2] [--scale 1.0] [--no-fig5]
+    python -m benchmarks.carlsson2017_fig4 [--workers 2] [--scale 1.0] [--no-fig5]
 """
 
 from __future__ import annotations
 
 import os
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+from benchmarks.harness import RESULTS, machine_header, single_threaded_blas, write_results
+
+single_threaded_blas()
 
 import argparse  # noqa: E402
 import multiprocessing as mp  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
 from imu_array_ros.calibration.geometry import calibrate_geometry  # noqa: E402
 from imu_array_ros.errors import CalibrationError  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
+from imu_array_ros.model.sensor_model import SensorModel  # noqa: E402
 from imu_array_ros.model.layouts import grid_array32  # noqa: E402
 from imu_array_ros.simulation.perturb import perturb  # noqa: E402
 from imu_array_ros.simulation.simulator import simulate_random  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
 SIGMA_R = 1e-3
 #: BCD iteration counts at which the positions are recorded (500 = the repository's BCD cap)
 CHECKPOINTS = (1, 2, 5, 10, 20, 50, 100, 200, 500)
@@ -180,7 +176,7 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="multiply every realisation count (min 2)")
     ap.add_argument("--no-fig5", action="store_true")
     ap.add_argument("--seed", type=int, default=2017)
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "carlsson2017_fig4.md"))
+    ap.add_argument("--out", default=str(RESULTS / "carlsson2017_fig4.md"))
     args = ap.parse_args()
     t_start, load0 = time.perf_counter(), os.getloadavg()
     sc = lambda m: max(2, int(round(m * args.scale)))  # noqa: E731
@@ -210,7 +206,7 @@ def main() -> None:
     load = (load0, os.getloadavg())
     text = report(results, plan, fig5, refusal, args, wall_mc, load)
     text = text.replace("@TOTAL@", f"{time.perf_counter() - t_start:.0f}")
-    Path(args.out).write_text(text)
+    write_results(args.out, text)
     print(text)
     print(f"wrote {args.out}")
 
@@ -341,19 +337,20 @@ def report(results, plan, fig5, refusal, args, wall_mc, load) -> str:
               + "---|" * (len(FIG5_OMEGA_DOT) + 1) + "\n" + "\n".join(f5_rows) + "\n\n")
     else:
         t += "## Fig. 5\n\nNot run (`--no-fig5`).\n\n"
-    t += (f"Figure: `{png.name}`" + ("" if plotted else " NOT written (matplotlib missing: `pip install matplotlib`)")
+    t += (f"Figure: `{png.name}`" + ("" if plotted else " NOT written (matplotlib missing: the `plots` extra)")
           + " -- (a) RMSE vs iterations (solid literal Alg. 1, dashed recentred BCD, dotted sqrt CRB, "
           "x = joint), (b) RMSE vs N, (c) Fig. 5.\n")
     return t
 
 
 def plot(curves, summary, f5, fit, png: Path) -> bool:
+    from imu_array_ros.errors import MissingDependencyError
+    from imu_array_ros.util.plotting import pyplot, save_png
+
     try:
-        import matplotlib
-    except ImportError:
+        plt = pyplot(png)
+    except MissingDependencyError:
         return False
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     ks = np.array(CHECKPOINTS)
     fig, axes = plt.subplots(1, 3 if f5 else 2, figsize=(17 if f5 else 11.5, 5.2))
@@ -392,8 +389,7 @@ def plot(curves, summary, f5, fit, png: Path) -> bool:
         ax.legend(fontsize=7)
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_png(fig, png)
     return True
 
 

@@ -15,15 +15,14 @@ and not forced into a term.
 
 Writes benchmarks/results/discovery_suite.md and .json.
 
-    python benchmarks/discovery_suite.py [--only SUBSTRING ...]
+    python -m benchmarks.discovery_suite [--only SUBSTRING ...]
 """
 
 from __future__ import annotations
 
-import os
+from benchmarks.harness import RESULTS, machine_header, single_threaded_blas, write_results
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+single_threaded_blas()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -31,13 +30,10 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
 from imu_array_ros.discovery.discover import DiscoveryOptions, discover  # noqa: E402
 from imu_array_ros.simulation.concealed import build, score, standard_suite  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "results" / "discovery_suite"
+OUT = RESULTS / "discovery_suite"
 
 
 def main() -> int:
@@ -60,7 +56,7 @@ def main() -> int:
               f"{'  unexplained ' + str(r.get('unexplained')) if sc.outside else ''}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
-    args.out.with_suffix(".md").write_text(_table(rows))
+    write_results(args.out.with_suffix(".md"), _table(rows))
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0
 

@@ -1,7 +1,7 @@
 """Long fuzz run of the OpenShoe frame parser (issue 7): 10**6 generated inputs or more.
 
-Every input goes through the checks of the CI property tests,
-``test/test_framing_fuzz.py`` (the same functions, imported):
+Every input goes through the checks of the CI property tests, ``test/test_framing_fuzz.py`` (the same
+functions: :mod:`benchmarks.framing_checks`):
 
 * ``check_stream``: parsing raises nothing; feeding the input in chunks (cut
   points drawn per input) gives the packets (values, offsets, dtypes) and every
@@ -39,7 +39,7 @@ written as hex (``--failures``) with their kind, K, mode and cut points.
 
 Writes benchmarks/results/fuzz_framer.md (``--out``).
 
-    python benchmarks/fuzz_framer.py [--inputs 1000000] [--seed 7] [--jobs 2] [--out FILE]
+    python -m benchmarks.fuzz_framer [--inputs 1000000] [--seed 7] [--jobs 2] [--out FILE]
 """
 
 from __future__ import annotations
@@ -58,18 +58,11 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "test"))
-from _common import machine_header  # noqa: E402
+from benchmarks import framing_checks as props  # the CI property tests' checks
+from benchmarks.harness import REPO, RESULTS, load_average, machine_header, write_results
+from imu_array_ros.io.openshoe.framing import encode_packets, packet_length, payload_length
 
-import test_framing_fuzz as props  # noqa: E402  (the CI property checks)
-
-from imu_array_ros.io.openshoe.framing import encode_packets, packet_length, payload_length  # noqa: E402
-
-RESULTS = HERE / "results" / "fuzz_framer.md"
+OUT = RESULTS / "fuzz_framer.md"
 KINDS = ("bytes", "fragments", "corrupted", "flips")
 KIND_P = (0.15, 0.40, 0.30, 0.15)
 N_IMUS = (1, 2, 3, 4, 8, 21, 22, 32)
@@ -269,7 +262,8 @@ def report(args, total: dict, wall: float) -> str:
     by_kind = ", ".join(f"{k} {total['kinds'][k]:,}" for k in KINDS)
     text += (
         "Generated inputs, each checked by the checks of the CI property tests "
-        "(`test/test_framing_fuzz.py`: `check_stream`, and `check_recovery` / `check_bit_flips` "
+        "(`test/test_framing_fuzz.py`, `benchmarks/framing_checks.py`: `check_stream`, and `check_recovery` / "
+        "`check_bit_flips` "
         "for packet streams): no exception; chunked feeding == `parse_buffer` (packets and every "
         "stats field); every packet is the input's bytes at its offset, a frame with the right size "
         "byte and checksum; packets and stats == a plain-Python model of the documented rule; "
@@ -278,7 +272,7 @@ def report(args, total: dict, wall: float) -> str:
         "`benchmarks/fuzz_framer.py`.\n\n"
         f"Parser: `imu_array_ros/io/openshoe/framing.py` {parser_version()}; seed {args.seed}, "
         f"blocks of {args.block} inputs, {args.jobs} processes; load average at the end "
-        f"{os.getloadavg()[0]:.2f} (other jobs may share the machine).\n\n"
+        f"{load_average().split()[0]} (other jobs may share the machine).\n\n"
         "| what | value |\n|---|---|\n"
         f"| inputs | {total['inputs']:,} |\n"
         f"| by kind | {by_kind} |\n"
@@ -310,7 +304,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=7, help="seed of the generator (default 7)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: cores)")
     ap.add_argument("--block", type=int, default=10_000, help="inputs per block (default 10000)")
-    ap.add_argument("--out", type=Path, default=RESULTS, help=f"results file (default {RESULTS.relative_to(REPO)})")
+    ap.add_argument("--out", type=Path, default=OUT, help=f"results file (default {OUT.relative_to(REPO)})")
     ap.add_argument("--failures", type=Path, help="also write the kept failing inputs as JSON")
     ap.add_argument("--no-results", action="store_true", help="do not write the results file")
     args = ap.parse_args(argv)
@@ -334,9 +328,7 @@ def main(argv=None) -> int:
     if args.failures:
         args.failures.write_text(json.dumps(total.get("examples", {}), indent=1), encoding="utf-8")
     if not args.no_results:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(report(args, total, wall), encoding="utf-8")
-        print(f"wrote {args.out}")
+        print(f"wrote {write_results(args.out, report(args, total, wall))}")
     return 1 if total["failures"] else 0
 
 

@@ -11,33 +11,26 @@ benchmarks/results/real_data_discovery/exp_N/ (report.md, report.json, plots).
 
 Writes benchmarks/results/real_data_discovery.md.
 
-    python benchmarks/real_data_discovery.py [--captures 1 2 ...] [--max-findings 8]
+    python -m benchmarks.real_data_discovery [--captures 1 2 ...] [--max-findings 8]
 """
 
 from __future__ import annotations
 
-import os
+from benchmarks.harness import DATA, REPO, RESULTS, machine_header, say, single_threaded_blas, write_results
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+single_threaded_blas()
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
 
 from imu_array_ros.discovery.discover import DiscoveryOptions, discover  # noqa: E402
 from imu_array_ros.discovery.report import write_report  # noqa: E402
 from imu_array_ros.io.openshoe.capture import import_capture  # noqa: E402
 from imu_array_ros.model.description import load_description  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
+from imu_array_ros.model.sensor_model import SensorModel  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"
-OUT = REPO / "benchmarks" / "results"
+OUT = RESULTS
 
 
 def _g(x, fmt=".4g"):
@@ -112,7 +105,7 @@ def main() -> int:
         t0 = time.perf_counter()
         others = [(f"exp_{j}", samples[j]) for j in range(1, 7) if j != i]
         d = discover(samples[i], model, options=DiscoveryOptions(max_findings=args.max_findings), validate=others,
-                     progress=lambda s: print(f"exp_{i}: {s}", file=sys.stderr, flush=True))
+                     progress=lambda s, i=i: say(f"exp_{i}: {s}"))
         seconds = time.perf_counter() - t0
         write_report(d, OUT / "real_data_discovery" / f"exp_{i}", source=f"exp_{i}.bin")
         print(f"exp_{i}: {len(d.findings)} findings in {seconds:.0f} s", flush=True)
@@ -121,7 +114,7 @@ def main() -> int:
     done = sorted(int(p.parent.name.split("_")[1]) for p in (OUT / "real_data_discovery").glob("exp_*/report.json"))
     text += f"Captures analysed: {', '.join(f'exp_{i}' for i in done)}.\n\n"
     text += _tables()
-    (OUT / "real_data_discovery.md").write_text(text)
+    write_results(OUT / "real_data_discovery.md", text)
     print(f"wrote {OUT / 'real_data_discovery.md'}")
     return 0
 

@@ -22,33 +22,28 @@ step).  Nothing from d enters either description.  A cross-check of the fusion-b
 
 Writes benchmarks/results/real_data_geometry.md and real_data_geometry.png.
 
-    python benchmarks/real_data_geometry.py
+    python -m benchmarks.real_data_geometry [--captures exp_1,exp_2]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
+from benchmarks.harness import DATA, REPO, RESULTS, machine_header, write_results
+from imu_array_ros.calibration.geometry import calibrate_geometry
+from imu_array_ros.errors import CalibrationError, MissingDependencyError
+from imu_array_ros.fitting.engine import fit_terms
+from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.fusion.residuals import normalized_residuals
+from imu_array_ros.io.openshoe.capture import import_capture
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.sensor_model import SensorModel
 
-from imu_array_ros.calibration.geometry import calibrate_geometry  # noqa: E402
-from imu_array_ros.discovery.residuals import normalized_residuals  # noqa: E402
-from imu_array_ros.errors import CalibrationError  # noqa: E402
-from imu_array_ros.estimation.fit_terms import fit_terms  # noqa: E402
-from imu_array_ros.estimation.model_fusion import ModelFusion  # noqa: E402
-from imu_array_ros.io.openshoe.capture import import_capture  # noqa: E402
-from imu_array_ros.model.description import load_description  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"
-OUT = REPO / "benchmarks" / "results"
+OUT = RESULTS
 
 #: intrinsic terms fitted per capture (see the report's "Choices" section for why these)
 INTRINSICS = ("accelerometer_gain", "accelerometer_misalignment", "accelerometer_bias", "gyroscope_bias",
@@ -90,16 +85,6 @@ def fusion_nis(samples, model: SensorModel, desc) -> tuple[float, int]:
     o = rep.observed["still"] + rep.observed["moving"]
     e = rep.expected["still"] + rep.expected["moving"]
     return float(o.sum() / e.sum()), len(fused)
-
-
-def _commit() -> str:
-    import subprocess
-
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def rms(v) -> float:
@@ -148,12 +133,12 @@ def calibrate(name, samples, nominal, intrinsics, log) -> dict:
 
 
 def plot(png: Path, names, nominal, pos, std) -> bool:
+    from imu_array_ros.util.plotting import pyplot, save_png
+
     try:
-        import matplotlib
-    except ImportError:
+        plt = pyplot(png)
+    except MissingDependencyError:
         return False
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     k = nominal.n_imus
     fig, axes = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
@@ -176,8 +161,7 @@ def plot(png: Path, names, nominal, pos, std) -> bool:
                       "mostly smaller than the markers; imu_1 held)", fontsize=9)
     axes[0].legend(fontsize=6, ncol=4, loc="upper left")
     fig.tight_layout()
-    fig.savefig(png, dpi=120)
-    plt.close(fig)
+    save_png(fig, png, dpi=120)
     return True
 
 
@@ -237,17 +221,15 @@ def main() -> None:
     plotted = plot(png, names, nominal, pos, std)
     text = report(names, nominal, intrinsics, res, ok, pos, std, phases, spans, totals, base, score, check, seconds,
                   png if plotted else None)
-    (OUT / "real_data_geometry.md").write_text(text)
+    write_results(OUT / "real_data_geometry.md", text)
     log(f"wrote {OUT / 'real_data_geometry.md'}" + (f" and {png}" if plotted else ""))
 
 
 def report(names, nominal, intrinsics, res, ok, pos, std, phases, spans, totals, base, score, check, seconds,
            png) -> str:
     k = nominal.n_imus
-    header = machine_header("Geometry calibration on the real MIMU4444BT captures, cross-validated").rstrip("\n")
-    header += f"\n- run time: {seconds:.0f} s (whole script, sequential, one process; machine shared with other work)"
-    header += f"\n- code: commit {_commit()} (HEAD of the working tree the run used)\n\n"
-    key = {}
+    header = machine_header("Geometry calibration on the real MIMU4444BT captures, cross-validated", extra=[
+        f"run time: {seconds:.0f} s (whole script, sequential, one process; machine shared with other work)"])
     text = (
         "Data: `../shared/data/openshoe_mimu4444bt/exp_1..6.bin` (real 8-IMU array, 62.5 Hz, not made by the team), "
         "imported with `import_capture` and `config/mimu4444bt_corners.yaml` (the description real_data_terms.py "
@@ -365,9 +347,6 @@ def report(names, nominal, intrinsics, res, ok, pos, std, phases, spans, totals,
             text += f"| {nominal.names[i]} | " + " | ".join(cells) + " |\n"
         free = med > 0
         change = np.abs(mean - nominal.positions)[free]
-        key[v, "ratio"] = float(np.median(ratios))
-        key[v, "spread"] = rms(spread[free])
-        key[v, "crb"] = float(np.median(med[free]))
         text += (f"\nOver the 21 free coordinates: spread / reported std median {np.median(ratios):.0f}, range "
                  f"{min(ratios):.0f}-{max(ratios):.0f}; RMS spread {rms(spread[free]) * 1e6:.0f} um vs median reported "
                  f"std {np.median(med[free]) * 1e6:.2f} um; |mean - nominal| median {np.median(change) * 1e3:.2f} mm, "
@@ -379,12 +358,7 @@ def report(names, nominal, intrinsics, res, ok, pos, std, phases, spans, totals,
                  f"Reported std x sqrt(NIS) is {np.median(scaled[free]) * 1e6:.0f} um (median over coordinates); "
                  f"spread / that: median {np.median(spread[free] / scaled[free]):.2f}, range "
                  f"{np.min(spread[free] / scaled[free]):.2f}-{np.max(spread[free] / scaled[free]):.2f}.\n")
-        key[v, "scaled"] = float(np.median(scaled[free]))
-        key[v, "scaled_ratio"] = float(np.median(spread[free] / scaled[free]))
-        key[v, "nis"] = (min(res[n][v + "_exact"][1] for n in caps), max(res[n][v + "_exact"][1] for n in caps))
         dev = mean - nominal.positions
-        key[v, "top"], key[v, "under"] = dev[2::2].mean(axis=0), dev[1::2].mean(axis=0)
-        key[v, "top_max"] = float(np.abs(dev[2::2]).max())
         f3 = lambda x: "[" + ", ".join(f"{c * 1e3:+.2f}" for c in x) + "]"  # noqa: E731
         text += (f"Mean minus nominal by side (mm): top IMUs 3, 5, 7 (imu_1 held) {f3(dev[2::2].mean(axis=0))}, "
                  f"each within {np.abs(dev[2::2]).max() * 1e3:.2f}; underside IMUs 2, 4, 6, 8 "
@@ -392,7 +366,6 @@ def report(names, nominal, intrinsics, res, ok, pos, std, phases, spans, totals,
     if ok["none"] and ok["intr"]:
         both = [n for n in ok["none"] if n in ok["intr"]]
         dd = np.stack([pos["intr"][n] - pos["none"][n] for n in both])
-        key["intr_diff"] = (rms(dd.mean(axis=0)[1:]), float(np.abs(dd.mean(axis=0)).max()))
         text += (f"Intrinsics fitted minus no intrinsics, same capture: mean over captures of the difference, "
                  f"per coordinate, RMS {rms(dd.mean(axis=0)[1:]) * 1e6:.0f} um, largest "
                  f"{np.abs(dd.mean(axis=0)).max() * 1e6:.0f} um; its spread across captures RMS "
@@ -431,8 +404,6 @@ def report(names, nominal, intrinsics, res, ok, pos, std, phases, spans, totals,
                 rs = np.array([h[0] for h in held])
                 worst = max(held)
                 best = min(held)
-                key[v, label] = (float(np.median(rs)), worst, int(np.sum(rs < 1)), len(rs),
-                                 float(np.median([score[v, c, c][1][idx] / score[v, c, c][0][idx] for c in cs])))
                 text += (f"\nHeld-out pairs ({len(held)}): median {np.median(rs):.4f}, best {best[0]:.4f} ({best[1]} -> "
                          f"{best[2]}), worst {worst[0]:.4f} ({worst[1]} -> {worst[2]}); {int(np.sum(rs < 1))} of "
                          f"{len(rs)} below 1.\n")
@@ -457,65 +428,7 @@ def report(names, nominal, intrinsics, res, ok, pos, std, phases, spans, totals,
         a, b, c = check[d]
         text += (f"| {d} | {a[0]:.4g}, {a[1]} of {len(phases[d])} | {b[0]:.4g}, {b[1]} | {c[0]:.4g}, {c[1]} "
                  f"| {res[d]['held'].nis_after:.4g} |\n")
-    return header + summary(key, names, check, res, phases) + text
-
-
-def summary(key, names, check, res, phases) -> str:
-    """The plain reading of the numbers below (section references into the report)."""
-    f3 = lambda x: "(" + ", ".join(f"{c * 1e3:+.2f}" for c in x) + ")"  # noqa: E731
-    t = "## Summary\n\n"
-    if ("none", "ratio") in key:
-        t += (f"- **Repeatability vs reported std**: across the six captures each free coordinate scatters by "
-              f"{key['none', 'spread'] * 1e6:.0f} um RMS (no intrinsics; {key.get(('intr', 'spread'), np.nan) * 1e6:.0f} um "
-              f"with intrinsics fitted) while `calibrate_geometry` reports about {key['none', 'crb'] * 1e6:.2f} um: "
-              f"spread / reported std median {key['none', 'ratio']:.0f} ({key.get(('intr', 'ratio'), np.nan):.0f}). "
-              "The reported std is the Cramér-Rao bound of a model that fits to the noise level, and this model "
-              f"does not: the exact NIS per degree of freedom after calibration is {key['none', 'nis'][0]:.0f}-"
-              f"{key['none', 'nis'][1]:.0f} (residuals ~{np.sqrt(key['none', 'nis'][0]):.0f}x the configured noise). "
-              f"Scaled by sqrt(NIS) the std would be {key['none', 'scaled'] * 1e6:.0f} um, and the spread is "
-              f"{key['none', 'scaled_ratio']:.2f}x that. So the spread far above the reported std means "
-              "unmodelled physics (and uncalibrated intrinsics), not a solver failure; the reported std is not an "
-              "uncertainty to quote for this board. The discovery tool has a large residual to chase.\n")
-        t += (f"- **What is repeatable**: without intrinsics the top IMUs "
-              f"3, 5, 7 stay within {key['none', 'top_max'] * 1e3:.2f} mm of nominal relative to imu_1, while the four "
-              f"underside IMUs move together by {f3(key['none', 'under'])} mm (x, y, z), about 10x the spread. "
-              "A common offset of the "
-              "sensing point inside every package, fixed in the package's own axes, would look exactly like that: "
-              "the top IMUs' share is a common shift (invisible), the underside rotation maps (a, b, c) to "
-              "(-b, -a, -c), so the underside moves by about (-(a+b), -(a+b), -2c) relative to the top. A hypothesis "
-              "for the discovery work, not established here.\n")
-    if "intr_diff" in key:
-        t += (f"- **Depends on the intrinsics**: fitting accelerometer gain/misalignment/bias, gyroscope bias and time "
-              f"offsets moves the positions by {key['intr_diff'][0] * 1e6:.0f} um RMS (up to "
-              f"{key['intr_diff'][1] * 1e6:.0f} um; mostly the underside z, shift {f3(key['none', 'under'])} -> "
-              f"{f3(key['intr', 'under'])} mm, and the top IMUs' x/y), 3x the capture-to-capture spread. Which samples "
-              "are used (partially saturated ones or not) moves them by ~0.1-0.2 mm (section 1). So the data support "
-              "positions repeatable to ~0.05 mm for a fixed model, but an absolute position only to a few tenths of "
-              "a millimetre until the misfit is understood.\n")
-    for v in ("none", "intr"):
-        a, g = key.get((v, "accelerometers only")), key.get((v, "all axes"))
-        if a and g:
-            t += (f"- **Held out, {LABEL[v]}**: positions calibrated on one capture lower every other capture's "
-                  f"accelerometer NIS by a median {100 * (1 - a[0]):.1f}% ({a[2]} of {a[3]} pairs below 1; worst "
-                  f"{a[1][0]:.4f}, {a[1][1]} -> {a[1][2]}), the all-axes NIS by {100 * (1 - g[0]):.2f}% "
-                  f"({g[2]} of {g[3]}; worst {g[1][0]:.4f}); in-sample {100 * (1 - a[4]):.1f}% / "
-                  f"{100 * (1 - g[4]):.2f}%: it transfers as well as it fits, no over-fitting. It is a small part of "
-                  "the misfit: the NIS stays in the thousands.\n")
-    t += "- **Core**: every capture was calibrated (no CalibrationError), joint solver converged in 5-6 iterations. "
-    worst = max(names, key=lambda d: check[d][1][0] / check[d][0][0])
-    b, n0 = check[worst][1], check[worst][0]
-    t += (f"But the fusion-based NIS (`ModelFusion` + `normalized_residuals`, i.e. `imu-array residuals`) is not "
-          f"usable with a fitted `time_offset` on these captures: with each capture's own fitted intrinsics it rises "
-          f"above the nominal description's (worst {worst}: {n0[0]:.0f} -> {b[0]:.0f}, while `fit_terms` reports "
-          f"{res[worst]['held'].nis_after:.0f} for the same model) and the fusion returns only {b[1]} of "
-          f"{len(phases[worst])} samples (the lost ones are exactly those lost when the saturated axes are fused as "
-          "missing: `ModelFusion`'s compensation passes re-fuse with saturated axes set to NaN, so the saturation "
-          "range extension no longer applies); resetting `time_offset` to 0 restores both (section 4). "
-          "`calibrate_geometry` profiles its window the same way for its reported nis/rms/log-likelihood (and "
-          "`calibrate_and_write` compares log-likelihoods with it); on its unsaturated samples that reads 1-4% above "
-          "the exact value when the model has a time offset (section 1). Scores here therefore use the exact "
-          "profile NIS.\n\n")
-    return t
+    return header + text
 
 
 if __name__ == "__main__":

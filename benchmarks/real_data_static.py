@@ -18,32 +18,27 @@ Held out, for every calibration capture c and every other capture d (30 pairs):
 Also the repeatability of the parameters across the six captures (mean (range), nilsson2014
 Table I style) and PCA vs ML time.  Writes benchmarks/results/real_data_static.md and .png.
 
-    python benchmarks/real_data_static.py
+    python -m benchmarks.real_data_static
 """
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
+from benchmarks.harness import DATA, REPO, RESULTS, machine_header, write_results
+from imu_array_ros.calibration.array import calibrate_array
+from imu_array_ros.calibration.static import calibrate_static, consistency_db
+from imu_array_ros.calibration.still import find_still_poses
+from imu_array_ros.errors import MissingDependencyError
+from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.fusion.residuals import normalized_residuals
+from imu_array_ros.io.openshoe.capture import import_capture
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.sensor_model import SensorModel
 
-from imu_array_ros.calibration.array import calibrate_array  # noqa: E402
-from imu_array_ros.calibration.static import calibrate_static, consistency_db  # noqa: E402
-from imu_array_ros.calibration.still import find_still_poses  # noqa: E402
-from imu_array_ros.discovery.residuals import normalized_residuals  # noqa: E402
-from imu_array_ros.estimation.model_fusion import ModelFusion  # noqa: E402
-from imu_array_ros.io.openshoe.capture import import_capture  # noqa: E402
-from imu_array_ros.model.description import load_description  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"
-OUT = REPO / "benchmarks" / "results"
+OUT = RESULTS
 REDUCED = ("accelerometer_gain", "accelerometer_nonorthogonality", "accelerometer_bias", "gyroscope_bias")
 
 
@@ -147,14 +142,11 @@ def main() -> None:
             cells += [fmt.format(v[:, j].mean(), np.ptp(v[:, j])) for j in range(3)]
         md.append(f"| {name} | " + " | ".join(cells) + " |\n")
     md.append("\n## Log\n\n```\n" + "\n".join(lines) + "\n```\n")
-    OUT.mkdir(exist_ok=True)
-    (OUT / "real_data_static.md").write_text("".join(md))
+    write_results(OUT / "real_data_static.md", "".join(md))
     try:
-        import matplotlib
+        from imu_array_ros.util.plotting import pyplot, save_png
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
+        plt = pyplot(OUT / "real_data_static.png")
         fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
         a1.boxplot([vs_nom, vs_red, vs_pca, vs_all])
         a1.set_xticks([1, 2, 3, 4], ["ML vs nominal", "ML vs per-IMU", "PCA vs nominal", "all vs nominal"],
@@ -169,8 +161,8 @@ def main() -> None:
         a2.set_xlabel("NIS ratio, nominal"), a2.set_ylabel("NIS ratio, calibrate all (held out)")
         a2.legend()
         fig.tight_layout()
-        fig.savefig(OUT / "real_data_static.png", dpi=110)
-    except ImportError:
+        save_png(fig, OUT / "real_data_static.png")
+    except MissingDependencyError:  # matplotlib is an extra: the tables are written anyway
         pass
     print(f"wrote {OUT / 'real_data_static.md'}")
 

@@ -14,32 +14,26 @@ starting from config/mimu4444bt_corners.yaml.  Then
 Writes benchmarks/results/real_data_terms.md (and the fitted descriptions to
 benchmarks/results/real_data_terms/exp_N.yaml, for inspection).
 
-    python benchmarks/real_data_terms.py
-    python benchmarks/real_data_terms.py --without time_offset   # -> real_data_terms_without_time_offset.md
+    python -m benchmarks.real_data_terms
+    python -m benchmarks.real_data_terms --without time_offset   # -> real_data_terms_without_time_offset.md
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
+from benchmarks.harness import DATA, REPO, RESULTS, machine_header, write_results
+from imu_array_ros.fitting.engine import fit_terms
+from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.fusion.residuals import normalized_residuals
+from imu_array_ros.io.openshoe.capture import import_capture
+from imu_array_ros.model.description import load_description, save_description
+from imu_array_ros.model.sensor_model import SensorModel
 
-from imu_array_ros.discovery.residuals import normalized_residuals  # noqa: E402
-from imu_array_ros.estimation.fit_terms import fit_terms  # noqa: E402
-from imu_array_ros.estimation.model_fusion import ModelFusion  # noqa: E402
-from imu_array_ros.io.openshoe.capture import import_capture  # noqa: E402
-from imu_array_ros.model.description import load_description, save_description  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"
-OUT = REPO / "benchmarks" / "results"
+OUT = RESULTS
 STANDARD = ("position", "accelerometer_gain", "accelerometer_misalignment", "accelerometer_bias",
             "gyroscope_gain", "gyroscope_misalignment", "gyroscope_bias", "time_offset")
 
@@ -129,7 +123,7 @@ def main() -> None:
         per_imu += (f"\n### {term}\n\nmean over captures ± spread (σ: median reported std)\n\n| IMU | "
                     + " | ".join(pnames) + " |\n|---|" + "---|" * len(pnames) + "\n" + "\n".join(rows) + "\n")
     text += "\n## Per IMU\n" + per_imu
-    (OUT / f"{tag}.md").write_text(text)
+    write_results(OUT / f"{tag}.md", text)
     print(f"wrote {OUT / f'{tag}.md'}")
 
 

@@ -2,34 +2,27 @@
 
 For every ../shared/data/openshoe_mimu4444bt/exp_*.bin: import, fuse with the
 nominal description config/mimu4444bt_corners.yaml, and compute the normalised
-residual ratio (observed / expected NIS, see imu_array_ros.discovery.residuals) by IMU
+residual ratio (observed / expected NIS, see imu_array_ros.fusion.residuals) by IMU
 and axis, still vs moving; next to it the same figure for a simulated
 recording of the same (fused) motion measured by the nominal model.
 Writes benchmarks/results/real_data_fit.md.
 
-    python benchmarks/report_real_data_fit.py
+    python -m benchmarks.report_real_data_fit
 """
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
-from imu_array_ros.model.description import load_description  # noqa: E402
-from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
-from imu_array_ros.io.openshoe.framing import si_saturation_level  # noqa: E402
-from imu_array_ros.io.openshoe.capture import import_capture  # noqa: E402
-from imu_array_ros.discovery.residuals import normalized_residuals, simulate_same_motion  # noqa: E402
-from imu_array_ros.model.forward import SensorModel  # noqa: E402
-from imu_array_ros.model.sensor_model import LinearArrayModel  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "openshoe_mimu4444bt"
+from benchmarks.harness import DATA, REPO, RESULTS, machine_header, write_results
+from imu_array_ros.fusion.ml_fusion import MLFusion
+from imu_array_ros.fusion.residuals import normalized_residuals
+from imu_array_ros.io.openshoe.capture import import_capture
+from imu_array_ros.io.openshoe.framing import si_saturation_level
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.linear import LinearArrayModel
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.simulation.simulator import simulate_same_motion
 
 
 def range_extension(samples, fused, model) -> str:
@@ -97,9 +90,7 @@ def main() -> None:
         "| step at edges | step, fast unsaturated |\n|---|---|---|---|---|---|---|---|\n"
     )
     text += "".join(ext_rows) + tables
-    out = REPO / "benchmarks" / "results" / "real_data_fit.md"
-    out.write_text(text)
-    print(f"wrote {out}")
+    print(f"wrote {write_results(RESULTS / 'real_data_fit.md', text)}")
 
 
 if __name__ == "__main__":

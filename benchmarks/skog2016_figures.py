@@ -7,26 +7,21 @@ rotation about x (a) and about z (b), 0-3000 deg/s.  Fig. 6: non-planar
 Each point: 20,000 realizations (the paper used 1e5).  Writes
 benchmarks/results/skog2016_figures.md.
 
-    python benchmarks/skog2016_figures.py
+    python -m benchmarks.skog2016_figures
 """
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_header  # noqa: E402
-
-from imu_array_ros.model.layouts import planar_square4, tetrahedron4  # noqa: E402
-from imu_array_ros.estimation.crb import crb  # noqa: E402
-from imu_array_ros.estimation.ml_fusion import MLFusion  # noqa: E402
-from imu_array_ros.simulation.motion import random_motion  # noqa: E402
-from imu_array_ros.model.sensor_model import LinearArrayModel  # noqa: E402
-from imu_array_ros.simulation.simulator import simulate_measurements  # noqa: E402
-from imu_array_ros.estimation.tensor_method import tensor_method  # noqa: E402
+from benchmarks.harness import RESULTS, machine_header, write_results
+from imu_array_ros.fusion.crb import crb
+from imu_array_ros.fusion.ml_fusion import MLFusion
+from imu_array_ros.fusion.tensor_method import tensor_method
+from imu_array_ros.model.layouts import planar_square4, tetrahedron4
+from imu_array_ros.model.linear import LinearArrayModel
+from imu_array_ros.simulation.motion import random_motion
+from imu_array_ros.simulation.simulator import simulate_measurements
 
 NOISE = dict(accelerometer_noise_std=0.01, gyroscope_noise_std=float(np.deg2rad(1.0)))
 N = 20000
@@ -70,9 +65,7 @@ def main() -> None:
     for r in rows:
         ratio = np.mean([r[7 + i] / r[1 + i] for i in range(3)])
         text += f"| {r[0]} | {r[1]:.4f} | {r[4]:.4f} | {r[7]:.4f} | {ratio:.3f} |\n"
-    out = Path(__file__).resolve().parent / "results" / "skog2016_figures.md"
-    out.write_text(text)
-    print(f"wrote {out}")
+    print(f"wrote {write_results(RESULTS / 'skog2016_figures.md', text)}")
 
 
 if __name__ == "__main__":
