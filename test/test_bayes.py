@@ -11,6 +11,7 @@ from scipy.stats import ks_2samp
 
 from conftest import START, assert_user_error, cli
 from imu_array_ros.calibration import bayes
+from imu_array_ros.calibration.selection import MIN_EXCITATION, select_rotating
 from imu_array_ros.calibration import bayes_sampler as bs
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.description import load_description, save_description
@@ -31,8 +32,8 @@ def _problem(seed=0, t=30, desc=None, true_offset=2e-4, **kw):
     pos = nominal.positions.copy()
     pos[1:] += rng.normal(size=pos[1:].shape) * true_offset
     s, truth = simulate_gaussian(nominal.with_terms(position=pos), t, rng)
-    p = bayes.build_problem(s.stamps, s.accel, s.gyro, nominal, **kw)
-    return p, bayes.laplace(p, s.stamps, s.accel, s.gyro, nominal), s, truth, pos, nominal
+    p = bayes.build_problem(s, nominal, **kw)
+    return p, bayes.laplace(p, s, nominal), s, truth, pos, nominal
 
 
 # --------------------------------------------------------------------------- the likelihood
@@ -50,7 +51,7 @@ def test_rao_blackwellised_likelihood_matches_the_dense_formula_with_a_calibrate
                                accelerometer_bias=0.1 * rng.normal(size=(k, 3)),
                                gyroscope_gain=1 + 0.01 * rng.normal(size=(k, 3)))
     s, truth = simulate_gaussian(model, 12, rng)
-    p = bayes.build_problem(s.stamps, s.accel, s.gyro, model)
+    p = bayes.build_problem(s, model)
     m_acc, o_acc, _, _ = bayes.affine_model(model, s.stamps)
     sigma = np.diag(np.tile(model.acc_std[0] ** 2, k))
     om = np.linalg.inv(sigma)
@@ -92,7 +93,7 @@ def test_a_model_with_time_offsets_is_refused_by_name():
     model = nominal.with_terms(time_offset=np.full((4, 2), 1e-3))
     s, _ = simulate_gaussian(model, 5, np.random.default_rng(0))
     with pytest.raises(CalibrationError, match="time_offset"):
-        bayes.build_problem(s.stamps, s.accel, s.gyro, model)
+        bayes.build_problem(s, model)
 
 
 # --------------------------------------------------------------------------- the sampler
@@ -257,7 +258,6 @@ def test_still_recording_is_a_clear_error(capsys, tmp_path):
 def test_still_samples_with_accelerometer_biases_are_not_taken_for_rotation():
     """Uncalibrated accelerometer biases make a still array's fused omega_dot large (the geometry test
     passes it as rotation); the gyroscopes say it is still, and select_samples drops it."""
-    from imu_array_ros.calibration import geometry
     from imu_array_ros.model.samples import MotionTruth
     from imu_array_ros.simulation.simulator import simulate_measurements
 
@@ -272,9 +272,9 @@ def test_still_samples_with_accelerometer_biases_are_not_taken_for_rotation():
                         specific_force=force)  # 100 Hz
     biased = nominal.with_terms(accelerometer_bias=0.3 * rng.normal(size=(4, 3)))
     s = simulate_measurements(biased, truth, rng, saturate=False)
-    used, _, _ = geometry._select(s.stamps, s.accel, s.gyro, nominal, geometry.MIN_EXCITATION)
+    used = select_rotating(s, nominal, MIN_EXCITATION).used
     assert used[still].sum() > 80  # the accelerometer-based test alone lets the still samples through
-    idx, dropped, usable = bayes.select_samples(s.stamps, s.accel, s.gyro, nominal, None)
+    idx, dropped, usable = bayes.select_samples(s, nominal, None)
     # the last still sample's central difference reaches into the motion: a transition, not still
     assert set(np.flatnonzero(still[idx])) <= {0}, np.flatnonzero(still[idx])
     assert dropped["still_by_gyroscopes"] >= used[still].sum() - 1

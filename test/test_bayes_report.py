@@ -26,8 +26,8 @@ def posterior():
     model = dataclasses.replace(SensorModel.from_description(planar_square4()), acc_clip=np.inf, gyro_clip=np.inf)
     rng = np.random.default_rng(0)
     s, _ = simulate_gaussian(model, 20, rng)
-    p = bayes.build_problem(s.stamps, s.accel, s.gyro, model)
-    lap = bayes.laplace(p, s.stamps, s.accel, s.gyro, model)
+    p = bayes.build_problem(s, model)
+    lap = bayes.laplace(p, s, model)
     post = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", ess=100, min_warmup=500, chunk=500))
     return post, model
 

@@ -184,6 +184,7 @@ def test_calibration_reaches_the_fusion_node(ros, caller, tmp_path):
     from imu_array_ros.fusion.live import build_fusion
     from imu_array_ros.io.rosbag.recording import read_imu_recording
     from imu_array_ros.model.description import load_description
+    from imu_array_ros.model.samples import ImuSamples
 
     true = _true_array(tmp_path)
     bag = _simulate(tmp_path, "twist", "--true-array", true, "--rms-rate", 900, "--seed", 1)
@@ -223,9 +224,9 @@ def test_calibration_reaches_the_fusion_node(ros, caller, tmp_path):
     period = samples.stamps[-1] - samples.stamps[0] + int(np.median(np.diff(samples.stamps)))
     rows = np.searchsorted(samples.stamps, samples.stamps[0] + (got["stamps"] - samples.stamps[0]) % period)
     np.testing.assert_array_equal((got["stamps"] - samples.stamps[rows]) % period, 0)
-    acc, gyr = samples.accel[rows], samples.gyro[rows]
-    want, _ = build_fusion(load_array(ARRAY32, out)[0]).fuse(got["stamps"], acc, gyr)
-    old, _ = build_fusion(nominal).fuse(got["stamps"], acc, gyr)
+    window = ImuSamples(got["stamps"], samples.accel[rows], samples.gyro[rows], samples.names)
+    want, _ = build_fusion(load_array(ARRAY32, out)[0]).fuse(window)
+    old, _ = build_fusion(nominal).fuse(window)
     np.testing.assert_array_equal(want.stamps, got["stamps"])
     for name in ("omega", "omega_dot", "specific_force"):
         np.testing.assert_allclose(got[name], getattr(want, name), rtol=1e-9, atol=1e-9,

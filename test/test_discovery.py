@@ -47,17 +47,17 @@ def test_score_blocks_add_up_and_match_the_exact_fit(nominal):
     log-likelihood gain of the engine's fit of that term on that IMU (one Gauss-Newton step from the
     motion's optimum), to within 1 %."""
     s = _bias_recording(nominal)
-    motion, _, _ = fit_motion(s.stamps, s.accel, s.gyro, nominal)
+    motion, _, _ = fit_motion(s, nominal)
     terms = ("accelerometer_bias", "position")
     blocks = ((s.stamps - s.stamps[0]) // int(0.5e9)).astype(np.int64)
-    sb = score_blocks(s.stamps, s.accel, s.gyro, nominal, terms, motion, blocks)
-    one = score_blocks(s.stamps, s.accel, s.gyro, nominal, terms, motion, np.zeros_like(blocks))
+    sb = score_blocks(s, nominal, terms, motion, blocks)
+    one = score_blocks(s, nominal, terms, motion, np.zeros_like(blocks))
     np.testing.assert_allclose(sb.g.sum(axis=0), one.g[0], rtol=1e-9, atol=1e-9 * np.abs(one.g).max())
     np.testing.assert_allclose(sb.S.sum(axis=0), one.S[0], rtol=1e-9, atol=1e-9 * np.abs(one.S).max())
     cols = sb.columns("accelerometer_bias")
     g, S = one.g[0, 2, cols], one.S[0, 2, cols, cols]
     stat = float(g @ np.linalg.solve(S, g))
-    fit = fit_terms(s.stamps, s.accel, s.gyro, nominal, ["accelerometer_bias"], imus=[2], motion0=motion)
+    fit = fit_terms(s, nominal, ["accelerometer_bias"], imus=[2], motion0=motion)
     assert stat > 100  # the effect is there
     assert abs(0.5 * stat - (fit.loglik_after - fit.loglik_before)) < 0.01 * 0.5 * stat
     # the one-step estimate is the fit's
@@ -70,7 +70,7 @@ def test_score_blocks_add_up_and_match_the_exact_fit(nominal):
 def test_fit_terms_only_fits_each_term_on_its_imus(nominal):
     s = _bias_recording(nominal)
     only = {"accelerometer_bias": ["imu_3"], "position": ["imu_6"]}
-    fit = fit_terms(s.stamps, s.accel, s.gyro, nominal, list(only), imus=["imu_3", "imu_6"], only=only)
+    fit = fit_terms(s, nominal, list(only), imus=["imu_3", "imu_6"], only=only)
     assert np.isfinite(fit.std["accelerometer_bias"][2]).all() and np.isnan(fit.std["accelerometer_bias"][5]).all()
     assert np.isfinite(fit.std["position"][5]).all() and np.isnan(fit.std["position"][2]).all()
     np.testing.assert_array_equal(fit.model.terms["position"].values[2], nominal.positions[2])
@@ -85,9 +85,9 @@ def test_score_statistics_are_chi_square_on_a_null_recording(nominal):
     the block-robust p-values are uniform: the tests are calibrated, so the Bonferroni level means what it says."""
     built = build(Scenario("null", CORNERS, seed=41))
     s = built.samples
-    motion, _, _ = fit_motion(s.stamps, s.accel, s.gyro, nominal)
+    motion, _, _ = fit_motion(s, nominal)
     blocks = ((s.stamps - s.stamps[0]) // int(0.5e9)).astype(np.int64)
-    sb = score_blocks(s.stamps, s.accel, s.gyro, nominal, term_names(), motion, blocks)
+    sb = score_blocks(s, nominal, term_names(), motion, blocks)
     cands = evaluate_candidates(sb, nominal.names, np.arange(blocks[-1] + 1) % 4)
     assert len(cands) == 14 * 8
     ratio = np.mean([c.statistic / c.dof for c in cands])

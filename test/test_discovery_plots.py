@@ -10,7 +10,7 @@ import pytest
 matplotlib = pytest.importorskip("matplotlib")
 
 from imu_array_ros.discovery import plots  # noqa: E402
-from imu_array_ros.errors import MissingDependencyError, OutputError  # noqa: E402
+from imu_array_ros.errors import MissingDependencyError  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 NAMES = [f"imu_{i + 1}" for i in range(8)]

@@ -43,7 +43,7 @@ def subset_model(indexes=SUBSET) -> SensorModel:
 
 
 def fit(samples, model, free, **kw):
-    return fit_terms(samples.stamps, samples.accel, samples.gyro, model, free, **kw)
+    return fit_terms(samples, model, free, **kw)
 
 
 def gauge_errors(res, truth: SensorModel):
@@ -72,7 +72,7 @@ def test_schur_step_is_the_dense_joint_gauss_newton_step(rng):
     truth = random_motion(n, 6.0, 60.0, rng, rate_hz=RATE)
     samples = simulate_measurements(model, truth, rng)
     free, fitted = ("position", "gyroscope_g_sensitivity", "time_offset", "accelerometer_gain"), np.array([1, 2, 3])
-    prob = _Problem(samples.stamps, samples.accel, samples.gyro, model, free, fitted)
+    prob = _Problem(samples, model, free, fitted)
     prob.chunk = 2
     motion = np.concatenate([truth.omega, truth.omega_dot, truth.specific_force], axis=1)
     motion = motion + rng.normal(0, 0.05, motion.shape)  # away from the optimum

@@ -27,7 +27,7 @@ def _monte_carlo(desc, speed_dps, direction, rng, n=N_MC):
     model = LinearArrayModel.from_description(desc)
     truth = random_motion(n, np.deg2rad(speed_dps), np.deg2rad(1000.0), rng, omega_direction=direction)
     samples = simulate_measurements(desc, truth, rng)
-    fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, stats = MLFusion(model).fuse(samples)
     assert stats.fused == n
     rmse = np.sqrt(np.mean((fused.omega - truth.omega) ** 2, axis=0))
     gyro_valid = model.gyro_unsaturated(samples.gyro[:1])
@@ -85,7 +85,7 @@ def test_covariance_is_inverse_fisher_information(array32, rng):
     truth = random_motion(200, np.deg2rad(2500), np.deg2rad(3000), rng)
     samples = simulate_measurements(desc, truth, rng)
     samples.accel[5, 3] = np.nan  # an IMU missing in one sample
-    fused, _ = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, _ = MLFusion(model).fuse(samples)
     acc_valid = model.acc_unsaturated(samples.accel)
     gyro_valid = model.gyro_unsaturated(samples.gyro)
     info = fisher_information(fused.omega, model, acc_valid, gyro_valid)
@@ -174,7 +174,7 @@ def test_missing_imu_equals_smaller_array(array32, rng):
     assert stats.incomplete_samples == 50 and stats.fused == 50
     keep = [i for i in range(32) if i not in drop]
     small = model.select(keep)
-    ref, _ = MLFusion(small).fuse(samples.stamps, samples.accel[:, keep], samples.gyro[:, keep])
+    ref, _ = MLFusion(small).fuse(ImuSamples(samples.stamps, samples.accel[:, keep], samples.gyro[:, keep], small.names))
     np.testing.assert_allclose(fused.omega, ref.omega, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(fused.covariance, ref.covariance, rtol=1e-7, atol=1e-15)
 
@@ -203,8 +203,8 @@ def test_single_sample_path_matches_batch(array32, rng):
     model = LinearArrayModel.from_description(array32)
     samples, _ = simulate_twist(array32, duration=0.05, rate_hz=1000.0, rng=rng, rms_rate=np.deg2rad(1500))
     fz = MLFusion(model)
-    batch, _ = fz.fuse(samples.stamps, samples.accel, samples.gyro)
-    one = [fz.fuse(samples.stamps[i:i + 1], samples.accel[i:i + 1], samples.gyro[i:i + 1])[0] for i in range(len(samples))]
+    batch, _ = fz.fuse(samples)
+    one = [fz.fuse(samples.select(slice(i, i + 1)))[0] for i in range(len(samples))]
     np.testing.assert_allclose(np.vstack([o.omega for o in one]), batch.omega, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(np.concatenate([o.covariance for o in one]), batch.covariance, rtol=1e-10, atol=1e-18)
 
@@ -253,7 +253,7 @@ def test_readings_just_below_the_clip_level_keep_their_information(array32, rng)
     gx = np.abs(samples.gyro[:, on_x])  # (N, 32)
     assert np.all((gx >= 0.998 * model.gyro_range) & (gx < model.gyro_range))  # the band of the old rule
     assert np.all(model.gyro_unsaturated(samples.gyro))  # none of them flagged now
-    fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, stats = MLFusion(model).fuse(samples)
     assert stats.fused == N_MC and stats.saturated_gyro_samples == 0
     rmse = np.sqrt(np.mean((fused.omega - truth.omega) ** 2, axis=0))
     bound = np.sqrt(np.diag(crb(truth.omega[:1], model)[0])[:3])
@@ -276,12 +276,12 @@ def test_readings_at_the_clip_level_are_saturated(array32, rng):
         truth = random_motion(200, np.deg2rad(2100), np.deg2rad(1000), rng, omega_direction=[0, 0, 1])
         samples = simulate_measurements(desc, truth, rng)
         assert np.abs(samples.gyro).max() == clip  # clipped at the clip level, not at the range
-        fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+        fused, stats = MLFusion(model).fuse(samples)
         assert stats.saturated_gyro_samples == 200 and stats.fused == 200
         # one reading exactly at the clip in an otherwise slow sample: flagged and counted
         slow = simulate_measurements(desc, random_motion(3, 1.0, 1.0, rng), rng)
         slow.gyro[1, 4, 2] = -clip
-        assert MLFusion(model).fuse(slow.stamps, slow.accel, slow.gyro)[1].saturated_gyro_samples == 1
+        assert MLFusion(model).fuse(slow)[1].saturated_gyro_samples == 1
 
 
 def test_quantised_clip_level_of_the_openshoe_config(rng):

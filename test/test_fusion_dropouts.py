@@ -23,6 +23,7 @@ from imu_array_ros.fusion.ml_fusion import FusionStats, MLFusion
 from imu_array_ros.model.linear import LinearArrayModel
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
+from imu_array_ros.model.samples import ImuSamples
 
 
 def _assert_same(batch, ref, where):
@@ -56,15 +57,16 @@ def test_random_imu_dropouts_equal_reduced_arrays(array32, rng):
     drop[:20] = False  # some complete samples too
     samples.accel[drop] = np.nan
     samples.gyro[drop] = np.nan
-    fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, stats = MLFusion(model).fuse(samples)
     assert stats.fused == n and stats.incomplete_samples == np.count_nonzero(drop.any(1))
     assert stats.patterns > 300  # the case of issue 6 §5: (nearly) one pattern per sample
     assert stats.saturated_gyro_samples > 0  # fast enough that some gyros clip, too
     parts = []
     for i in range(n):
         keep = np.flatnonzero(~drop[i])
-        one, st = MLFusion(model.select(keep)).fuse(samples.stamps[i:i + 1], samples.accel[i:i + 1, keep],
-                                                    samples.gyro[i:i + 1, keep])
+        sub = model.select(keep)
+        one, st = MLFusion(sub).fuse(ImuSamples(samples.stamps[i:i + 1], samples.accel[i:i + 1, keep],
+                                                samples.gyro[i:i + 1, keep], sub.names))
         assert st.fused == 1 and st.incomplete_samples == 0 and st.patterns == 1
         parts.append(one)
     _assert_same(fused, _Rows(_concat(parts)), "IMU dropouts vs sub-array")
@@ -114,12 +116,12 @@ def test_mixed_invalid_axes_equal_one_sample_at_a_time(array32, rng):
     samples, bad = _mixed_batch(array32, rng)
     n = len(samples.stamps)
     fz = MLFusion(model)
-    fused, stats = fz.fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, stats = fz.fuse(samples)
     assert stats.patterns > 200
     assert stats.saturated_gyro_samples > 100 and stats.saturated_accel_samples > 50
     parts, total = [], FusionStats()
     for i in range(n):
-        one, st = MLFusion(model).fuse(samples.stamps[i:i + 1], samples.accel[i:i + 1], samples.gyro[i:i + 1])
+        one, st = MLFusion(model).fuse(samples.select(slice(i, i + 1)))
         parts.append(one)
         total.merge(st)
     skipped = [i for i in range(n) if samples.stamps[i] not in set(fused.stamps.tolist())]
@@ -153,9 +155,9 @@ def test_shared_pattern_need_not_be_complete(array32, rng, dead):
     drop = rng.random((len(samples), 32)) < 0.03
     samples.accel[drop] = np.nan
     samples.gyro[drop] = np.nan
-    fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, stats = MLFusion(model).fuse(samples)
     assert stats.fused == len(samples) and stats.incomplete_samples == len(samples)
-    parts = [MLFusion(model).fuse(samples.stamps[i:i + 1], samples.accel[i:i + 1], samples.gyro[i:i + 1])[0]
+    parts = [MLFusion(model).fuse(samples.select(slice(i, i + 1)))[0]
              for i in range(len(samples))]
     _assert_same(fused, _Rows(_concat(parts)), "dead IMU")
 
@@ -175,10 +177,10 @@ def test_planar_array_dropouts_and_unidentifiable_patterns(planar4, rng):
     samples.accel[drop] = np.nan
     samples.gyro[drop] = np.nan
     samples.accel[::7, 0, 2] = np.nan  # a single missing accelerometer axis (the per-sample build)
-    fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, stats = MLFusion(model).fuse(samples)
     parts, total = [], FusionStats()
     for i in range(600):
-        one, st = MLFusion(model).fuse(samples.stamps[i:i + 1], samples.accel[i:i + 1], samples.gyro[i:i + 1])
+        one, st = MLFusion(model).fuse(samples.select(slice(i, i + 1)))
         parts.append(one)
         total.merge(st)
     too_few = np.isfinite(samples.accel[:, :, 2]).sum(axis=1) < 3

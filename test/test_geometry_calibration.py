@@ -15,7 +15,7 @@ from imu_array_ros.fusion.model_fusion import ModelFusion
 from imu_array_ros.model.description import load_description, save_description
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.layouts import grid_array32, tetrahedron4
-from imu_array_ros.model.samples import MotionTruth
+from imu_array_ros.model.samples import ImuSamples, MotionTruth
 from imu_array_ros.simulation.perturb import perturb
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_random, simulate_twist
 
@@ -51,7 +51,7 @@ def test_fig4_setting_rmse_within_20_percent_of_crb_and_falls_as_inverse_sqrt_n(
             rng = np.random.default_rng(1000 * n + seed)
             true, start = _truth_and_start(nominal32, rng)
             s, _ = simulate_random(true, n, W, W, rng)
-            out.append((calibrate_geometry(s.stamps, s.accel, s.gyro, start), true))
+            out.append((calibrate_geometry(s, start), true))
         rmse[n], crb = _rmse_and_crb(out)
         assert 0.8 < rmse[n] / crb < 1.2, (n, rmse[n], crb)
         assert all(r.converged and r.samples_used == n for r, _ in out)
@@ -64,15 +64,15 @@ def test_two_samples_are_refused_as_not_identifiable(nominal32):
     true, start = _truth_and_start(nominal32, rng)
     s, _ = simulate_random(true, 2, W, W, rng)
     with pytest.raises(CalibrationError, match="too few samples with rotation: 2 of 2 usable"):
-        calibrate_geometry(s.stamps, s.accel, s.gyro, start)
+        calibrate_geometry(s, start)
 
 
 def test_bcd_and_joint_reach_the_same_maximum(nominal32):
     rng = np.random.default_rng(3)
     true, start = _truth_and_start(nominal32, rng)
     s, _ = simulate_random(true, 50, W, W, rng)
-    joint = calibrate_geometry(s.stamps, s.accel, s.gyro, start, method="joint")
-    bcd = calibrate_geometry(s.stamps, s.accel, s.gyro, start, method="bcd", tolerance=1e-4)
+    joint = calibrate_geometry(s, start, method="joint")
+    bcd = calibrate_geometry(s, start, method="bcd", tolerance=1e-4)
     assert joint.converged and bcd.converged and bcd.iterations > joint.iterations
     assert abs(joint.loglik_after - bcd.loglik_after) < 1e-3 * max(1.0, joint.samples_used / 100)
     assert joint.loglik_after > joint.loglik_before
@@ -88,8 +88,8 @@ def test_literal_alg1_converges_slower_to_the_same_point(nominal32):
     rng = np.random.default_rng(4)
     true, start = _truth_and_start(nominal32, rng)
     s, _ = simulate_random(true, 30, W, W, rng)
-    fast = calibrate_geometry(s.stamps, s.accel, s.gyro, start, method="bcd")
-    slow = calibrate_geometry(s.stamps, s.accel, s.gyro, start, method="bcd", recenter=False, max_iterations=2000)
+    fast = calibrate_geometry(s, start, method="bcd")
+    slow = calibrate_geometry(s, start, method="bcd", recenter=False, max_iterations=2000)
     assert slow.converged and slow.iterations > 2 * fast.iterations
     np.testing.assert_allclose(slow.positions, fast.positions, atol=0.05 * fast.position_std[1:].min())
 
@@ -104,13 +104,13 @@ def test_twist_recording_within_3_sigma_and_calibrated_fusion_is_better(nominal3
     rate = np.deg2rad(1200.0)
     true, start = _truth_and_start(nominal32, rng, sigma=1e-3)
     s, _ = simulate_twist(true, 5.0, 200.0, rng, rms_rate=rate)
-    res = calibrate_geometry(s.stamps, s.accel, s.gyro, start)
+    res = calibrate_geometry(s, start)
     z = ((res.positions - true.positions) / np.where(res.position_std > 0, res.position_std, np.nan))[1:].ravel()
     assert np.sum(np.abs(z) > 3) <= 1 and 0.7 < np.sqrt(np.mean(z ** 2)) < 1.3, z
     held, truth = simulate_twist(true, 2.0, 200.0, np.random.default_rng(6), rms_rate=rate)
 
     def rmse(model):
-        fused, _ = ModelFusion(model).fuse(held.stamps, held.accel, held.gyro)
+        fused, _ = ModelFusion(model).fuse(held)
         idx = np.searchsorted(truth.stamps, fused.stamps)
         return [float(np.sqrt(np.mean((a - b[idx]) ** 2)))
                 for a, b in ((fused.omega, truth.omega), (fused.omega_dot, truth.omega_dot))]
@@ -135,7 +135,7 @@ def test_rotation_about_one_axis_is_refused_naming_the_axis(nominal32):
     s = simulate_measurements(nominal32, _fixed_axis_truth(400, [0, 0, 1], rng), rng)
     with pytest.raises(CalibrationError, match=r"one axis only \(\[0\.00 0\.00 1\.00\].*rotate about at least two "
                                                r"axes"):
-        calibrate_geometry(s.stamps, s.accel, s.gyro, nominal32)
+        calibrate_geometry(s, nominal32)
 
 
 def test_parallel_omega_and_omega_dot_identify_only_when_the_axis_changes(nominal32):
@@ -151,14 +151,14 @@ def test_parallel_omega_and_omega_dot_identify_only_when_the_axis_changes(nomina
                         specific_force=rng.normal(0, 5.0, (n, 3)))
     true, start = _truth_and_start(nominal32, rng, sigma=5e-4)
     s = simulate_measurements(true, truth, rng)
-    res = calibrate_geometry(s.stamps, s.accel, s.gyro, start)
+    res = calibrate_geometry(s, start)
     z = ((res.positions - true.positions) / np.where(res.position_std > 0, res.position_std, np.nan))[1:]
     assert np.all(np.abs(z) < 4.5) and np.all(res.position_std[1:] > 0)
     truth_one = MotionTruth(stamps=truth.stamps, omega=10.0 * np.tile([1.0, 0, 0], (n, 1)),
                             omega_dot=50.0 * np.tile([1.0, 0, 0], (n, 1)), specific_force=truth.specific_force)
     s = simulate_measurements(true, truth_one, rng)
     with pytest.raises(CalibrationError, match=r"one axis only \(\[1\.00 0\.0\d -?0\.0\d\]"):
-        calibrate_geometry(s.stamps, s.accel, s.gyro, start)
+        calibrate_geometry(s, start)
 
 
 def test_sample_selection_drops_saturated_and_still_samples(nominal32):
@@ -172,7 +172,8 @@ def test_sample_selection_drops_saturated_and_still_samples(nominal32):
                                                     omega=np.zeros((100, 3)), omega_dot=np.zeros((100, 3)),
                                                     specific_force=np.tile([0, 0, 9.81], (100, 1))), rng)
     stamps = np.concatenate([s.stamps, still.stamps])
-    res = calibrate_geometry(stamps, np.concatenate([acc, still.accel]), np.concatenate([gyr, still.gyro]), start)
+    res = calibrate_geometry(ImuSamples(stamps, np.concatenate([acc, still.accel]), np.concatenate([gyr, still.gyro]),
+                                        s.names), start)
     assert res.dropped["missing_or_saturated"] == 15
     assert res.dropped["little_rotation"] >= 100
     assert res.samples_used == len(stamps) - sum(res.dropped.values())
@@ -183,19 +184,19 @@ def test_errors_are_one_line_and_name_the_problem(nominal32):
     rng = np.random.default_rng(10)
     s, _ = simulate_random(nominal32, 20, W, W, rng)
     with pytest.raises(CalibrationError, match="unknown IMU 'nope'"):
-        calibrate_geometry(s.stamps, s.accel, s.gyro, nominal32, reference="nope")
+        calibrate_geometry(s, nominal32, reference="nope")
     with pytest.raises(CalibrationError, match="method must be one of joint, bcd"):
-        calibrate_geometry(s.stamps, s.accel, s.gyro, nominal32, method="magic")
+        calibrate_geometry(s, nominal32, method="magic")
     with pytest.raises(CalibrationError, match="stamps must increase strictly"):
-        calibrate_geometry(s.stamps[::-1], s.accel, s.gyro, nominal32)
-    with pytest.raises(CalibrationError, match=r"accel has shape \(20, 32, 2\)"):
-        calibrate_geometry(s.stamps, s.accel[..., :2], s.gyro, nominal32)
+        calibrate_geometry(ImuSamples(s.stamps[::-1], s.accel, s.gyro, s.names), nominal32)
+    with pytest.raises(CalibrationError, match=r"the samples are of IMUs x0, x1, x2, x3\.\.\., the model of imu_"):
+        calibrate_geometry(ImuSamples(s.stamps, s.accel, s.gyro, tuple(f"x{i}" for i in range(32))), nominal32)
 
 
 def test_reference_is_configurable_and_held(nominal32):
     rng = np.random.default_rng(12)
     s, _ = simulate_random(perturb(nominal32, rng, {"position": 5e-4}), 40, W, W, rng)
-    res = calibrate_geometry(s.stamps, s.accel, s.gyro, nominal32, reference="imu_07")
+    res = calibrate_geometry(s, nominal32, reference="imu_07")
     assert res.reference == "imu_07"
     np.testing.assert_array_equal(res.positions[7], nominal32.positions[7])
     assert np.all(res.position_std[7] == 0) and np.all(np.delete(res.position_std, 7, axis=0) > 0)
@@ -219,7 +220,7 @@ def window():
 def test_write_then_refuse_a_worse_calibration_leaving_the_file_untouched(window, tmp_path):
     desc, s = window
     out = tmp_path / "cal.yaml"
-    res, installed = calibrate_and_write(desc, s.stamps, s.accel, s.gyro, out)
+    res, installed = calibrate_and_write(desc, s, out)
     assert installed.backup is None and out.is_file()
     cal = load_description(out)
     assert cal.calibration["samples_used"] == res.samples_used and cal.calibration["reference"] == "imu_00"
@@ -228,10 +229,10 @@ def test_write_then_refuse_a_worse_calibration_leaving_the_file_untouched(window
     before = (out.read_bytes(), os.stat(out).st_mtime_ns)
     # one BCD iteration from the nominal positions is worse on this window than the file
     with pytest.raises(CalibrationError, match="not replaced: the calibration on file fits this window better"):
-        calibrate_and_write(desc, s.stamps, s.accel, s.gyro, out, method="bcd", max_iterations=1)
+        calibrate_and_write(desc, s, out, method="bcd", max_iterations=1)
     assert (out.read_bytes(), os.stat(out).st_mtime_ns) == before and not backup_path(out).exists()
     # the converged one (equal or better) replaces it, keeping the old one as the backup
-    _, installed = calibrate_and_write(desc, s.stamps, s.accel, s.gyro, out, method="bcd")
+    _, installed = calibrate_and_write(desc, s, out, method="bcd")
     assert installed.backup == backup_path(out) and installed.backup.read_bytes() == before[0]
 
 
@@ -240,15 +241,15 @@ def test_failed_calibration_touches_nothing_and_foreign_files_are_refused(window
     out = tmp_path / "cal.yaml"
     out.write_text("not: [a description\n")
     with pytest.raises(CalibrationError):
-        calibrate_and_write(desc, s.stamps[:2], s.accel[:2], s.gyro[:2], out)
+        calibrate_and_write(desc, s.select(slice(None, 2)), out)
     assert out.read_text() == "not: [a description\n" and not backup_path(out).exists()
     # an unreadable file is not a good calibration: replaced, its bytes kept as the backup
-    calibrate_and_write(desc, s.stamps, s.accel, s.gyro, out)
+    calibrate_and_write(desc, s, out)
     assert backup_path(out).read_text() == "not: [a description\n"
     other = tmp_path / "other.yaml"
     save_description(grid_array32(), other)
     with pytest.raises(OutputError, match="description of other IMUs"):
-        calibrate_and_write(desc, s.stamps, s.accel, s.gyro, other)
+        calibrate_and_write(desc, s, other)
     (tmp_path / "dir.yaml").mkdir()
     with pytest.raises(OutputError, match="not a regular file"):
-        calibrate_and_write(desc, s.stamps, s.accel, s.gyro, tmp_path / "dir.yaml")
+        calibrate_and_write(desc, s, tmp_path / "dir.yaml")

@@ -141,7 +141,7 @@ def test_cli_writes_an_icosahedron_recording(tmp_path, capsys):
     truth = read_truth(out)
     rest_sf = np.linalg.norm(truth.specific_force, axis=1)
     assert np.sum(np.abs(rest_sf - STANDARD_GRAVITY) < 1e-9) >= 20 * 1.5 * 50 * 0.99
-    poses = find_still_poses(samples.stamps, samples.accel, samples.gyro, SensorModel.from_description(desc),
+    poses = find_still_poses(samples, SensorModel.from_description(desc),
                              window_s=0.5, settle_s=0.1, min_duration_s=0.5)
     assert len(poses) == 20, poses.summary()
     # options that belong to another motion are user errors

@@ -63,7 +63,7 @@ def test_payloads_are_what_rclpy_serializes(recording):
     assert _unpadded(serialize_message(msg)) == bytes(payloads[2])  # byte for byte what rmw publishes
 
     fusion = build_fusion(desc)
-    fused, _ = fusion.fuse(sub.stamps, sub.accel, sub.gyro)
+    fused, _ = fusion.fuse(sub)
     imu, acc = fused_payloads(fused, desc.frame_id)
     a = deserialize_message(bytes(acc[1]), AccelWithCovarianceStamped)
     assert _unpadded(serialize_message(a)) == bytes(acc[1])
@@ -196,7 +196,7 @@ def test_live_fusion_equals_the_offline_command(recording):
 def test_live_fusion_survives_malformed_input_and_keeps_fusing(recording):
     desc, samples = recording
     sub = samples.select(slice(0, 40))
-    offline, _ = build_fusion(desc).fuse(sub.stamps, sub.accel, sub.gyro)
+    offline, _ = build_fusion(desc).fuse(sub)
     payloads, imu, rows = _interleaved(sub, desc)
     live = LiveFusion(desc, sync_timeout_s=0.0)
     bad = [b"garbage", bytes(encode_nan(sub, desc)), bytes(raw_imu_payloads(sub, desc, "wrong/")[0][1][3])]
@@ -228,13 +228,13 @@ def test_reload_swaps_the_description_between_steps(recording, tmp_path):
     live.set_description(moved)
     live.add(payloads[half:], imu[half:], 0)
     second = live.step(0, flush=True)
-    want_old, _ = build_fusion(desc).fuse(sub.stamps[:5], sub.accel[:5], sub.gyro[:5])
-    want_new, _ = build_fusion(moved).fuse(sub.stamps[5:], sub.accel[5:], sub.gyro[5:])
+    want_old, _ = build_fusion(desc).fuse(sub.select(slice(None, 5)))
+    want_new, _ = build_fusion(moved).fuse(sub.select(slice(5, None)))
     np.testing.assert_allclose(np.concatenate([b.fused.specific_force for b in first]), want_old.specific_force,
                                rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(np.concatenate([b.fused.specific_force for b in second]), want_new.specific_force,
                                rtol=1e-12, atol=1e-12)
     assert not np.array_equal(want_old.specific_force[:1], build_fusion(moved).fuse(
-        sub.stamps[:1], sub.accel[:1], sub.gyro[:1])[0].specific_force)
+        sub.select(slice(None, 1)))[0].specific_force)
     with pytest.raises(ConfigError, match="differ"):
         live.set_description(desc.with_imus(desc.imus[:4]))

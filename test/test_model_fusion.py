@@ -93,6 +93,6 @@ def test_compensation_passes_keep_saturated_gyros_saturated_not_missing():
     clipped = ~model.gyro_unsaturated(samples.gyro)
     every_gyro_clipped = clipped.any(axis=2).all(axis=1)
     assert every_gyro_clipped.sum() >= 5  # the case: no gyro of the sample has all axes valid
-    linear, _ = ModelFusion(model, passes=0).fuse(samples.stamps, samples.accel, samples.gyro)
-    full, stats = ModelFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    linear, _ = ModelFusion(model, passes=0).fuse(samples)
+    full, stats = ModelFusion(model).fuse(samples)
     assert len(full) == len(linear) == len(samples.stamps), (len(full), len(linear), stats)

@@ -15,6 +15,7 @@ import pytest
 
 from conftest import ARRAY32, REPO
 from imu_array_ros.io.rosbag.recording import read_fused_recording
+from imu_array_ros.model.samples import ImuSamples
 
 BIN = Path(sys.executable).parent
 BAG = REPO / "bags" / "twist32_sample"
@@ -186,9 +187,9 @@ def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_pat
         assert spin_until(lambda: len(got_acc) >= 300), (len(got_acc), _stop(fusion))
         fused = decode_fused(got_imu[:300], got_acc[:300])
         np.testing.assert_array_equal(fused.stamps, samples.stamps[:300])
-        old, _ = build_fusion(desc).fuse(samples.stamps[:100], samples.accel[:100], samples.gyro[:100])
+        old, _ = build_fusion(desc).fuse(samples.select(slice(None, 100)))
         new, _ = build_fusion(moved).fuse(
-            samples.stamps[100:300], samples.accel[100:300], samples.gyro[100:300])
+            samples.select(slice(100, 300)))
         np.testing.assert_allclose(fused.specific_force[:100], old.specific_force, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(fused.specific_force[100:], new.specific_force, rtol=1e-9, atol=1e-9)
         node.destroy_node()
@@ -241,7 +242,7 @@ def test_serial_chain_with_corruption_and_unplug(ros_env, tmp_path):
     assert len(intact) == 2, "the device saw one start before and one after the unplug"
     accel, gyro = counts_to_si(np.concatenate([p.raw for p in intact]))
     stamps = np.arange(len(accel), dtype=np.int64) * 8_000_000
-    want, _ = build_fusion(desc).fuse(stamps, accel, gyro)
+    want, _ = build_fusion(desc).fuse(ImuSamples(stamps, accel, gyro, desc.names))
     # every published sample is one of them (matched by value), in stream order
     d = np.linalg.norm(got["omega"][:, None, :] - want.omega[None, :, :], axis=2)
     match = d.argmin(axis=1)

@@ -291,5 +291,5 @@ def test_pca_array_refuses_bad_shapes(rng):
     nominal = SensorModel.from_description(tetrahedron4())
     with pytest.raises(CalibrationError, match=r"must be \(poses, 4, 3\) for this array, got \(10, 3, 3\)"):
         pca_array(np.zeros((10, 3, 3)), nominal)
-    with pytest.raises(CalibrationError, match="reference IMU 'imu_99' is not in the array"):
+    with pytest.raises(CalibrationError, match="reference: unknown IMU 'imu_99'"):
         pca_array(np.zeros((10, 4, 3)), nominal, reference="imu_99")

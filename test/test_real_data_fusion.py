@@ -28,7 +28,7 @@ def test_range_extension_on_real_twisting(capture):
     desc = load_description(REPO / "config" / "mimu4444bt_corners.yaml")
     model = LinearArrayModel.from_description(desc)
     samples, _ = import_capture(SHARED_DATA / capture, desc)
-    fused, stats = MLFusion(model).fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, stats = MLFusion(model).fuse(samples)
     assert stats.fused >= stats.samples - 5 and stats.saturated_gyro_samples > 500
     idx = np.searchsorted(samples.stamps, fused.stamps)
     gyro = samples.gyro[idx]

@@ -44,7 +44,8 @@ def _feed(window, recording, chunks, upto=None):
 
 
 def _assert_is(window, samples, sl):
-    stamps, accel, gyro = window.snapshot()
+    s = window.snapshot()
+    stamps, accel, gyro = s.stamps, s.accel, s.gyro
     np.testing.assert_array_equal(stamps, samples.stamps[sl])
     np.testing.assert_array_equal(accel, samples.accel[sl])
     np.testing.assert_array_equal(gyro, samples.gyro[sl])
@@ -69,7 +70,6 @@ def test_window_by_time_grows_and_keeps_the_span(recording, chunks):
     window = SampleWindow(desc, window_s=0.9)
     now = _feed(window, recording, chunks)
     window.step(now, flush=True)
-    stamps, *_ = window.snapshot()
     want = samples.stamps >= samples.stamps[-1] - 900_000_000
     _assert_is(window, samples, want)
     c = window.counts()
@@ -80,7 +80,8 @@ def test_window_filling_up(recording):
     desc, samples, *_ = recording
     window = SampleWindow(desc, window_s=10.0)
     assert window.counts().buffered == 0 and window.counts().fill == 0.0
-    stamps, accel, gyro = window.snapshot()
+    s = window.snapshot()
+    stamps, accel, gyro = s.stamps, s.accel, s.gyro
     assert stamps.shape == (0,) and accel.shape == gyro.shape == (0, 32, 3)
     now = _feed(window, recording, 5, upto=200)
     window.step(now, flush=True)
@@ -107,15 +108,17 @@ def test_snapshot_is_a_consistent_copy_while_the_window_moves(recording):
         stop.set()
         t.join()
     assert len(taken) > 10
-    for stamps, accel, gyro in taken[::max(1, len(taken) // 50)]:
+    for s in taken[::max(1, len(taken) // 50)]:
+        stamps, accel = s.stamps, s.accel
         if not len(stamps):
             continue
         lo = int(np.searchsorted(samples.stamps, stamps[0]))
         np.testing.assert_array_equal(stamps, samples.stamps[lo:lo + len(stamps)])
         np.testing.assert_array_equal(accel, samples.accel[lo:lo + len(stamps)])
-    stamps, accel, _ = window.snapshot()
+    s = window.snapshot()
+    stamps, accel = s.stamps, s.accel
     accel[:] = 0.0
-    assert np.isfinite(window.snapshot()[1]).all() and window.snapshot()[1].any()
+    assert np.isfinite(window.snapshot().accel).all() and window.snapshot().accel.any()
 
 
 def test_bad_messages_are_counted_and_missing_imus_are_nan(recording):
@@ -130,7 +133,8 @@ def test_bad_messages_are_counted_and_missing_imus_are_nan(recording):
                np.r_[imu[sel], 4, 3, 2], 0)
     assert window.step(5_000_000) == 0  # IMU 5 has been silent 5 ms only: the samples wait
     assert window.step(20_000_000) == 10  # silent for the sync timeout: they go without it
-    stamps, accel, gyro = window.snapshot()
+    s = window.snapshot()
+    accel, gyro = s.accel, s.gyro
     assert np.isnan(accel[:, 5]).all() and np.isnan(gyro[:, 5]).all()
     np.testing.assert_array_equal(np.delete(accel, 5, axis=1), np.delete(samples.accel[:10], 5, axis=1))
     c = window.counts().counts

@@ -14,7 +14,7 @@ from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.layouts import nilsson14
-from imu_array_ros.model.samples import MotionTruth
+from imu_array_ros.model.samples import ImuSamples, MotionTruth
 from imu_array_ros.simulation.icosahedron import simulate_icosahedron
 from imu_array_ros.simulation.perturb import perturb
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_twist
@@ -36,11 +36,11 @@ def session(model):
 @pytest.fixture(scope="module")
 def poses(session, model):
     samples, _, _ = session
-    return find_still_poses(samples.stamps, samples.accel, samples.gyro, model)
+    return find_still_poses(samples, model)
 
 
 def _find(samples, model, **kw) -> StillPoses:
-    return find_still_poses(samples.stamps, samples.accel, samples.gyro, model, **kw)
+    return find_still_poses(samples, model, **kw)
 
 
 def test_all_twenty_faces_and_nothing_else(session, poses):
@@ -196,9 +196,10 @@ def test_fast_on_a_long_recording():
     stamps = np.round(np.arange(n) * 16e6).astype(np.int64)
     accel = rng.normal(0, 0.045, (n, 8, 3)) + np.einsum("kji,j->ki", model.rotations, [0, 0, STANDARD_GRAVITY])
     gyro = rng.normal(0, 0.0039, (n, 8, 3))
-    find_still_poses(stamps[:1000], accel[:1000], gyro[:1000], model)  # warm-up
+    samples = ImuSamples(stamps, accel, gyro, model.names)
+    find_still_poses(samples.select(slice(None, 1000)), model)  # warm-up
     t0 = time.perf_counter()
-    p = find_still_poses(stamps, accel, gyro, model)
+    p = find_still_poses(samples, model)
     assert time.perf_counter() - t0 < 1.0
     assert len(p) == 1 and p.still.mean() > 0.99
 

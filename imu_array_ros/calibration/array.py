@@ -34,6 +34,7 @@ import numpy as np
 from imu_array_ros.calibration.output import provenance
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
+from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["MOVING_TERMS", "ArrayCalibration", "calibrate_array", "array_description"]
@@ -105,25 +106,23 @@ class ArrayCalibration:
                 **provenance(), "stages": stages, "skipped": dict(self.skipped)}
 
 
-def calibrate_array(stamps, accel, gyro, model: SensorModel, *, reference=None, static_method: str = "ml",
+def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, static_method: str = "ml",
                     static_terms: Sequence[str] | None = None, moving_terms: Sequence[str] = MOVING_TERMS,
                     gravity: float = STANDARD_GRAVITY, still_options: dict | None = None,
                     max_iterations: int = 50, progress: Callable[[str], None] | None = None) -> ArrayCalibration:
     """Calibrate what the recording can: static stage from its still poses, moving stage from the rest.
 
     Raises :class:`CalibrationError` only when neither stage can run (the reasons of both)."""
-    from imu_array_ros.calibration.geometry import MIN_EXCITATION, _check_excitation, _select
+    from imu_array_ros.calibration.selection import MIN_EXCITATION, require_rotation, select_rotating
     from imu_array_ros.calibration.static import MIN_POSES, STATIC_TERMS, calibrate_static
     from imu_array_ros.calibration.still import check_poses, find_still_poses
     from imu_array_ros.fitting.engine import fit_terms
 
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
-    stamps = np.asarray(stamps, dtype=np.int64)
-    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
     static_terms = tuple(STATIC_TERMS if static_terms is None else static_terms)
     skipped: dict[str, str] = {}
-    poses = find_still_poses(stamps, accel, gyro, model, **(still_options or {}))
+    poses = find_still_poses(samples, model, **(still_options or {}))
     say(f"still poses: {poses.summary()}")
     current, static = model, None
     try:
@@ -145,13 +144,14 @@ def calibrate_array(stamps, accel, gyro, model: SensorModel, *, reference=None, 
         idx = np.flatnonzero(poses.moving)
         if len(idx) < 3:
             raise CalibrationError(f"no moving phase: {len(idx)} samples outside the still intervals")
-        st, acc, gyr = stamps[idx], accel[idx], gyro[idx]
-        used, dropped, motion = _select(st, acc, gyr, current, MIN_EXCITATION)
-        _check_excitation(motion[used], int(used.sum()), len(idx), dropped)
-        used_total = (int(used.sum()), len(stamps))
+        moving_samples = samples.select(idx)
+        selection = select_rotating(moving_samples, current, MIN_EXCITATION)
+        require_rotation(selection)
+        used = selection.used
+        used_total = (selection.n_used, len(samples))
         say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
-        moving = fit_terms(st[used], acc[used], gyr[used], current, moving_terms, reference=reference,
-                           motion0=motion[used], max_iterations=max_iterations,
+        moving = fit_terms(moving_samples.select(used), current, moving_terms, reference=reference,
+                           motion0=selection.motion[used], max_iterations=max_iterations,
                            progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
         current = moving.model
         say(f"moving stage: NIS {moving.nis_before:.4g} -> {moving.nis_after:.4g}")

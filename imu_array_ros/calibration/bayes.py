@@ -50,7 +50,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from imu_array_ros.calibration.selection import MIN_EXCITATION, select_rotating, spread_evenly
 from imu_array_ros.errors import CalibrationError
+from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.kinematics import skew
 
@@ -307,49 +309,25 @@ def _coefficients(omega_info: np.ndarray):
 # --------------------------------------------------------------------------- building a problem
 
 
-def select_samples(stamps, accel, gyro, model: SensorModel, n_samples: int | None, *,
+def select_samples(samples: ImuSamples, model: SensorModel, n_samples: int | None, *,
                    min_excitation: float | None = None):
-    """Indices of the samples to use: complete (every reading valid), with rotation by the geometry
-    calibration's test (:func:`~imu_array_ros.calibration.geometry._select`) and by the gyroscopes' alone,
-    ``n_samples`` of them evenly spread in time (None: all).  Returns (indices, dropped reason -> count,
-    usable count).
-
-    The gyroscope test asks ||[omega]x^2 + [d omega/dt]x||_F >= min_excitation (and >= NOISE_FACTOR times
-    what the gyroscope noise gives it) with d omega/dt the time derivative of the fused omega (central
-    differences): the geometry test's omega_dot comes from the
-    accelerometers, and with uncalibrated accelerometer biases a still array shows tens of rad/s^2 there
-    (the MIMU4444BT captures: ~14 rad/s^2 at rest), so static poses would pass as rotation."""
-    from imu_array_ros.calibration import geometry
-
-    stamps = np.asarray(stamps)
-    threshold = geometry.MIN_EXCITATION if min_excitation is None else float(min_excitation)
-    used, dropped, motion = geometry._select(stamps, np.asarray(accel), np.asarray(gyro), model, threshold)
-    omega = motion[:, 0:3]
-    if len(stamps) >= 2:
-        seconds = (stamps - stamps[0]) * 1e-9
-        with np.errstate(invalid="ignore"):
-            omega_dot = np.gradient(omega, seconds, axis=0)
-        gyro_excitation = np.linalg.norm(geometry._lever(np.concatenate([omega, omega_dot], axis=1)), axis=(1, 2))
-        # what the gyroscopes' noise alone gives ||[d omega/dt]x||_F: sqrt(sum_j var_j) / dt for the
-        # central difference of the fused omega (per-axis variance var_j = 1 / sum_k sigma_kj^-2)
-        dt = float(np.median(np.diff(seconds)))
-        noise = np.sqrt(np.sum(1.0 / np.sum(model.gyro_std ** -2.0, axis=0))) / dt if dt > 0 else np.inf
-        still = used & ~(gyro_excitation >= max(threshold, geometry.NOISE_FACTOR * noise))  # NaN: still
-        used = used & ~still
-        dropped = {**dropped, "still_by_gyroscopes": int(still.sum())}
-    idx = np.flatnonzero(used)
-    usable = len(idx)
-    if n_samples is not None and usable > n_samples:
-        idx = idx[np.round(np.linspace(0, usable - 1, n_samples)).astype(int)]
+    """Indices of the samples to use: complete (every reading valid), rotating by the fused motion and by the
+    gyroscopes alone (:func:`~imu_array_ros.calibration.selection.select_rotating` with ``gyroscopes=True``:
+    with uncalibrated accelerometer biases static poses would pass the first test), ``n_samples`` of them
+    evenly spread in time (None: all).  Returns (indices, dropped reason -> count, usable count)."""
+    threshold = MIN_EXCITATION if min_excitation is None else float(min_excitation)
+    selection = select_rotating(samples, model, threshold, gyroscopes=True)
+    idx = spread_evenly(selection, n_samples)
+    usable = selection.n_used
     if len(idx) < 2:
-        why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v)
-        raise CalibrationError(f"too few samples with rotation: {usable} usable of {len(used)}"
+        why = selection.dropped_text()
+        raise CalibrationError(f"too few samples with rotation: {usable} usable of {len(samples)}"
                                f"{' (dropped: ' + why + ')' if why else ''}; twist the array by hand about at "
                                "least two axes")
-    return idx, dropped, usable
+    return idx, selection.dropped, usable
 
 
-def build_problem(stamps, accel, gyro, model: SensorModel, *, reference: int = 0, prior: Prior | None = None,
+def build_problem(samples: ImuSamples, model: SensorModel, *, reference: int = 0, prior: Prior | None = None,
                   prior_kind: str = "gaussian", prior_std: float = PRIOR_STD, package=PACKAGE_SIZE,
                   accel_std: float | None = None, omega_covariance: str = "model", n_draws: int = 16,
                   rho: float = 0.0) -> BayesProblem:
@@ -358,11 +336,10 @@ def build_problem(stamps, accel, gyro, model: SensorModel, *, reference: int = 0
     The prior is centred on the model's positions (the description's); ``accel_std`` replaces the
     accelerometer noise std (carlsson2021 Sec. IV-B sets it to 0.79 m/s^2 for the real array).
     """
-    stamps = np.asarray(stamps, dtype=np.int64)
-    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
+    stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
     t, k = len(stamps), model.n_imus
-    if accel.shape != (t, k, 3) or gyro.shape != (t, k, 3):
-        raise CalibrationError(f"readings of shape {accel.shape}/{gyro.shape}, expected {(t, k, 3)}")
+    if accel.shape != (t, k, 3):
+        raise CalibrationError(f"readings of shape {accel.shape}, expected {(t, k, 3)}")
     if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(gyro))):
         raise CalibrationError("the Bayesian calibration needs complete samples (no missing or NaN reading)")
     if k < 2:
@@ -440,7 +417,7 @@ def sample_gyro_std(problem: BayesProblem) -> np.ndarray:
     return np.tile(np.sqrt(k / np.diag(info)), (k, 1))
 
 
-def laplace(problem: BayesProblem, stamps, accel, gyro, model: SensorModel, *, method: str = "joint") -> Laplace:
+def laplace(problem: BayesProblem, samples: ImuSamples, model: SensorModel, *, method: str = "joint") -> Laplace:
     """The ML estimate of the positions on the same samples (:func:`~imu_array_ros.calibration.geometry.calibrate_geometry`,
     with the same noise; with eq. 30's sample covariance, the gyroscope std of :func:`sample_gyro_std`) and its CRB, combined with a Gaussian prior (precisions add); with a uniform
     prior the CRB alone, its mean clipped into the box."""
@@ -451,7 +428,7 @@ def laplace(problem: BayesProblem, stamps, accel, gyro, model: SensorModel, *, m
         m = replace(model, acc_std=np.asarray(problem.accel_std, dtype=float))
     if problem.omega_covariance == "sample":
         m = replace(m, gyro_std=sample_gyro_std(problem))
-    geo = calibrate_geometry(stamps, accel, gyro, m, reference=problem.reference, method=method, min_excitation=0.0)
+    geo = calibrate_geometry(samples, m, reference=problem.reference, method=method, min_excitation=0.0)
     # the geometry result keeps the reference at its position only up to the common shift: re-anchor
     pos = geo.positions - geo.positions[problem.reference] + problem.positions[problem.reference]
     ml = problem.theta_of(pos)

@@ -583,21 +583,21 @@ def laplace_agreement(post: BayesPosterior) -> dict:
                          f"[{AGREE_SD_RATIO[0]}, {AGREE_SD_RATIO[1]}] for every coordinate"}
 
 
-def install_scores(post: BayesPosterior, stamps, accel, gyro, model, level: float = 0.99):
+def install_scores(post: BayesPosterior, samples, model, level: float = 0.99):
     """(score, new_score) for :func:`~imu_array_ros.calibration.output.install_calibration`: the window
-    log-likelihood with the motion fitted (:func:`~imu_array_ros.calibration.geometry.window_loglik`) of a
+    log-likelihood with the motion fitted (:func:`~imu_array_ros.calibration.scoring.window_loglik`) of a
     description, and the posterior mean's plus half the ``level`` chi-square quantile of the d coordinates:
     a calibration on file is kept only when it fits these samples better than any position in the
     posterior's ``level`` credible region would (the posterior mean is not the likelihood's maximum, so
     it is compared with that allowance, not bare)."""
     from scipy.stats import chi2
 
-    from imu_array_ros.calibration.geometry import window_loglik
+    from imu_array_ros.calibration.scoring import window_loglik
     from imu_array_ros.model.sensor_model import SensorModel
 
-    new = window_loglik(stamps, accel, gyro, model.with_terms(position=post.positions_mean()))
+    new = window_loglik(samples, model.with_terms(position=post.positions_mean()))
 
     def score(previous) -> float:
-        return window_loglik(stamps, accel, gyro, SensorModel.from_description(previous))
+        return window_loglik(samples, SensorModel.from_description(previous))
 
     return score, new + 0.5 * float(chi2.ppf(level, post.problem.dim))

@@ -53,30 +53,21 @@ from typing import Callable
 
 import numpy as np
 
+from imu_array_ros.calibration.scoring import loglik_constant, profile_window, window_loglik
+from imu_array_ros.calibration.selection import MIN_EXCITATION, check_samples, require_rotation, select_rotating
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.fitting.engine import fit_motion, fit_terms
+from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.model.reference import reference_index
+from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 
-__all__ = ["GeometryCalibration", "calibrate_geometry", "calibrate_and_write", "window_loglik", "METHODS", "DEFAULT_METHOD",
-           "MIN_SAMPLES", "MIN_EXCITATION"]
+__all__ = ["GeometryCalibration", "calibrate_geometry", "calibrate_and_write", "METHODS", "DEFAULT_METHOD",
+           "MIN_EXCITATION"]
 
 METHODS = ("joint", "bcd")
 #: the solver used unless one is named (see the module docstring and benchmarks/results/geometry.md)
 DEFAULT_METHOD = "joint"
-#: fewest samples with rotation that can determine the positions
-MIN_SAMPLES = 3
-#: default lowest ||[omega]x^2 + [omega_dot]x||_F (rad/s^2) for a sample to be used
-MIN_EXCITATION = 1.0
-#: a sample's ||C_n|| must exceed this many times the part the noise of its fused motion explains
-NOISE_FACTOR = 3.0
-#: smallest eigenvalue of sum C_n^T C_n relative to its largest below which a direction counts as not
-#: excited: its positions would be >= 18x less certain than the best-determined direction's, and at the
-#: fused motion the noise of the omega_dot estimate alone gives ~1e-3 (a turn about one fixed axis
-#: measured 5.6e-4; a simulated hand twist 0.06)
-EXCITATION_RTOL = 3e-3
-#: |sin| of the angle between omega and omega_dot below which they count as parallel
-PARALLEL_SIN = 0.02
 #: BCD: converged when also the last iteration raised the log-likelihood by less than this
 LOGLIK_GAIN = 1e-3
 #: BCD: samples per chunk of the position step (bounds its memory: ~K x 0.6 kB per sample)
@@ -175,14 +166,14 @@ class GeometryCalibration:
 # --------------------------------------------------------------------------- public entry points
 
 
-def calibrate_geometry(stamps, accel, gyro, model: SensorModel, *, reference=None, method: str = DEFAULT_METHOD,
+def calibrate_geometry(samples: ImuSamples, model: SensorModel, *, reference=None, method: str = DEFAULT_METHOD,
                        max_iterations: int | None = None, tolerance: float = 1e-3,
                        min_excitation: float = MIN_EXCITATION, recenter: bool = True,
                        progress: Callable[[int, float], None] | None = None) -> GeometryCalibration:
     """Calibrate the accelerometer positions of ``model`` on a window of array samples.
 
-    stamps (N,) int64 ns, strictly increasing; accel, gyro (N, K, 3) raw
-    readings in the sensor frames (NaN: missing).  reference: IMU (name or
+    samples: stamps strictly increasing; raw readings in the sensor frames
+    (NaN: missing).  reference: IMU (name or
     index) whose position is held (default the first); method: "joint" or
     "bcd"; tolerance: converged when every position step is below
     ``tolerance`` of its standard deviation (BCD: with the motion held, and
@@ -199,24 +190,25 @@ def calibrate_geometry(stamps, accel, gyro, model: SensorModel, *, reference=Non
     t_start = time.perf_counter()
     if method not in METHODS:
         raise CalibrationError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    stamps, accel, gyro = _check_arrays(stamps, accel, gyro, model)
-    ref = _reference_index(model, reference)
-    used, dropped, motion = _select(stamps, accel, gyro, model, min_excitation)
-    _check_excitation(motion[used], int(used.sum()), len(stamps), dropped)
-    st, acc, gyr, mo = stamps[used], accel[used], gyro[used], motion[used]
-    before = _profile(st, acc, gyr, model)
+    samples = check_samples(samples, model)
+    ref = reference_index(model.names, reference)
+    selection = select_rotating(samples, model, min_excitation)
+    require_rotation(selection)
+    used = selection.used
+    window, motion = samples.select(used), selection.motion[used]
+    before = profile_window(window, model)
     if method == "joint":
-        fit = fit_terms(st, acc, gyr, model, ["position"], reference=ref, motion0=mo,
+        fit = fit_terms(window, model, ["position"], reference=ref, motion0=motion,
                         max_iterations=JOINT_MAX_ITERATIONS if max_iterations is None else max_iterations,
-                        tolerance=tolerance, progress=_loglik_progress(progress, st, acc, gyr, model))
+                        tolerance=tolerance, progress=_loglik_progress(progress, window, model))
         calibrated, iterations, converged, history = fit.model, fit.iterations, fit.converged, []
     else:
         calibrated, iterations, converged, history = _bcd(
-            st, acc, gyr, model, ref, BCD_MAX_ITERATIONS if max_iterations is None else max_iterations,
+            window, model, ref, BCD_MAX_ITERATIONS if max_iterations is None else max_iterations,
             tolerance, progress, recenter)
         # the Cramér-Rao bound at the BCD estimate: the engine's Fisher information, no iteration
-        fit = fit_terms(st, acc, gyr, calibrated, ["position"], reference=ref, max_iterations=0)
-    after = _profile(st, acc, gyr, calibrated)
+        fit = fit_terms(window, calibrated, ["position"], reference=ref, max_iterations=0)
+    after = profile_window(window, calibrated)
     std = np.where(np.isfinite(fit.std["position"]), fit.std["position"], 0.0)
     dof = fit.dof
     return GeometryCalibration(
@@ -224,180 +216,34 @@ def calibrate_geometry(stamps, accel, gyro, model: SensorModel, *, reference=Non
         position_std=std, covariance=fit.covariance, loglik_before=before.loglik, loglik_after=after.loglik,
         nis_before=2 * before.cost / dof, nis_after=2 * after.cost / dof, rms_before=before.rms,
         rms_after=after.rms, iterations=iterations, converged=converged, history=history,
-        samples_total=len(stamps), samples_used=int(used.sum()), dropped=dropped,
-        window_ns=(int(stamps[0]), int(stamps[-1])), seconds=time.perf_counter() - t_start, used=used)
+        samples_total=len(samples), samples_used=selection.n_used, dropped=selection.dropped,
+        window_ns=(int(samples.stamps[0]), int(samples.stamps[-1])), seconds=time.perf_counter() - t_start, used=used)
 
 
-def window_loglik(stamps, accel, gyro, model: SensorModel) -> float:
-    """Log-likelihood of a window of samples under ``model`` with every sample's motion fitted
-    (the fusion's ML estimate): how :func:`calibrate_geometry` scores positions, so a calibration
-    on file can be compared with a new one on the same samples (``result.used``)."""
-    stamps, accel, gyro = _check_arrays(stamps, accel, gyro, model)
-    return _profile(stamps, accel, gyro, model).loglik
-
-
-# --------------------------------------------------------------------------- checks and sample selection
-
-
-def _check_arrays(stamps, accel, gyro, model: SensorModel):
-    stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
-    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
-    shape = (len(stamps), model.n_imus, 3)
-    for label, arr in (("accel", accel), ("gyro", gyro)):
-        if arr.shape != shape:
-            raise CalibrationError(f"{label} has shape {arr.shape}, expected {shape} (samples, IMUs, axes)")
-    if len(stamps) == 0:
-        raise CalibrationError("no samples in the window: record (or buffer) some motion first")
-    if np.any(np.diff(stamps) <= 0):
-        raise CalibrationError("stamps must increase strictly")
-    return stamps, accel, gyro
-
-
-def _reference_index(model: SensorModel, reference) -> int:
-    if reference is None or reference == "":
-        return 0
-    if isinstance(reference, (int, np.integer)) and 0 <= int(reference) < model.n_imus:
-        return int(reference)
-    if isinstance(reference, str) and reference in model.names:
-        return model.names.index(reference)
-    raise CalibrationError(f"reference: unknown IMU {reference!r} (the array has {', '.join(model.names)})")
-
-
-def _lever(motion: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) C_n = [omega]x^2 + [omega_dot]x from (N, 9) motion."""
-    from imu_array_ros.model.kinematics import skew
-
-    w = skew(motion[:, 0:3])
-    return w @ w + skew(motion[:, 3:6])
-
-
-def _select(stamps, accel, gyro, model: SensorModel, min_excitation: float):
-    """Samples used: every reading valid, motion fused, ||C_n||_F >= min_excitation and >= NOISE_FACTOR
-    times what the fused motion's noise alone would give it.
-    Returns (used (N,), dropped reason -> count, motion (N, 9) fused, NaN where not)."""
-    n = len(stamps)
-    complete = model.valid(accel, gyro).all(axis=(1, 2))
-    motion = np.full((n, 9), np.nan)
-    fused_ok = np.zeros(n, dtype=bool)
-    noise = np.zeros(n)
-    if complete.any():
-        idx = np.flatnonzero(complete)
-        fused, _ = ModelFusion(model).fuse(stamps[idx], accel[idx], gyro[idx])
-        rows = idx[np.searchsorted(stamps[idx], fused.stamps)]
-        motion[rows] = np.concatenate([fused.omega, fused.omega_dot, fused.specific_force], axis=1)
-        fused_ok[rows] = True
-        # the part of ||C_n|| the estimate's own noise makes (||[d omega_dot]x||_F = sqrt(2) |d omega_dot|,
-        # d([w]x^2) ~ 2 |w| |d omega|): a still array's fused omega_dot is noise, not rotation
-        cov = fused.covariance
-        var_w, var_wd = np.einsum("nii->n", cov[:, 0:3, 0:3]), np.einsum("nii->n", cov[:, 3:6, 3:6])
-        noise[rows] = np.sqrt(2 * var_wd + 4 * np.sum(fused.omega ** 2, axis=1) * var_w)
-    excitation = np.linalg.norm(_lever(np.nan_to_num(motion)), axis=(1, 2))
-    low = fused_ok & (excitation < np.maximum(float(min_excitation), NOISE_FACTOR * noise))
-    used = fused_ok & ~low
-    dropped = {"missing_or_saturated": int((~complete).sum()), "motion_not_identified": int((complete & ~fused_ok).sum()),
-               "little_rotation": int(low.sum())}
-    return used, dropped, motion
-
-
-def _check_excitation(motion: np.ndarray, n_used: int, n_total: int, dropped: dict) -> None:
-    """CalibrationError naming the missing motion when the used samples cannot determine the positions."""
-    why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v)
-    if n_used < MIN_SAMPLES:
-        raise CalibrationError(
-            f"too few samples with rotation: {n_used} of {n_total} usable (need at least {MIN_SAMPLES}"
-            f"{'; dropped: ' + why if why else ''}); twist the array by hand about at least two axes for a few seconds")
-    c = _lever(motion)
-    info = np.einsum("nji,njk->ik", c, c)
-    lam, vec = np.linalg.eigh(info)
-    if lam[0] > EXCITATION_RTOL * lam[-1]:
-        return
-    axis = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
-    axis_text = "[" + " ".join(f"{a:.2f}" for a in np.round(axis, 2) + 0.0) + "]"  # + 0.0: no "-0.00"
-    w, wd = motion[:, 0:3], motion[:, 3:6]
-    nw, nwd = np.linalg.norm(w, axis=1), np.linalg.norm(wd, axis=1)
-    sin = np.linalg.norm(np.cross(w, wd), axis=1) / np.maximum(nw * nwd, 1e-300)
-    parallel = np.all((sin < PARALLEL_SIN) | (nwd < 1e-9 * np.maximum(nw ** 2, 1e-300)))
-    sv = np.linalg.svd(w / np.maximum(nw, 1e-300)[:, None], compute_uv=False)
-    one_axis = sv[1] < 0.1 * sv[0]  # omega's direction hardly changes (measured 0.05 for one fixed axis)
-    if one_axis:
-        what = f"the array turned about one axis only ({axis_text} in the array frame)"
-    elif parallel:
-        what = "omega and omega_dot are parallel in every sample"
-    else:
-        what = "the motion does not excite every direction"
-    raise CalibrationError(f"{what}: the positions along {axis_text} cannot be determined; "
-                           "rotate about at least two axes, with angular acceleration")
-
-
-# --------------------------------------------------------------------------- evaluation
-
-
-@dataclass
-class _Profile:
-    cost: float
-    loglik: float
-    rms: np.ndarray
-    motion: np.ndarray
-
-
-def _profile(stamps, accel, gyro, model: SensorModel) -> _Profile:
-    """The window under ``model`` with the motion at its ML estimate: cost, log-likelihood, per-IMU
-    accelerometer residual RMS.  The fusion is that estimate when every term is linear; with a
-    non-linear term (time offsets, ...) it only compensates, so the engine's motion-only Gauss-Newton
-    refines it (:func:`~imu_array_ros.fitting.engine.fit_motion`)."""
-    fused, _ = ModelFusion(model).fuse(stamps, accel, gyro)
-    rows = np.searchsorted(stamps, fused.stamps)
-    motion = np.concatenate([fused.omega, fused.omega_dot, fused.specific_force], axis=1)
-    if model.nonlinear_terms:
-        start = np.zeros((len(stamps), 9))
-        start[rows] = motion
-        motion, loglik, r = fit_motion(stamps, accel, gyro, model, start)
-        r = np.nan_to_num(r)
-        valid = model.valid(accel, gyro)
-    else:
-        ctx = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
-                             derivatives=True)
-        acc, gyr = model.predict(ctx)
-        y = np.concatenate([accel[rows], gyro[rows]], axis=2)
-        valid = model.valid(accel[rows], gyro[rows])
-        r = np.where(valid, y - np.concatenate([acc, gyr], axis=2), 0.0) / model.std[None]
-        loglik = _loglik_constant(model, valid) - 0.5 * float(np.sum(r * r))
-    cost = 0.5 * float(np.sum(r * r))
-    raw = r * model.std[None]
-    counts = np.maximum(valid[..., :3].sum(axis=(0, 2)), 1)
-    rms = np.sqrt(np.sum(raw[..., :3] ** 2, axis=(0, 2)) / counts)
-    return _Profile(cost, loglik, rms, motion)
-
-
-def _loglik_progress(progress, stamps, accel, gyro, model):
+def _loglik_progress(progress, samples: ImuSamples, model: SensorModel):
     """The engine reports its cost; turn it into the log-likelihood the BCD reports."""
     if progress is None:
         return None
-    const = _loglik_constant(model, model.valid(accel, gyro))
+    const = loglik_constant(model, samples.valid(model))
     return lambda it, cost: progress(it, const - cost)
-
-
-def _loglik_constant(model: SensorModel, valid: np.ndarray) -> float:
-    """log p(y) minus the cost term: -sum log sigma - n/2 log 2 pi over the valid axes (N, K, 6)."""
-    sigma = np.broadcast_to(model.std[None], valid.shape)[valid]
-    return -float(np.sum(np.log(sigma))) - 0.5 * len(sigma) * np.log(2 * np.pi)
 
 
 # --------------------------------------------------------------------------- block coordinate descent
 
 
-def _bcd(stamps, accel, gyro, model: SensorModel, ref: int, max_iterations: int, tolerance: float, progress,
+def _bcd(samples: ImuSamples, model: SensorModel, ref: int, max_iterations: int, tolerance: float, progress,
          recenter: bool = True):
     """carlsson2017 Alg. 1 (see the module docstring); returns (model, iterations, converged, history)."""
-    valid = model.valid(accel, gyro)
-    y = np.concatenate([accel, gyro], axis=2)
+    stamps = samples.stamps
+    valid = samples.valid(model)
+    y = samples.readings
     w = np.where(valid, 1.0 / model.std[None], 0.0)
     fix = np.zeros(model.n_imus, dtype=bool)
     fix[ref] = True
-    const = _loglik_constant(model, valid)
+    const = loglik_constant(model, valid)
     history, converged, iterations = [], False, 0
     for iterations in range(max_iterations + 1):
-        fused, _ = ModelFusion(model).fuse(stamps, accel, gyro)  # (a) ML motion for the current positions
+        fused, _ = ModelFusion(model).fuse(samples)  # (a) ML motion for the current positions
         if len(fused) != len(stamps):
             raise CalibrationError(f"the motion of {len(stamps) - len(fused)} samples is not identified at the "
                                    f"current positions (iteration {iterations}); the calibration diverged")
@@ -435,7 +281,7 @@ def _bcd(stamps, accel, gyro, model: SensorModel, ref: int, max_iterations: int,
 # --------------------------------------------------------------------------- calibrate and write (node and CLI)
 
 
-def calibrate_and_write(desc, stamps, accel, gyro, out, *, before_install: Callable[[], None] | None = None,
+def calibrate_and_write(desc, samples: ImuSamples, out, *, before_install: Callable[[], None] | None = None,
                         **kwargs):
     """Calibrate the positions of description ``desc`` on a window and install the result at ``out``
     (:func:`~imu_array_ros.calibration.output.install_calibration`: atomic, ``<out>.bak`` kept, refused
@@ -447,13 +293,13 @@ def calibrate_and_write(desc, stamps, accel, gyro, out, *, before_install: Calla
     from imu_array_ros.calibration.output import geometry_description, install_calibration
 
     model = SensorModel.from_description(desc)
-    result = calibrate_geometry(stamps, accel, gyro, model, **kwargs)
+    result = calibrate_geometry(samples, model, **kwargs)
     if before_install is not None:
         before_install()
-    st, acc, gyr = (np.asarray(a)[result.used] for a in (stamps, accel, gyro))
+    window = samples.select(result.used)
 
     def score(previous) -> float:
-        return window_loglik(st, acc, gyr, SensorModel.from_description(previous))
+        return window_loglik(window, SensorModel.from_description(previous))
 
     installed = install_calibration(geometry_description(desc, result), out, score=score,
                                     new_score=result.loglik_after)

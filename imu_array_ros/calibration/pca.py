@@ -69,6 +69,7 @@ import numpy as np
 
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
+from imu_array_ros.model.reference import reference_index
 from imu_array_ros.model.terms.triad import triads_in_reference_frame
 
 __all__ = ["PcaResult", "ArrayPca", "ARRAY_TERMS", "pca_calibrate", "pca_array", "calibration_error",
@@ -273,17 +274,6 @@ def calibration_error(a: np.ndarray, a_hat: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- arrays of accelerometer triads
 
 
-def _reference_index(reference, names: tuple[str, ...]) -> int:
-    if isinstance(reference, str):
-        if reference not in names:
-            raise CalibrationError(f"reference IMU {reference!r} is not in the array ({len(names)} IMUs)")
-        return names.index(reference)
-    ref = int(reference)
-    if not -len(names) <= ref < len(names):
-        raise CalibrationError(f"reference index {ref} out of range for {len(names)} IMUs")
-    return ref % len(names)
-
-
 def pca_array(accel, model, *, reference: int | str = 0, gravity: float = STANDARD_GRAVITY,
               biased: bool = True) -> ArrayPca:
     """Accelerometer gain, non-orthogonality, misalignment and bias of every IMU, closed form, from
@@ -300,7 +290,7 @@ def pca_array(accel, model, *, reference: int | str = 0, gravity: float = STANDA
     names = tuple(model.names)
     if accel.ndim != 3 or accel.shape[1:] != (k, 3):
         raise CalibrationError(f"accelerometer readings must be (poses, {k}, 3) for this array, got {accel.shape}")
-    ref = _reference_index(reference, names)
+    ref = reference_index(names, reference)
     finite = np.isfinite(accel)
     dead = ~finite.any(axis=0).all(axis=-1)
     if dead[ref]:

@@ -45,12 +45,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from imu_array_ros.calibration.geometry import _reference_index
 from imu_array_ros.calibration.output import fit_statistics
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, fit_terms
 from imu_array_ros.fitting.motion_models import StaticMotion
 from imu_array_ros.model.constants import STANDARD_GRAVITY
+from imu_array_ros.model.reference import reference_index
+from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms.triad import triad_matrix, triads_in_reference_frame
 
@@ -219,8 +220,11 @@ def reframe_accelerometers(model: SensorModel, reference: int | str) -> SensorMo
 # --------------------------------------------------------------------------- calibration
 
 
-def _pose_stamps(p: int) -> np.ndarray:
-    return np.arange(p, dtype=np.int64) * 1_000_000_000
+def pose_samples(accel, gyro, model: SensorModel) -> ImuSamples:
+    """The P pose averages (P, K, 3) as samples for the engine (one per second: the stamps carry no meaning
+    with the static motion model)."""
+    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
+    return ImuSamples(np.arange(len(accel), dtype=np.int64) * 1_000_000_000, accel, gyro, model.names)
 
 
 def _sigma(model: SensorModel, counts: np.ndarray) -> np.ndarray:
@@ -232,8 +236,7 @@ def _sigma(model: SensorModel, counts: np.ndarray) -> np.ndarray:
 def static_loglik(accel, gyro, counts, model: SensorModel, gravity: float = STANDARD_GRAVITY) -> float:
     """Log-likelihood of the pose averages under ``model`` with every pose fitted (how a calibration on
     file is compared with a new one on the same poses)."""
-    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
-    return fit_motion(_pose_stamps(len(accel)), accel, gyro, model, motion_model=StaticMotion(gravity),
+    return fit_motion(pose_samples(accel, gyro, model), model, motion_model=StaticMotion(gravity),
                       sigma=_sigma(model, counts))[1]
 
 
@@ -276,26 +279,26 @@ def calibrate_static(accel, gyro, counts, model: SensorModel, *, method: str = "
     skipped = [model.names[i] for i in np.flatnonzero(~has)]
     if has.sum() < 1:
         raise CalibrationError(f"no IMU has readings in {needed} poses")
-    ref = _reference_index(model, reference)
+    ref = reference_index(model.names, reference)
     if not has[ref]:
         raise CalibrationError(f"the reference IMU {model.names[ref]} has readings in fewer than {needed} poses; "
                                "choose another reference")
     imus = np.flatnonzero(has)
-    stamps, sigma = _pose_stamps(p), _sigma(model, counts)
+    poses, sigma = pose_samples(accel, gyro, model), _sigma(model, counts)
     motion_model = StaticMotion(gravity)
-    before = fit_motion(stamps, accel, gyro, model, motion_model=StaticMotion(gravity), sigma=sigma)
+    before = fit_motion(poses, model, motion_model=StaticMotion(gravity), sigma=sigma)
     start = model
     if method == "pca" or initial == "pca":
         start = _pca_start(accel, gyro, counts, model, terms, ref, gravity, imus)
     if method == "pca":
         # the CRB at the closed-form estimate (no iteration), for the written _std
-        res = fit_terms(stamps, accel, gyro, start, terms, imus=imus, reference=ref, motion_model=motion_model,
+        res = fit_terms(poses, start, terms, imus=imus, reference=ref, motion_model=motion_model,
                         sigma=sigma, max_iterations=0)
         weights = np.ones((p, k))
     else:
-        res, weights = _ml(stamps, accel, gyro, start, terms, imus, ref, motion_model, sigma, robust,
+        res, weights = _ml(poses, start, terms, imus, ref, motion_model, sigma, robust,
                            max_iterations, progress)
-    after_motion, after_loglik, resid = fit_motion(stamps, accel, gyro, res.model, motion_model=StaticMotion(gravity),
+    after_motion, after_loglik, resid = fit_motion(poses, res.model, motion_model=StaticMotion(gravity),
                                                    sigma=sigma)
     dof = max(res.dof, 1)
     acc_res = resid[..., :3] * sigma[..., :3]  # back to m/s^2
@@ -326,14 +329,14 @@ def _subset(model: SensorModel, keep: np.ndarray) -> SensorModel:
                    acc_std=model.acc_std[idx], gyro_std=model.gyro_std[idx], terms=terms)
 
 
-def _ml(stamps, accel, gyro, start, terms, imus, ref, motion_model, sigma, robust, max_iterations, progress):
+def _ml(poses, start, terms, imus, ref, motion_model, sigma, robust, max_iterations, progress):
     """The engine's ML fit, iteratively reweighted (Huber) when ``robust``: returns (FitResult, weights)."""
-    p, k = accel.shape[:2]
+    p, k = poses.accel.shape[:2]
     weights = np.ones((p, k))
     model, total = start, 0
     for _ in range(ROBUST_ITERATIONS if robust else 1):
         sig = sigma / np.sqrt(weights)[..., None]
-        res = fit_terms(stamps, accel, gyro, model, terms, imus=imus, reference=ref, motion_model=motion_model,
+        res = fit_terms(poses, model, terms, imus=imus, reference=ref, motion_model=motion_model,
                         sigma=sig, max_iterations=max_iterations, progress=progress)
         total += res.iterations
         if not robust:

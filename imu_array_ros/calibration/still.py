@@ -78,6 +78,7 @@ import numpy as np
 
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
+from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["StillPoses", "find_still_poses", "check_poses", "NOISE_FACTOR", "GYRO_FLOOR", "ACCEL_FLOOR",
@@ -235,9 +236,7 @@ def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def find_still_poses(
-    stamps: np.ndarray,
-    accel: np.ndarray,
-    gyro: np.ndarray,
+    samples: ImuSamples,
     model: SensorModel,
     *,
     window_s: float = 1.0,
@@ -251,8 +250,7 @@ def find_still_poses(
 ) -> StillPoses:
     """Static poses in raw readings (see the module docstring for the method and defaults).
 
-    stamps (N,) int64 ns increasing; accel, gyro (N, K, 3) raw readings in each IMU's sensor
-    frame (m/s^2, rad/s; NaN = missing); ``model`` a :class:`SensorModel` (or a description):
+    samples: stamps increasing; raw readings in each IMU's sensor frame (m/s^2, rad/s; NaN = missing); ``model`` a :class:`SensorModel` (or a description):
     nominal rotations, noise stds and clip levels.  gyro_threshold (rad/s) / accel_threshold
     (m/s^2): largest median-over-IMUs total std of a still window (None: from the noise);
     min_duration_s: shortest pose kept, after ``settle_s`` is trimmed from both ends;
@@ -260,9 +258,7 @@ def find_still_poses(
     """
     if not isinstance(model, SensorModel):
         model = SensorModel.from_description(model)
-    stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
-    accel = np.asarray(accel, dtype=float)
-    gyro = np.asarray(gyro, dtype=float)
+    stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
     n, k = len(stamps), model.n_imus
     if accel.shape != (n, k, 3) or gyro.shape != (n, k, 3):
         raise ValueError(f"accel {accel.shape} and gyro {gyro.shape} must be {(n, k, 3)} (stamps, model IMUs)")

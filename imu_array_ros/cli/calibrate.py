@@ -72,7 +72,7 @@ def calibrate_fit(recording: Path, array: Path, terms: str, out: Path, *, calibr
     def progress(iteration: int, cost: float) -> None:
         info(quiet, f"fitting: iteration {iteration}, cost {cost:.6g}")
 
-    fit = fit_terms(samples.stamps, samples.accel, samples.gyro, model, free, imus=imu_list, reference=reference,
+    fit = fit_terms(samples, model, free, imus=imu_list, reference=reference,
                     max_iterations=max_iterations, progress=progress)
     for line in fit.gauge:
         info(quiet, f"gauge: {line}")
@@ -127,17 +127,15 @@ def calibrate_geometry(recording: Path, array: Path, out: Path, *, calibration: 
         desc.index(reference)  # a one-line error naming the unknown IMU
     samples, rstats = read_imu_recording(recording, desc, progress=Progress("reading", quiet))
     info(quiet, f"read {rstats.samples} array samples of {len(desc.imus)} IMUs")
-    stamps = samples.stamps
-    if len(stamps) and (start is not None or duration is not None):
-        t = (stamps - stamps[0]) / 1e9
-        lo = 0.0 if start is None else start
-        keep = (t >= lo) & (t <= (lo + duration if duration is not None else np.inf))
-        if not keep.any():
+    if len(samples) and (start is not None or duration is not None):
+        window = samples.window(start, duration)
+        lo, span = start or 0.0, (samples.stamps[-1] - samples.stamps[0]) / 1e9
+        if not len(window):
             raise CalibrationError(f"{recording}: no samples between {lo:g} s and "
-                                   f"{lo + duration if duration is not None else t[-1]:g} s "
-                                   f"(the recording spans {t[-1]:.3f} s)")
-        samples = samples.select(np.flatnonzero(keep))
-        info(quiet, f"window: {len(samples.stamps)} samples from {lo:g} s")
+                                   f"{lo + duration if duration is not None else span:g} s "
+                                   f"(the recording spans {span:.3f} s)")
+        samples = window
+        info(quiet, f"window: {len(samples)} samples from {lo:g} s")
 
     def progress(iteration: int, loglik: float) -> None:
         info(quiet, f"calibrating: iteration {iteration}, log-likelihood {loglik:.10g}")
@@ -146,7 +144,7 @@ def calibrate_geometry(recording: Path, array: Path, out: Path, *, calibration: 
                   min_excitation=geometry.MIN_EXCITATION if min_excitation is None else min_excitation,
                   progress=progress)
     try:
-        result, installed = geometry.calibrate_and_write(desc, samples.stamps, samples.accel, samples.gyro, out,
+        result, installed = geometry.calibrate_and_write(desc, samples, out,
                                                          **kwargs)
     except CalibrationError as err:
         raise CalibrationError(f"{recording}: {err}") from None
@@ -230,7 +228,7 @@ def _calibrate_and_install(recording: Path, array: Path, out: Path, calibration:
         desc.index(kwargs["reference"])  # a one-line error naming the unknown IMU
     model = SensorModel.from_description(desc)
     try:
-        result = calibrate_array(samples.stamps, samples.accel, samples.gyro, model,
+        result = calibrate_array(samples, model,
                                  progress=lambda text: info(quiet, text), **kwargs)
     except CalibrationError as err:
         raise CalibrationError(f"{recording}: {err}") from None
@@ -342,17 +340,16 @@ def calibrate_bayes(recording: Path, array: Path, out: Path, *, calibration: Pat
     ref = desc.index(reference) if reference else 0  # a one-line error naming an unknown IMU
     model = SensorModel.from_description(desc)
     try:
-        idx, dropped, usable = bayes.select_samples(data.stamps, data.accel, data.gyro, model, samples,
-                                                    min_excitation=min_excitation)
-        st, acc, gyr = data.stamps[idx], data.accel[idx], data.gyro[idx]
+        idx, dropped, usable = bayes.select_samples(data, model, samples, min_excitation=min_excitation)
+        chosen = data.select(idx)
         dropped_text = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v) or "none"
         info(quiet, f"samples: {len(idx)} of {usable} usable ({len(data.stamps)} in the recording; dropped: "
                     f"{dropped_text}), evenly spread")
-        problem = bayes.build_problem(st, acc, gyr, model, reference=ref, prior_kind=prior,
+        problem = bayes.build_problem(chosen, model, reference=ref, prior_kind=prior,
                                       prior_std=bayes.PRIOR_STD if prior_std is None else prior_std,
                                       accel_std=accel_std, omega_covariance=omega_covariance)
         info(quiet, "Laplace approximation: maximum likelihood of the positions on the same samples, with its CRB")
-        lap = bayes.laplace(problem, st, acc, gyr, model)
+        lap = bayes.laplace(problem, chosen, model)
         post = bayes_sampler.sample_posterior(problem, lap, settings, progress=lambda text: info(quiet, text))
     except CalibrationError as err:
         raise CalibrationError(f"{recording}: {err}") from None
@@ -370,7 +367,7 @@ def calibrate_bayes(recording: Path, array: Path, out: Path, *, calibration: Pat
         info(quiet, f"  {name}: moved {change:8.4f} mm, posterior std {np.linalg.norm(std[k]) * 1e6:8.2f} um"
                     f"{'  (reference)' if k == ref else ''}")
     # a calibration on file is kept when it fits these samples better than the posterior's own spread explains
-    score, new_score = bayes_sampler.install_scores(post, st, acc, gyr, model)
+    score, new_score = bayes_sampler.install_scores(post, chosen, model)
     try:
         installed = install_calibration(new, out, score=score, new_score=new_score)
     except CalibrationError as err:

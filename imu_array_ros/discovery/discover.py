@@ -147,8 +147,8 @@ def _summarise(residuals, expected, motion, loglik, still_threshold) -> FitSumma
 
 def fit_summary(samples, model: SensorModel, *, still_threshold: float = 0.2, motion0=None):
     """(FitSummary, motion, ScoreBlocks-like residuals/expected) of ``samples`` under ``model`` at its ML motion."""
-    motion, _, _ = fit_motion(samples.stamps, samples.accel, samples.gyro, model, motion0)
-    sb = score_blocks(samples.stamps, samples.accel, samples.gyro, model, ("accelerometer_bias",), motion,
+    motion, _, _ = fit_motion(samples, model, motion0)
+    sb = score_blocks(samples, model, ("accelerometer_bias",), motion,
                       np.zeros(len(samples.stamps), dtype=np.int64))
     return _summarise(sb.residuals, sb.expected, motion, sb.loglik, still_threshold), motion, sb
 
@@ -251,7 +251,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         raise CalibrationError("the recording's IMUs differ from the description's")
     terms = opts.candidate_terms()
     notes = []
-    stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
+    stamps = samples.stamps
     if "time_offset" in terms and np.any(np.diff(stamps) <= 0):
         terms = tuple(t for t in terms if t != "time_offset")
         notes.append("time_offset not tested: the stamps do not increase strictly")
@@ -265,10 +265,10 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
 
     # 1-2. fit and simulate
     say("fitting the motion with the model as given")
-    motion, _, base_r = fit_motion(stamps, accel, gyro, model)
+    motion, _, base_r = fit_motion(samples, model)
     base_motion = motion
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs")
-    sb = score_blocks(stamps, accel, gyro, model, terms, motion, blocks)
+    sb = score_blocks(samples, model, terms, motion, blocks)
     baseline = _summarise(sb.residuals, sb.expected, motion, sb.loglik, opts.still_threshold)
     timings["fit"] = time.perf_counter() - t0
 
@@ -332,8 +332,8 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             f.std = fit.std[f.effect][f.k].copy()
         say(f"step {step}: found {best.effect} on {best.sensor}: log-likelihood +{delta:.4g}")
         motion = _fill(fit.motion, motion)
-        motion, _, _ = fit_motion(stamps, accel, gyro, current, motion)
-        sb = score_blocks(stamps, accel, gyro, current, terms, motion, blocks)
+        motion, _, _ = fit_motion(samples, current, motion)
+        sb = score_blocks(samples, current, terms, motion, blocks)
     findings = sorted(accepted.values(), key=lambda f: f.step)
     timings["explain"] = time.perf_counter() - t1
 
@@ -385,7 +385,7 @@ def _confirm(samples, current: SensorModel, accepted, c: Candidate, motion, leve
     only = _only(accepted, (c.effect, c.k))
     imus = sorted({k for ks in only.values() for k in ks})
     try:
-        fit = fit_terms(samples.stamps, samples.accel, samples.gyro, current, list(only), imus=imus,
+        fit = fit_terms(samples, current, list(only), imus=imus,
                         only=only, motion0=motion, max_iterations=30)
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
@@ -409,11 +409,11 @@ def _heldout(samples, model: SensorModel, findings, blocks, base_motion, base_r)
         sigma = np.broadcast_to(model.std, (len(blocks),) + model.std.shape).copy()
         sigma[held] *= HELDOUT_SCALE
         try:
-            fit = fit_terms(samples.stamps, samples.accel, samples.gyro, model, list(only), imus=imus, only=only,
+            fit = fit_terms(samples, model, list(only), imus=imus, only=only,
                             sigma=sigma, motion0=base_motion, max_iterations=30)
         except CalibrationError as err:
             return {"error": str(err)}
-        _, _, r = fit_motion(samples.stamps, samples.accel, samples.gyro, fit.model, _fill(fit.motion, base_motion))
+        _, _, r = fit_motion(samples, fit.model, _fill(fit.motion, base_motion))
         a = np.nan_to_num(r[held]) ** 2
         b = np.nan_to_num(base_r[held]) ** 2
         gain += 0.5 * float(b.sum() - a.sum())

@@ -99,6 +99,8 @@ import scipy.linalg
 
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.motion_models import RigidMotion
+from imu_array_ros.model.reference import imu_indexes, reference_index
+from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.terms import REGISTRY, term_names
 
@@ -168,14 +170,15 @@ class FitResult:
     residuals: np.ndarray = field(repr=False)
 
 
-def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, imus=None, reference=None,
+def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, imus=None, reference=None,
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
               progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None,
               only: dict | None = None) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
-    stamps (N,) int64 ns; accel, gyro (N, K, 3) raw readings in the sensor
-    frames (NaN: missing; clipped readings are masked by ``model.valid``);
+    samples: the readings (:class:`~imu_array_ros.model.samples.ImuSamples`: stamps (N,) int64 ns,
+    accel, gyro (N, K, 3) in the sensor frames; NaN: missing; clipped readings are masked by
+    ``model.valid``);
     model: the initial values of every term (the non-free terms are held);
     free: registry names of the terms to fit; imus: names or indexes of the
     IMUs whose parameters are fitted (default all; the others are held);
@@ -207,9 +210,9 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     free = check_terms(free)
     if gauge not in ("reference", "mean"):
         raise CalibrationError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
-    fit = _imu_indexes(model, imus, "imus")
+    fit = imu_indexes(model.names, imus, "imus")
     ref = _reference(model, fit, reference)
-    prob = _Problem(stamps, accel, gyro, model, free, fit, motion_model=motion_model, sigma=sigma)
+    prob = _Problem(samples, model, free, fit, motion_model=motion_model, sigma=sigma)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
     motion, lin = prob.fit_motion(model, motion)
     motion = prob.drop(~lin.ok, motion)
@@ -223,7 +226,7 @@ def fit_terms(stamps, accel, gyro, model: SensorModel, free: Sequence[str], *, i
     return _result(prob, model, motion, lin, gauge_fix, before, dof, iterations, converged)
 
 
-def fit_motion(stamps, accel, gyro, model: SensorModel, motion0=None, *, motion_model=None,
+def fit_motion(samples: ImuSamples, model: SensorModel, motion0=None, *, motion_model=None,
                sigma=None) -> tuple[np.ndarray, float, np.ndarray]:
     """The ML motion of every sample with every term of ``model`` held (the engine's batched
     Gauss-Newton on each sample's motion coordinates, exact for the non-linear terms the fusion only
@@ -232,7 +235,7 @@ def fit_motion(stamps, accel, gyro, model: SensorModel, motion0=None, *, motion_
     Returns (motion (N, 9) [omega, omega_dot, s], log-likelihood over the valid axes, normalised
     residuals (N, K, 6), NaN on masked axes).  A sample whose motion is not identified keeps a
     ridge-regularised estimate."""
-    prob = _Problem(stamps, accel, gyro, model, ("position",), np.arange(model.n_imus), motion_model=motion_model,
+    prob = _Problem(samples, model, ("position",), np.arange(model.n_imus), motion_model=motion_model,
                     sigma=sigma)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
     motion, lin = prob.fit_motion(model, motion)
@@ -271,7 +274,7 @@ class ScoreBlocks:
         return slice(self.offsets[term], self.offsets[term] + REGISTRY[term].dim())
 
 
-def score_blocks(stamps, accel, gyro, model: SensorModel, terms: Sequence[str], motion, blocks, *,
+def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], motion, blocks, *,
                  sigma=None) -> ScoreBlocks:
     """Score test ingredients of every term in ``terms`` on every IMU at (model, motion), by time block.
 
@@ -287,7 +290,7 @@ def score_blocks(stamps, accel, gyro, model: SensorModel, terms: Sequence[str], 
     """
     terms = check_terms(terms)
     k = model.n_imus
-    prob = _Problem(stamps, accel, gyro, model, terms, np.arange(k), sigma=sigma)
+    prob = _Problem(samples, model, terms, np.arange(k), sigma=sigma)
     blocks = np.asarray(blocks, dtype=np.int64).reshape(-1)
     if blocks.shape != (prob.n,) or blocks.min() < 0 or np.any(np.diff(blocks) < 0):
         raise CalibrationError("blocks must give a non-decreasing block index >= 0 for every sample")
@@ -353,7 +356,7 @@ def _fixed(prob: "_Problem", model: SensorModel, only: dict | None) -> np.ndarra
         raise CalibrationError(f"only: term {unknown[0]!r} is not among the free terms ({', '.join(prob.free)})")
     offsets = dict(zip(prob.free, np.cumsum([0] + prob.sizes[:-1])))
     for t, imus in only.items():
-        on = set(_imu_indexes(model, imus, f"only[{t!r}]").tolist())
+        on = set(imu_indexes(model.names, imus, f"only[{t!r}]").tolist())
         for j, k in enumerate(prob.fit):
             if k not in on:
                 lo = j * prob.p + offsets[t]
@@ -363,31 +366,9 @@ def _fixed(prob: "_Problem", model: SensorModel, only: dict | None) -> np.ndarra
     return fixed
 
 
-def _imu_indexes(model: SensorModel, imus, label: str) -> np.ndarray:
-    if imus is None:
-        return np.arange(model.n_imus)
-    items = [imus] if isinstance(imus, (str, int, np.integer)) else list(imus)
-    out = []
-    for item in items:
-        if isinstance(item, (int, np.integer)) and 0 <= int(item) < model.n_imus:
-            out.append(int(item))
-        elif isinstance(item, str) and item in model.names:
-            out.append(model.names.index(item))
-        else:
-            raise CalibrationError(f"{label}: unknown IMU {item!r} (the model has {', '.join(model.names)})")
-    if not out:
-        raise CalibrationError(f"{label}: no IMU given")
-    return np.array(sorted(set(out)))
-
-
 def _reference(model: SensorModel, fit: np.ndarray, reference) -> int:
-    """Position of the reference IMU within the fitted ones."""
-    if reference is None:
-        return 0
-    k = int(_imu_indexes(model, reference, "reference")[0])
-    if k not in fit:
-        raise CalibrationError(f"reference IMU {model.names[k]!r} is not among the fitted IMUs")
-    return int(np.flatnonzero(fit == k)[0])
+    """Position of the reference IMU within the fitted ones (:func:`~imu_array_ros.model.reference.reference_index`)."""
+    return int(np.flatnonzero(fit == reference_index(model.names, reference, among=fit))[0])
 
 
 # --------------------------------------------------------------------------- the problem and its linearisation
@@ -419,22 +400,21 @@ class _Linearization:
 class _Problem:
     """Readings, weights and the parameter layout: fitted IMUs x free terms' parameters, IMU-major."""
 
-    def __init__(self, stamps, accel, gyro, model: SensorModel, free: tuple[str, ...], fit: np.ndarray, *,
+    def __init__(self, samples: ImuSamples, model: SensorModel, free: tuple[str, ...], fit: np.ndarray, *,
                  motion_model=None, sigma=None):
-        stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
-        accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
+        stamps = samples.stamps
         n, k = len(stamps), model.n_imus
-        for label, arr in (("accel", accel), ("gyro", gyro)):
-            if arr.shape != (n, k, 3):
-                raise CalibrationError(f"{label} has shape {arr.shape}, expected {(n, k, 3)} (samples, IMUs, axes)")
+        if tuple(samples.names) != tuple(model.names):
+            raise CalibrationError(f"the samples are of IMUs {', '.join(samples.names[:4])}..., the model of "
+                                   f"{', '.join(model.names[:4])}...")
         if n < 3:
             raise CalibrationError(f"too few samples: {n} (the motion of every sample is unknown; record longer)")
         self.model0 = model
         self.stamps, self.free, self.fit = stamps, free, fit
         self.cols = slice(None) if len(fit) == k else fit  # the fitted IMUs, a view when all are
         self.t0_ns = int(stamps[0])
-        self.raw = np.concatenate([accel, gyro], axis=2)
-        valid = model.valid(accel, gyro)
+        self.raw = samples.readings
+        valid = samples.valid(model)
         if not valid.any():
             raise CalibrationError("no valid samples: every reading is missing or saturated")
         self.y = np.where(valid, self.raw, 0.0)

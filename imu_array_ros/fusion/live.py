@@ -135,7 +135,7 @@ class LiveFusion:
         for lo in range(0, len(ready), self.max_batch):
             hi = min(lo + self.max_batch, len(ready))
             samples = ImuSamples(ready.stamps[lo:hi], ready.accel[lo:hi], ready.gyro[lo:hi], self.names)
-            fused, stats = self.fusion.fuse(samples.stamps, samples.accel, samples.gyro)
+            fused, stats = self.fusion.fuse(samples)
             self.fusion_stats.merge(stats)
             imu, acc = fused_payloads(fused, self.description.frame_id)
             self._recent.append((int(now_ns), samples, fused, None))

@@ -203,10 +203,10 @@ class MLFusion:
 
     # ------------------------------------------------------------------ public API
 
-    def fuse(self, stamps: np.ndarray, accel: np.ndarray, gyro: np.ndarray) -> tuple[FusedSamples, FusionStats]:
+    def fuse(self, samples: ImuSamples) -> tuple[FusedSamples, FusionStats]:
         """Fuse N array samples.
 
-        stamps (N,) int64 ns; accel, gyro (N, K, 3) raw readings in each IMU's
+        ``samples``: stamps (N,) int64 ns; accel, gyro (N, K, 3) raw readings in each IMU's
         sensor frame (m/s^2, rad/s), NaN where not available.  Returns the fused
         samples that were identifiable (others are skipped and counted in the stats).
 
@@ -219,8 +219,7 @@ class MLFusion:
         dropouts, saturation).
         """
         m = self.model
-        accel = np.asarray(accel, dtype=float)
-        gyro = np.asarray(gyro, dtype=float)
+        stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
         n, k = accel.shape[0], m.n_imus
         if accel.shape != (n, k, 3) or gyro.shape != (n, k, 3):
             raise FusionError(f"fusion: expected accel/gyro of shape (N, {k}, 3), got {accel.shape} / {gyro.shape}")
@@ -404,5 +403,5 @@ def fuse(samples: ImuSamples, model: LinearArrayModel, config: FusionConfig | No
         raise FusionError(
             f"fusion: samples are for IMUs {list(samples.names)[:4]}..., model for {list(model.names)[:4]}..."
         )
-    return MLFusion(model, config).fuse(samples.stamps, samples.accel, samples.gyro)
+    return MLFusion(model, config).fuse(samples)
 

@@ -66,15 +66,14 @@ class ModelFusion:
         lin = self._linear_part.predict(motion_context(**ctx))
         return full[0] - lin[0], full[1] - lin[1]
 
-    def fuse(self, stamps: np.ndarray, accel: np.ndarray, gyro: np.ndarray) -> tuple[FusedSamples, FusionStats]:
-        stamps = np.asarray(stamps)
+    def fuse(self, samples: ImuSamples) -> tuple[FusedSamples, FusionStats]:
+        stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
         if self.t0_ns is None and len(stamps):
             self.t0_ns = int(stamps[0])
-        fused, stats = self.fusion.fuse(stamps, accel, gyro)
+        fused, stats = self.fusion.fuse(samples)
         if not self.passes or not len(fused):
             return fused, stats
-        accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
-        valid = self.model.valid(accel, gyro)
+        valid = samples.valid(self.model)
         for _ in range(self.passes):
             idx = np.searchsorted(stamps, fused.stamps)
             da, dg = self.correction(fused)
@@ -83,7 +82,7 @@ class ModelFusion:
             # the fusion still sees them as saturated and takes their sign (skog2016 Sec. III)
             acc[idx] -= np.where(valid[idx, :, :3], da, 0.0)
             gyr[idx] -= np.where(valid[idx, :, 3:], dg, 0.0)
-            fused, stats = self.fusion.fuse(stamps, acc, gyr)
+            fused, stats = self.fusion.fuse(ImuSamples(stamps, acc, gyr, samples.names))
         return fused, stats
 
 
@@ -93,4 +92,4 @@ def fuse_model(samples: ImuSamples, model: SensorModel, config: FusionConfig | N
     if tuple(samples.names) != tuple(model.names):
         raise FusionError(f"fusion: samples are for IMUs {list(samples.names)[:4]}..., "
                           f"model for {list(model.names)[:4]}...")
-    return ModelFusion(model, config, **kwargs).fuse(samples.stamps, samples.accel, samples.gyro)
+    return ModelFusion(model, config, **kwargs).fuse(samples)

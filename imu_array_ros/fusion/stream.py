@@ -45,7 +45,7 @@ def fuse_chunked(fusion: MLFusion, samples: ImuSamples, progress: Callable[[int,
     n = len(samples)
     for lo in range(0, max(n, 1), chunk):
         hi = min(lo + chunk, n)
-        fused, stats = fusion.fuse(samples.stamps[lo:hi], samples.accel[lo:hi], samples.gyro[lo:hi])
+        fused, stats = fusion.fuse(samples.select(slice(lo, hi)))
         parts.append(fused)
         total.merge(stats)
         if progress is not None:

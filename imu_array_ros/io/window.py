@@ -30,6 +30,7 @@ import numpy as np
 
 from imu_array_ros.io.sync import RawIntake
 from imu_array_ros.model.description import ArrayDescription
+from imu_array_ros.model.samples import ImuSamples
 
 __all__ = ["SampleWindow", "WindowCounts"]
 
@@ -138,12 +139,12 @@ class SampleWindow:
 
     # ------------------------------------------------------------------ output (any thread)
 
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def snapshot(self) -> ImuSamples:
         """A copy of the window, oldest first: stamps (N,) int64 ns strictly increasing, accel and
         gyro (N, K, 3) raw sensor-frame readings, NaN for IMUs missing from a sample."""
         with self._lock:
             rows = (self._start + np.arange(self._count)) % len(self._stamps)
-            return self._stamps[rows], self._acc[rows], self._gyr[rows]  # fancy indexing: copies
+            return ImuSamples(self._stamps[rows], self._acc[rows], self._gyr[rows], self.names)  # copies
 
     def __len__(self) -> int:
         return self._count

@@ -58,6 +58,26 @@ class ImuSamples:
         """Samples picked by a boolean mask or index array (copies)."""
         return ImuSamples(self.stamps[index], self.accel[index], self.gyro[index], self.names)
 
+    @property
+    def readings(self) -> np.ndarray:
+        """(N, K, 6) every reading, rows [acc x, y, z, gyro x, y, z] (the sensor model's row order)."""
+        return np.concatenate([self.accel, self.gyro], axis=2)
+
+    def valid(self, model) -> np.ndarray:
+        """(N, K, 6) True for the readings that carry information under ``model`` (a
+        :class:`~imu_array_ros.model.sensor_model.SensorModel`): present, finite and not saturated."""
+        return model.valid(self.accel, self.gyro)
+
+    def window(self, start_s: float | None = None, duration_s: float | None = None) -> "ImuSamples":
+        """The samples from ``start_s`` to ``start_s + duration_s`` seconds after the first stamp (both
+        ends included; None: from the first / to the last); may be empty."""
+        if not len(self) or (start_s is None and duration_s is None):
+            return self
+        t = (self.stamps - self.stamps[0]) / 1e9
+        lo = 0.0 if start_s is None else float(start_s)
+        hi = np.inf if duration_s is None else lo + float(duration_s)
+        return self.select(np.flatnonzero((t >= lo) & (t <= hi)))
+
 
 @dataclass
 class MotionTruth:

@@ -225,9 +225,8 @@ class CalibrationNode(Node):
                 desc, from_file = self._starting_point()
             except ConfigError as err:
                 return False, f"output_file {err}; not replaced"
-            stamps, accel, gyro = self.window.snapshot()
             result, installed = calibrate_and_write(
-                desc, stamps, accel, gyro, self.out, reference=p.reference_imu or None, method=p.method,
+                desc, self.window.snapshot(), self.out, reference=p.reference_imu or None, method=p.method,
                 max_iterations=p.max_iterations or None, min_excitation=p.min_excitation, progress=self._progress,
                 before_install=self._progress)
         except _Cancelled:
