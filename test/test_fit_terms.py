@@ -1,4 +1,4 @@
-"""The fitting engine (estimation/fit_terms.py): the Schur-complement step is the joint Gauss-Newton
+"""The fitting engine (imu_array_ros/fitting/): the Schur-complement step is the joint Gauss-Newton
 step, every term is recovered with errors that match the Cramér-Rao bound it reports, gauge
 freedoms are held, missing motion and bad input are refused, saturated axes are masked."""
 
@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.fitting.engine import _Problem, fit_terms
+from imu_array_ros.fitting.engine import fit_terms
+from imu_array_ros.fitting.problem import Problem
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.layouts import grid_array32, make_description
 from imu_array_ros.model.samples import MotionTruth
@@ -72,7 +73,7 @@ def test_schur_step_is_the_dense_joint_gauss_newton_step(rng):
     truth = random_motion(n, 6.0, 60.0, rng, rate_hz=RATE)
     samples = simulate_measurements(model, truth, rng)
     free, fitted = ("position", "gyroscope_g_sensitivity", "time_offset", "accelerometer_gain"), np.array([1, 2, 3])
-    prob = _Problem(samples, model, free, fitted)
+    prob = Problem(samples, model, free, fitted)
     prob.chunk = 2
     motion = np.concatenate([truth.omega, truth.omega_dot, truth.specific_force], axis=1)
     motion = motion + rng.normal(0, 0.05, motion.shape)  # away from the optimum

@@ -1,0 +1,72 @@
+"""The optimiser: Levenberg-Marquardt on the gauge-reduced Schur system, the motion following each step by
+back-substitution (theory: :mod:`imu_array_ros.fitting`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.fitting.gauge import Gauge
+from imu_array_ros.fitting.problem import Linearization, Problem
+from imu_array_ros.model.sensor_model import SensorModel
+
+__all__ = ["levenberg_marquardt", "inverse"]
+
+
+def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Linearization, gauge: Gauge,
+                        max_iterations: int, tolerance: float, progress):
+    """Levenberg-Marquardt on the reduced system (damping on S's diagonal, a step accepted when the cost
+    drops); returns (model, motion, lin, iterations, converged).
+
+    lin: the linearisation at (model, motion); converged when every parameter step is below ``tolerance``
+    standard deviations and the RMS motion step below ``tolerance`` of its own; progress(iteration, cost)
+    or None."""
+    lam, iterations, converged = 0.0, 0, False
+    for _ in range(max_iterations):
+        if progress is not None:
+            progress(iterations, lin.cost)
+        s_z, g_z = gauge.reduce(lin.S, lin.g)
+        cov_z = inverse(s_z)
+        step_z = cov_z @ g_z
+        motion_rms = np.sqrt(np.mean(np.sum(lin.h[prob.used] ** 2, axis=1)))
+        if np.max(np.abs(step_z) / np.sqrt(np.diag(cov_z)), initial=0.0) < tolerance and motion_rms < tolerance:
+            converged = True
+            break
+        while True:
+            dz = step_z if lam == 0 else _solve_damped(s_z, g_z, lam)
+            dtheta = gauge.expand(dz)
+            new_model = prob.with_values(model, prob.values(model).reshape(-1) + dtheta)
+            new_motion = motion + prob.motion_step(model, motion, lin, dtheta)
+            r = prob.residuals(new_model, new_motion, lin.derivs)  # the derivatives held, as in the step
+            cost = 0.5 * float(np.sum(r * r))
+            if cost <= lin.cost:
+                lam = lam / 10 if lam > 1e-6 else 0.0
+                break
+            lam = max(1e-4, 10 * lam)
+            if lam > 1e8:  # no step lowers the cost: stalled short of the tolerance
+                return model, motion, lin, iterations, False
+        model, motion = new_model, new_motion
+        iterations += 1
+        lin = prob.linearize(model, motion)
+    return model, motion, lin, iterations, converged
+
+
+def inverse(s: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite matrix, Jacobi-scaled Cholesky."""
+    if s.size == 0:
+        return s.copy()
+    d = np.sqrt(np.diag(s))
+    d = np.where(d > 0, d, 1.0)
+    try:
+        factor = scipy.linalg.cho_factor(s / np.outer(d, d))
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the free parameters are not identifiable at the current estimate "
+                               "(Fisher information singular); record more varied motion") from None
+    return scipy.linalg.cho_solve(factor, np.eye(len(s))) / np.outer(d, d)
+
+
+def _solve_damped(s: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray:
+    """The step of the damped system (S + lam diag(S)) dz = g."""
+    return np.linalg.solve(s + lam * np.diag(np.diag(s)), g)
+

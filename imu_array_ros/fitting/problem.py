@@ -1,0 +1,309 @@
+"""The fitting problem: readings, weights, the parameter layout (fitted IMUs x free terms' parameters,
+IMU-major) and the Schur-complemented Gauss-Newton system at a point, with the motion-only fit (theory
+and notation: :mod:`imu_array_ros.fitting`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import scipy.linalg
+
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.fitting.motion_models import RigidMotion
+from imu_array_ros.fitting.schur import accumulate_c, factor, gram, stacked_g
+from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
+from imu_array_ros.model.terms import REGISTRY, term_names
+
+__all__ = ["Problem", "Linearization", "check_terms", "CHUNK_BYTES", "MOTION_ITERATIONS"]
+
+#: working memory per chunk of samples (Jacobians and the stacked G of the Schur complement)
+CHUNK_BYTES = 64 << 20
+#: motion-only Gauss-Newton iterations for the initial motion
+MOTION_ITERATIONS = 30
+
+
+def check_terms(free: Sequence[str]) -> tuple[str, ...]:
+    """``free`` as a tuple of known registry names without repeats; CalibrationError otherwise."""
+    if isinstance(free, str):
+        free = [free]
+    out = tuple(dict.fromkeys(free))
+    if not out:
+        raise CalibrationError(f"no free terms to fit: name at least one term (known: {', '.join(term_names())})")
+    unknown = [n for n in out if n not in REGISTRY]
+    if unknown:
+        raise CalibrationError(f"unknown term {unknown[0]!r} in free (known: {', '.join(term_names())})")
+    return out
+
+
+@dataclass
+class Linearization:
+    """The Gauss-Newton system at one point (theta, x), Schur-complemented.
+
+    cost: sum r^2 / 2; S (M, M), g (M,): reduced information and right-hand
+    side over every candidate parameter; cdiag (M,): diag(C) (information of
+    each parameter with the motion known); linv (N, 9, 9): L_n^-1; h (N, 9):
+    L_n^-1 gx_n; ok (N,): A_n positive definite (the sample identifies its
+    motion); r (N, K, 6) normalised residuals (0 on masked axes); derivs: the
+    motion derivatives held fixed in it.
+    """
+
+    cost: float
+    S: np.ndarray
+    g: np.ndarray
+    cdiag: np.ndarray
+    linv: np.ndarray
+    h: np.ndarray
+    ok: np.ndarray
+    r: np.ndarray
+    derivs: tuple
+
+
+class Problem:
+    """Readings, weights and the parameter layout: fitted IMUs x free terms' parameters, IMU-major."""
+
+    def __init__(self, samples: ImuSamples, model: SensorModel, free: tuple[str, ...], fit: np.ndarray, *,
+                 motion_model=None, sigma=None):
+        stamps = samples.stamps
+        n, k = len(stamps), model.n_imus
+        if tuple(samples.names) != tuple(model.names):
+            raise CalibrationError(f"the samples are of IMUs {', '.join(samples.names[:4])}..., the model of "
+                                   f"{', '.join(model.names[:4])}...")
+        if n < 3:
+            raise CalibrationError(f"too few samples: {n} (the motion of every sample is unknown; record longer)")
+        self.model0 = model
+        self.stamps, self.free, self.fit = stamps, free, fit
+        self.cols = slice(None) if len(fit) == k else fit  # the fitted IMUs, a view when all are
+        self.t0_ns = int(stamps[0])
+        self.raw = samples.readings
+        valid = samples.valid(model)
+        if not valid.any():
+            raise CalibrationError("no valid samples: every reading is missing or saturated")
+        self.y = np.where(valid, self.raw, 0.0)
+        if sigma is None:
+            self.w = valid / model.std[None]
+        else:
+            sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (n, k, 6))
+            if not np.all(np.isfinite(sigma[valid]) & (sigma[valid] > 0)):
+                raise CalibrationError("sigma must be positive and finite on every valid reading")
+            self.w = np.where(valid, 1.0 / np.where(valid, sigma, 1.0), 0.0)
+        self.valid = valid
+        self.mm = RigidMotion() if motion_model is None else motion_model
+        self.dm = self.mm.dim
+        self.used = np.ones(n, dtype=bool)
+        self.sizes = [REGISTRY[t].dim() for t in free]
+        self.p = sum(self.sizes)
+        self.needs_derivatives = "time_offset" in free or not model.terms["time_offset"].is_identity
+        if self.needs_derivatives and np.any(np.diff(stamps) <= 0):
+            raise CalibrationError("stamps must increase strictly (time offsets need the motion's time derivatives)")
+        per_sample = 8 * (4 * 6 * k * (9 + self.p) + 2 * self.dm * self.m + 20 * 81)
+        self.chunk = int(np.clip(CHUNK_BYTES // per_sample, 16, n))
+
+    # ---- layout
+    @property
+    def n(self) -> int:
+        return len(self.stamps)
+
+    @property
+    def m(self) -> int:
+        return len(self.fit) * self.p
+
+    @property
+    def offsets(self) -> dict[str, int]:
+        """term -> its first column in the per-IMU parameter vector (P columns)."""
+        return {t: int(o) for t, o in zip(self.free, np.cumsum([0] + self.sizes[:-1]))}
+
+    def n_used(self) -> int:
+        return int(self.used.sum())
+
+    def n_valid(self) -> int:
+        return int(self.valid[self.used].sum())
+
+    def values(self, model: SensorModel) -> np.ndarray:
+        """(K_fit, P) the free parameters of the fitted IMUs."""
+        return np.concatenate([model.terms[t].values[self.fit] for t in self.free], axis=1)
+
+    def with_values(self, model: SensorModel, theta: np.ndarray) -> SensorModel:
+        theta = theta.reshape(len(self.fit), self.p)
+        new, col = {}, 0
+        for t, size in zip(self.free, self.sizes):
+            v = model.terms[t].values.copy()
+            v[self.fit] = theta[:, col:col + size]
+            new[t] = v
+            col += size
+        return model.with_terms(**new)
+
+    def parameter_names(self) -> list[str]:
+        per_imu = [name for t in self.free for name in REGISTRY[t].parameter_names()]
+        return [f"{self.model0.names[k]} {name}" for k in self.fit for name in per_imu]
+
+    def column_terms(self) -> list[str]:
+        """(M,) the term of every parameter."""
+        return [t for _ in self.fit for t, size in zip(self.free, self.sizes) for _ in range(size)]
+
+    def drop(self, bad: np.ndarray, motion: np.ndarray) -> np.ndarray:
+        """Samples whose motion is not identified leave the problem (weight 0); their motion is
+        interpolated from the others (it enters the time derivatives of the neighbours)."""
+        self.used &= ~bad
+        self.w[bad] = 0.0
+        if not self.used.any():
+            raise CalibrationError("no valid samples: no sample has enough valid axes to determine its motion")
+        if not bad.any():
+            return motion
+        t, used = self.stamps - self.t0_ns, np.flatnonzero(self.used)
+        return np.stack([np.interp(t, t[used], motion[used, i]) for i in range(motion.shape[1])], axis=1)
+
+    def loglik(self, cost: float, mask: np.ndarray | None = None) -> float:
+        """log p(y) at a point with cost sum r^2 / 2, over the valid axes ``mask`` (N, K, 6) (default those of
+        the samples used)."""
+        if mask is None:
+            mask = self.valid & self.used[:, None, None]
+        return float(-cost + np.sum(np.log(self.w[mask])) - 0.5 * int(mask.sum()) * np.log(2 * np.pi))
+
+    def check_dof(self, parameters: int) -> int:
+        """Degrees of freedom left (valid axes - motion coordinates - parameters); CalibrationError if none."""
+        dof = self.n_valid() - self.dm * self.n_used() - parameters
+        if dof <= 0:
+            raise CalibrationError(f"too few samples: {self.n_used()} usable samples cannot determine their motion "
+                                   f"and {parameters} parameters (no degrees of freedom left); record longer")
+        return dof
+
+    def check_motion(self, motion0) -> np.ndarray:
+        """The motion model's coordinates of an (N, 9) initial motion [omega, omega_dot, s]."""
+        motion = np.array(motion0, dtype=float)
+        if motion.shape != (self.n, 9) or not np.isfinite(motion).all():
+            raise CalibrationError(f"motion0 must be finite with shape {(self.n, 9)}, got {motion.shape}")
+        return self.mm.initial(motion)
+
+    def expand(self, z: np.ndarray, sel=slice(None)) -> np.ndarray:
+        """(n, 9) motion [omega, omega_dot, s] of the samples ``sel`` from their coordinates ``z[sel]``."""
+        return self.mm.expand(z[sel], sel)
+
+    def motion_jacobian(self, jac_motion: np.ndarray, w: np.ndarray, z: np.ndarray, sel) -> np.ndarray:
+        """(n, K, 6, dm) weighted d y / d z from the model's (n, K, 6, 9) d y / d x."""
+        jx = jac_motion * w[..., None]
+        d = self.mm.jacobian(z[sel], sel)
+        return jx if d is None else np.matmul(jx, d[:, None])
+
+    # ---- evaluation
+    def chunks(self):
+        for lo in range(0, self.n, self.chunk):
+            yield lo, min(lo + self.chunk, self.n)
+
+    def derivatives(self, motion: np.ndarray) -> tuple:
+        """(omega_ddot, specific_force_dot) of the whole recording, or (None, None) when no term reads them."""
+        if not self.needs_derivatives:
+            return None, None
+        x = self.expand(motion)
+        return motion_derivative(self.stamps, x[:, 3:6]), motion_derivative(self.stamps, x[:, 6:9])
+
+    def context(self, model: SensorModel, motion: np.ndarray, derivs: tuple, lo: int, hi: int):
+        return self.context_at(model, motion, derivs, slice(lo, hi))
+
+    def context_at(self, model: SensorModel, motion: np.ndarray, derivs: tuple, sel):
+        """The motion context of the samples ``sel`` (slice or indexes); ``motion`` and ``derivs`` whole."""
+        cut = lambda a: None if a is None else a[sel]  # noqa: E731
+        x = self.expand(motion, sel)
+        return motion_context(self.stamps[sel], x[:, 0:3], x[:, 3:6], x[:, 6:9],
+                              model.rotations, t0_ns=self.t0_ns, omega_ddot=cut(derivs[0]),
+                              specific_force_dot=cut(derivs[1]))
+
+    def residuals(self, model: SensorModel, motion: np.ndarray, derivs: tuple) -> np.ndarray:
+        """(N, K, 6) normalised residuals w (y - h), 0 on masked axes, with the motion derivatives ``derivs``."""
+        out = np.empty_like(self.y)
+        for lo, hi in self.chunks():
+            acc, gyr = model.predict(self.context(model, motion, derivs, lo, hi))
+            out[lo:hi] = self.w[lo:hi] * (self.y[lo:hi] - np.concatenate([acc, gyr], axis=2))
+        return out
+
+    def linearize(self, model: SensorModel, motion: np.ndarray, *, free: bool = True) -> Linearization:
+        """The Schur-complemented Gauss-Newton system at (model, motion); ``free=False``: motion only."""
+        m = self.m if free else 0
+        kf, p = len(self.fit), self.p
+        S, g = np.zeros((m, m)), np.zeros(m)
+        cblocks, gt = np.zeros((kf, p, p)), np.zeros((kf, p))
+        linv, h = np.empty((self.n, self.dm, self.dm)), np.empty((self.n, self.dm))
+        ok, r_all = np.empty(self.n, dtype=bool), np.empty_like(self.y)
+        derivs = self.derivatives(motion)
+        for lo, hi in self.chunks():
+            jac = model.jacobians(self.context(model, motion, derivs, lo, hi), self.free if m else ())
+            w = self.w[lo:hi]
+            r = w * (self.y[lo:hi] - jac.predicted)
+            jx = self.motion_jacobian(jac.motion, w, motion, slice(lo, hi))  # (n, K, 6, dm)
+            linv[lo:hi], ok[lo:hi] = factor(gram(jx))
+            h[lo:hi] = np.einsum("nij,nkrj,nkr->ni", linv[lo:hi], jx, r, optimize=True)
+            r_all[lo:hi] = r
+            if m:
+                jt = self.parameter_jacobian(jac, w)
+                accumulate_c(cblocks, gt, jt, r[:, self.cols])
+                gmat = stacked_g(jx[:, self.cols], linv[lo:hi], jt)  # (9 n, M)
+                S -= gmat.T @ gmat
+                g -= gmat.T @ h[lo:hi].reshape(-1)
+        if m:
+            S += scipy.linalg.block_diag(*cblocks)
+            g += gt.reshape(-1)
+        cdiag = np.einsum("kpp->kp", cblocks).reshape(-1)[:m]
+        return Linearization(0.5 * float(np.sum(r_all * r_all)), S, g, cdiag, linv, h, ok, r_all, derivs)
+
+    def parameter_jacobian(self, jac, w: np.ndarray) -> np.ndarray:
+        """(n, K_fit, 6, P) weighted d y / d theta of the fitted IMUs, free terms concatenated."""
+        jt = [jac.params[t] for t in self.free]
+        jt = jt[0] if len(jt) == 1 else np.concatenate(jt, axis=3)
+        return jt[:, self.cols] * w[:, self.cols, :, None]
+
+    def motion_step(self, model: SensorModel, motion: np.ndarray, lin: Linearization,
+                    dtheta: np.ndarray | None) -> np.ndarray:
+        """dx_n = L_n^-T (h_n - G_n dtheta) (back-substitution), (N, 9); G_n recomputed chunk by chunk."""
+        v = lin.h.copy()
+        if dtheta is not None and np.any(dtheta):
+            dt = dtheta.reshape(len(self.fit), self.p)
+            for lo, hi in self.chunks():
+                jac = model.jacobians(self.context(model, motion, lin.derivs, lo, hi), self.free)
+                w = self.w[lo:hi]
+                u = np.einsum("nkrp,kp->nkr", self.parameter_jacobian(jac, w), dt)  # J_t dtheta per IMU
+                jx = self.motion_jacobian(jac.motion[:, self.cols], w[:, self.cols], motion, slice(lo, hi))
+                bdt = np.einsum("nkri,nkr->ni", jx, u)
+                v[lo:hi] -= np.einsum("nij,nj->ni", lin.linv[lo:hi], bdt)
+        return np.einsum("nji,nj->ni", lin.linv, v)
+
+    # ---- the motion alone
+    def initial_motion(self, model: SensorModel) -> np.ndarray:
+        """Readings mapped to the array frame and averaged (clipped readings included: a lower bound is a
+        better start than nothing); omega_dot by differentiating omega.  Refined by :meth:`fit_motion`."""
+        def average(y, std):
+            wt = np.isfinite(y) / std[None] ** 2  # (N, K, 3)
+            rot = model.rotations
+            mat = np.einsum("kia,nka,kja->nij", rot, wt, rot)
+            rhs = np.einsum("kia,nka->ni", rot, wt * np.nan_to_num(y))
+            mat += 1e-12 * np.trace(mat, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-300 * np.eye(3)
+            return np.linalg.solve(mat, rhs[..., None])[..., 0]
+        omega = average(self.raw[..., 3:], model.gyro_std)
+        s = average(self.raw[..., :3], model.acc_std)
+        return self.mm.initial(np.concatenate([omega, motion_derivative(self.stamps, omega), s], axis=1))
+
+    def fit_motion(self, model: SensorModel, motion: np.ndarray, tolerance: float = 1e-4):
+        """Motion-only Gauss-Newton for fixed parameters (batched 9x9 steps), step halving per sample.
+
+        Returns the motion and the motion-only linearisation at it (whose ``ok`` flags the samples that
+        identify their motion)."""
+        for _ in range(MOTION_ITERATIONS):
+            lin = self.linearize(model, motion, free=False)
+            if not lin.ok.any() or np.mean(np.sum(lin.h[lin.ok] ** 2, axis=1)) < tolerance ** 2:
+                return motion, lin
+            step = self.motion_step(model, motion, lin, None)
+            cost0 = 0.5 * np.sum(lin.r ** 2, axis=(1, 2))
+            t, todo = 1.0, np.ones(self.n, dtype=bool)
+            new = motion.copy()
+            for _ in range(10):  # halve the step where a sample's cost went up
+                trial = np.where(todo[:, None], motion + t * step, new)
+                cost = 0.5 * np.sum(self.residuals(model, trial, lin.derivs) ** 2, axis=(1, 2))
+                better = todo & (cost <= cost0)
+                new[better] = trial[better]
+                todo &= ~better
+                if not todo.any():
+                    break
+                t *= 0.5
+            motion = new
+        return motion, self.linearize(model, motion, free=False)

@@ -1,0 +1,65 @@
+"""The batched algebra of the Schur step: per-sample Cholesky factors of A_n, the per-IMU blocks of C
+and the stacked G_n = L_n^-1 B_n (theory and notation: :mod:`imu_array_ros.fitting`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["MOTION_RTOL", "gram", "factor", "per_imu", "accumulate_c", "g_per_imu", "stacked_g"]
+
+#: smallest eigenvalue of a sample's scaled motion information (A_n) for its motion to count as identified
+MOTION_RTOL = 1e-10
+
+
+def gram(jx: np.ndarray) -> np.ndarray:
+    """(n, K, 6, d) -> A_n = J_x^T J_x (n, d, d)."""
+    j = jx.reshape(len(jx), -1, jx.shape[-1])
+    return np.matmul(j.transpose(0, 2, 1), j)
+
+
+def factor(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """L^-1 of A = L L^T for each (n, 9, 9) matrix, and ok (n,): numerically positive definite.
+
+    Jacobi-scaled first (A = D An D); where An's smallest eigenvalue is below
+    ``MOTION_RTOL`` the sample does not identify its motion: ok is False and a
+    ridge keeps the factor finite (such samples are dropped after the initial
+    motion fit, weight 0).
+    """
+    d = np.sqrt(np.einsum("nii->ni", a))
+    d = np.where(d > 0, d, 1.0)
+    an = a / (d[:, :, None] * d[:, None, :])
+    ok = np.linalg.eigvalsh(an)[:, 0] > MOTION_RTOL
+    an[~ok] += np.eye(a.shape[-1])
+    lower = np.linalg.cholesky(an)
+    return np.linalg.inv(lower) / d[:, None, :], ok
+
+
+def per_imu(jt: np.ndarray) -> np.ndarray:
+    """(n, K_fit, 6, P) -> (K_fit, 6 n, P): each IMU's rows over the chunk's samples."""
+    return jt.transpose(1, 0, 2, 3).reshape(jt.shape[1], -1, jt.shape[3])
+
+
+def accumulate_c(cblocks: np.ndarray, gt: np.ndarray, jt: np.ndarray, r: np.ndarray) -> None:
+    """C_k += J_t,k^T J_t,k and gt_k += J_t,k^T r_k over the chunk; jt (n, K_fit, 6, P), r (n, K_fit, 6)."""
+    jk = per_imu(jt)
+    cblocks += np.matmul(jk.transpose(0, 2, 1), jk)
+    gt += np.matmul(jk.transpose(0, 2, 1), r.transpose(1, 0, 2).reshape(len(jk), -1, 1))[..., 0]
+
+
+def g_per_imu(jx: np.ndarray, linv: np.ndarray, jt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, G) per sample and IMU: M_n,k = J_x,k L_n^-T (n, K_fit, 6, d) and G_n,k = M_n,k^T J_t,k
+    (n, K_fit, d, P), one batched product over (n, k).
+
+    B_n is block-structured by IMU (B_n,k = J_x,k^T J_t,k), so G_n = L_n^-1 B_n is [G_n,1 ... G_n,K].
+    """
+    mk = np.matmul(jx, linv.transpose(0, 2, 1)[:, None])  # (n, K_fit, 6, d): rows (L^-1 phi)^T
+    gk = np.matmul(mk.transpose(0, 1, 3, 2), jt)  # (n, K_fit, d, P)
+    return mk, gk
+
+
+def stacked_g(jx: np.ndarray, linv: np.ndarray, jt: np.ndarray) -> np.ndarray:
+    """G_n = L_n^-1 B_n stacked over the chunk: (9 n, K_fit P) (:func:`g_per_imu`)."""
+    n, kf, _, p = jt.shape
+    d = jx.shape[-1]
+    gk = g_per_imu(jx, linv, jt)[1]
+    return gk.transpose(0, 2, 1, 3).reshape(d * n, kf * p)

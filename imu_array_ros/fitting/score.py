@@ -1,0 +1,104 @@
+"""Discovery's score test: score and Fisher information of candidate terms per time block and IMU, with
+every sample's motion profiled out (the per-IMU blocks of the engine's Schur complement; theory:
+:mod:`imu_array_ros.fitting`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.fitting.problem import Problem, check_terms
+from imu_array_ros.fitting.schur import factor, g_per_imu, gram, per_imu
+from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.model.terms import REGISTRY
+
+__all__ = ["ScoreBlocks", "score_blocks"]
+
+
+@dataclass
+class ScoreBlocks:
+    """Score and Fisher information of candidate terms, per time block and IMU, with the motion profiled out.
+
+    terms: the candidate terms; offsets: term -> first column in the per-IMU
+    parameter vector (P = sum of the terms' sizes); g (B, K, P): score
+    d loglik / d theta_k summed over block b (each IMU's parameters alone,
+    every other held); S (B, K, P, P): the information of IMU k's parameters
+    in block b with every sample's motion profiled out (the per-IMU diagonal
+    block of the engine's Schur complement; block sums add up to it);
+    counts (B,) samples per block; residuals (N, K, 6) normalised, NaN on
+    masked axes and on samples that do not identify their motion; expected (N,
+    K, 6): E[r^2] = 1 - leverage of each valid axis (leverage: what the fitted
+    motion absorbs, 9 per sample), NaN where masked; cost: sum r^2 / 2;
+    loglik: log-likelihood of the valid axes; valid_axes: their number.
+    """
+
+    terms: tuple[str, ...]
+    offsets: dict[str, int]
+    g: np.ndarray
+    S: np.ndarray
+    counts: np.ndarray
+    residuals: np.ndarray = field(repr=False)
+    expected: np.ndarray = field(repr=False)
+    cost: float = 0.0
+    loglik: float = 0.0
+    valid_axes: int = 0
+
+    def columns(self, term: str) -> slice:
+        return slice(self.offsets[term], self.offsets[term] + REGISTRY[term].dim())
+
+
+def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], motion, blocks, *,
+                 sigma=None) -> ScoreBlocks:
+    """Score test ingredients of every term in ``terms`` on every IMU at (model, motion), by time block.
+
+    ``motion`` (N, 9): the ML motion for ``model`` (:func:`~imu_array_ros.fitting.engine.fit_motion`);
+    blocks (N,) non-decreasing block index 0..B-1 of every sample (contiguous
+    blocks).  For the parameters theta_k of one IMU, g_k = J_t,k^T r -
+    sum_n G_n,k^T h_n and S_kk = C_kk - sum_n G_n,k^T G_n,k (:mod:`imu_array_ros.fitting`)
+    are the score and information of the one-step Gauss-Newton fit of theta_k
+    with every sample's motion re-estimated: g^T S^-1 g is the Rao score
+    statistic of adding the term to that IMU (chi-square under the model) and
+    g^T S^-1 g / 2 the log-likelihood it gains to first order.  Per block, so
+    that held-out blocks and a block-robust (sandwich) variance can be formed.
+    """
+    terms = check_terms(terms)
+    k = model.n_imus
+    prob = Problem(samples, model, terms, np.arange(k), sigma=sigma)
+    blocks = np.asarray(blocks, dtype=np.int64).reshape(-1)
+    if blocks.shape != (prob.n,) or blocks.min() < 0 or np.any(np.diff(blocks) < 0):
+        raise CalibrationError("blocks must give a non-decreasing block index >= 0 for every sample")
+    z = prob.check_motion(motion)
+    derivs = prob.derivatives(z)
+    nb, p = int(blocks[-1]) + 1, prob.p
+    g, S = np.zeros((nb, k, p)), np.zeros((nb, k, p, p))
+    res, expected = np.full_like(prob.y, np.nan), np.full_like(prob.y, np.nan)
+    cost = 0.0
+    mask = np.zeros(prob.y.shape, dtype=bool)
+    edges = np.flatnonzero(np.diff(blocks)) + 1
+    for b, (lo0, hi0) in zip(blocks[np.r_[0, edges]], zip(np.r_[0, edges], np.r_[edges, prob.n])):
+        for lo in range(lo0, hi0, prob.chunk):
+            hi = min(lo + prob.chunk, hi0)
+            jac = model.jacobians(prob.context(model, z, derivs, lo, hi), terms)
+            linv, ok = factor(gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi))))
+            w = prob.w[lo:hi] * ok[:, None, None]  # a sample that does not identify its motion tells nothing
+            r = w * (prob.y[lo:hi] - jac.predicted)
+            jx = prob.motion_jacobian(jac.motion, w, z, slice(lo, hi))
+            h = np.einsum("nij,nkrj,nkr->ni", linv, jx, r, optimize=True)
+            jt = prob.parameter_jacobian(jac, w)
+            jk = per_imu(jt)
+            mk, gk = g_per_imu(jx, linv, jt)  # (n, K, 6, 9): rows (L^-1 phi)^T; (n, K, 9, P) G_n,k
+            gs = gk.transpose(1, 0, 2, 3).reshape(k, -1, p)
+            S[b] += np.matmul(jk.transpose(0, 2, 1), jk) - np.matmul(gs.transpose(0, 2, 1), gs)
+            g[b] += (np.matmul(jk.transpose(0, 2, 1), r.transpose(1, 0, 2).reshape(k, -1, 1))[..., 0]
+                     - np.einsum("nkip,ni->kp", gk, h))
+            valid = prob.valid[lo:hi] & ok[:, None, None]
+            mask[lo:hi] = valid
+            res[lo:hi] = np.where(valid, r, np.nan)
+            expected[lo:hi] = np.where(valid, 1.0 - np.sum(mk * mk, axis=3), np.nan)
+            cost += 0.5 * float(np.sum(r * r))
+    return ScoreBlocks(terms, prob.offsets, g, S, np.bincount(blocks, minlength=nb), res, expected, cost,
+                       prob.loglik(cost, mask), int(mask.sum()))
