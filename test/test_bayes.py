@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 import pytest
@@ -11,8 +12,8 @@ from scipy.stats import ks_2samp
 
 from conftest import START, assert_user_error, cli
 from imu_array_ros.calibration import bayes
+from imu_array_ros.calibration.bayes import sampler as bayes_sampler
 from imu_array_ros.calibration.selection import MIN_EXCITATION, select_rotating
-from imu_array_ros.calibration import bayes_sampler as bs
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.description import load_description, save_description
 from imu_array_ros.model.sensor_model import SensorModel
@@ -96,6 +97,61 @@ def test_a_model_with_time_offsets_is_refused_by_name():
         bayes.build_problem(s, model)
 
 
+# --------------------------------------------------------------------------- the proposals
+
+
+def _metropolis_hastings(move, logpdf, starts, n_steps, rng):
+    """``n_steps`` Metropolis-Hastings steps with ``move`` alone from each start (C, d), as run_chunk makes
+    them (a batch of proposals per chain, log-uniforms, the move's correction); the final states (C, d)."""
+    out = np.empty_like(starts)
+    for c, theta in enumerate(starts):
+        batch, logu = move.draw(rng, n_steps), np.log(rng.random(n_steps))
+        for i in range(n_steps):
+            prop = move.propose(theta, batch[i])
+            if logu[i] < logpdf(prop) - logpdf(theta) + move.log_correction(theta, prop):
+                theta = prop
+        out[c] = theta
+    return out
+
+
+@pytest.mark.parametrize("name", ["random walk", "isotropic random walk", "independence t"])
+def test_each_proposal_alone_leaves_the_target_invariant(name):
+    """2000 chains started from a correlated 2-d Gaussian target, 10 steps of one proposal each: their end
+    points are independent draws of the target when the kernel keeps it; KS test of both marginals and of
+    a diagonal.  The t proposal is off-centre and too wide, so its q(theta) / q(theta') correction matters
+    (without it: p ~ 1e-40); a random walk with a drift of 0.15 sd per step fails too."""
+    from scipy.stats import kstest, norm
+
+    mean, cov = np.array([0.3, -0.2]), np.array([[1.0, 0.8], [0.8, 2.0]])
+    prec, low = np.linalg.inv(cov), np.linalg.cholesky(cov)
+    logpdf = lambda x: -0.5 * (x - mean) @ prec @ (x - mean)  # noqa: E731
+    move = {"random walk": bayes.RandomWalk(low, 1.7),
+            "isotropic random walk": bayes.RandomWalk.isotropic(2, 1.2),
+            "independence t": bayes.IndependenceT(mean + np.array([1.0, -0.5]), 1.5 * low)}[name]
+    rng = np.random.default_rng(20)
+    starts = mean + rng.standard_normal((2000, 2)) @ low.T
+    ends = _metropolis_hastings(move, logpdf, starts, 10, rng)
+    assert not np.array_equal(ends, starts)
+    pvals = [kstest(ends @ a, norm(a @ mean, np.sqrt(a @ cov @ a)).cdf).pvalue
+             for a in (np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.array([1.0, 1.0]) / np.sqrt(2))]
+    assert min(pvals) > 0.001 / 3, pvals  # Bonferroni at 0.1 %
+
+
+def test_the_random_walk_is_symmetric_and_the_t_proposal_corrects():
+    rng = np.random.default_rng(1)
+    walk = bayes.RandomWalk(np.diag([1.0, 2.0]), 0.5)
+    steps = walk.draw(np.random.default_rng(3), 4)
+    np.testing.assert_array_equal(steps, np.random.default_rng(3).standard_normal((4, 2)) @ walk.chol.T * 0.5)
+    theta = rng.normal(size=2)
+    assert walk.log_correction(theta, walk.propose(theta, steps[0])) == 0.0
+    assert walk.rescaled(2.0).scale == 1.0 and walk.reshaped(np.eye(2)).scale == 0.5
+    t = bayes.IndependenceT(np.zeros(2), np.eye(2))
+    a, b = np.array([0.1, 0.0]), np.array([3.0, 1.0])
+    assert t.propose(a, b) is b
+    assert t.log_correction(a, b) == pytest.approx(t.log_density(a) - t.log_density(b))
+    assert t.log_correction(a, b) > 0  # moving into the tail of q: favoured, as q proposes it rarely
+
+
 # --------------------------------------------------------------------------- the sampler
 
 FAST = dict(scheduler="serial", ess=300, min_warmup=500, chunk=500)
@@ -104,7 +160,7 @@ FAST = dict(scheduler="serial", ess=300, min_warmup=500, chunk=500)
 @pytest.fixture(scope="module")
 def tetra_posterior():
     p, lap, s, truth, pos, nominal = _problem(seed=3)
-    post = bs.sample_posterior(p, lap, bs.SamplerSettings(**FAST, seed=1))
+    post = bayes.sample_posterior(p, lap, bayes.SamplerSettings(**FAST, seed=1))
     return p, lap, post, pos
 
 
@@ -115,7 +171,7 @@ def test_posterior_covers_the_truth_and_agrees_with_laplace(tetra_posterior):
     assert np.all(np.abs(z) < 4), z
     chi2 = float(z @ z)
     assert chi2 < 30, chi2  # 9 coordinates: chi2(9) exceeds 30 with probability 4e-4
-    agree = bs.laplace_agreement(post)
+    agree = bayes.laplace_agreement(post)
     assert agree["agrees"], agree
     # the posterior is far narrower than the 3 mm prior: the data, not the prior, speak
     assert np.all(np.sqrt(np.diag(post.covariance)) < 0.05 * bayes.PRIOR_STD)
@@ -127,8 +183,8 @@ def test_correlated_random_numbers_keep_the_target():
     p, lap, *_ = _problem(seed=5, t=40)
     runs = {}
     for rho in (0.0, 0.9):
-        runs[rho] = bs.sample_posterior(p, lap, bs.SamplerSettings(**{**FAST, "ess": 600}, rho=rho, independence=0.0,
-                                                                   n_draws=1, seed=7))
+        runs[rho] = bayes.sample_posterior(p, lap, bayes.SamplerSettings(**{**FAST, "ess": 600}, rho=rho,
+                                                                         independence=0.0, n_draws=1, seed=7))
     pvals = []
     for j in range(p.dim):
         a, b = (runs[r].draws[..., j].reshape(-1) for r in (0.0, 0.9))
@@ -139,7 +195,7 @@ def test_correlated_random_numbers_keep_the_target():
 
 def test_uniform_prior_keeps_every_draw_in_the_package():
     p, lap, *_ = _problem(seed=2, t=5, true_offset=5e-4, prior_kind="uniform")
-    post = bs.sample_posterior(p, lap, bs.SamplerSettings(**FAST, seed=2))
+    post = bayes.sample_posterior(p, lap, bayes.SamplerSettings(**FAST, seed=2))
     lo, hi = p.prior.mean - p.prior.std, p.prior.mean + p.prior.std
     assert np.all((post.flat >= lo) & (post.flat <= hi))
     assert p.prior.std[:3] == pytest.approx(np.array(bayes.PACKAGE_SIZE) / 2)
@@ -150,9 +206,9 @@ def test_runners_give_the_same_chains_in_processes_on_dask_and_in_process():
     pytest.importorskip("distributed")
     p, lap, *_ = _problem(seed=8, t=10)
     settings = dict(ess=50, min_warmup=200, chunk=200, max_iterations=400, chains=2, seed=3)
-    serial = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", **settings))
-    procs = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler=None, workers=2, **settings))
-    dask = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="local", workers=2, **settings))
+    serial = bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler="serial", **settings))
+    procs = bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler=None, workers=2, **settings))
+    dask = bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler="local", workers=2, **settings))
     assert procs.runner == "processes" and dask.runner == "dask" and serial.runner == "serial"
     np.testing.assert_array_equal(serial.draws, procs.draws)
     np.testing.assert_array_equal(serial.draws, dask.draws)
@@ -162,14 +218,39 @@ def test_runners_give_the_same_chains_in_processes_on_dask_and_in_process():
 def test_settings_are_checked():
     for bad in (dict(chains=1), dict(rho=1.0), dict(proposal="hmc"), dict(independence=1.0)):
         with pytest.raises(CalibrationError):
-            bs.SamplerSettings(**bad).check()
+            bayes.SamplerSettings(**bad).check()
 
 
 def test_an_unreachable_scheduler_is_a_one_line_error():
     pytest.importorskip("distributed")
     p, lap, *_ = _problem(seed=8, t=5)
     with pytest.raises(CalibrationError, match="cannot connect"):
-        bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="tcp://127.0.0.1:9", chains=2, n_draws=1))
+        bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler="tcp://127.0.0.1:9", chains=2, n_draws=1))
+
+
+def test_importing_bayes_loads_no_optional_dependency():
+    """The package imports numpy and the core only; ArviZ, Dask, h5netcdf ([bayes]) and matplotlib
+    ([plots]) are loaded when a function needs them."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import imu_array_ros.calibration.bayes as b; "
+            "print(sorted(m for m in ('arviz', 'dask', 'distributed', 'h5netcdf', 'matplotlib', 'xarray') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_a_missing_extra_is_a_one_line_error_naming_it(monkeypatch):
+    from imu_array_ros.errors import MissingDependencyError
+
+    monkeypatch.setitem(sys.modules, "arviz", None)  # import arviz raises ImportError
+    with pytest.raises(MissingDependencyError, match=r"arviz.*imu_array_ros\[bayes\]"):
+        bayes.chain_diagnostics(np.zeros((2, 10, 3)))
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(MissingDependencyError, match=r"distributed.*imu_array_ros\[bayes\]"):
+        with bayes.dask_client("local", 1):
+            pass
 
 
 # --------------------------------------------------------------------------- the command
@@ -293,10 +374,10 @@ def test_sample_covariance_laplace_has_the_likelihoods_information_about_omega()
 def test_a_log_likelihood_too_noisy_to_sample_is_a_clear_error(monkeypatch):
     """Accelerometer noise 100x too small for the data: no N up to the cap makes the estimate usable."""
     p, lap, s, *_ , nominal = _problem(seed=9, t=40, accel_std=1e-4)
-    monkeypatch.setattr(bs, "MAX_DRAWS", 8)
-    with pytest.raises(CalibrationError, match="too noisy to sample.*--draws"):
-        bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", seed=0))
-    n, table = bs.choose_draws(p, lap.mean, 0.1, np.random.default_rng(0))
+    monkeypatch.setattr(bayes_sampler, "MAX_DRAWS", 8)  # the module choose_draws reads it from
+    with pytest.raises(CalibrationError, match="too noisy to sample.*n_draws"):
+        bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler="serial", seed=0))
+    n, table = bayes.choose_draws(p, lap.mean, 0.1, np.random.default_rng(0))
     assert n == 8 and table[-1][1] > 10 * 0.1
 
 
@@ -305,10 +386,10 @@ def test_sampling_rounds_grow_geometrically_when_only_rhat_is_missing():
     (they fell back to one chunk each, re-running the diagnostics on all draws: 55 rounds here)."""
     p, lap, *_ = _problem(seed=3, t=30)
     lines = []
-    post = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", independence=0.0, n_draws=1, seed=4,
-                                                          chunk=500, min_warmup=1000, max_warmup=30000,
-                                                          rhat=1.0001, max_iterations=30000),
-                               progress=lines.append)
+    post = bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler="serial", independence=0.0, n_draws=1,
+                                                                seed=4, chunk=500, min_warmup=1000,
+                                                                max_warmup=30000, rhat=1.0001, max_iterations=30000),
+                                  progress=lines.append)
     assert post.warmup < 15000, post.warmup
     rounds = [x for x in lines if x.startswith("sampling:")]
     assert post.draws.shape[1] == 30000 and len(rounds) <= 12, rounds  # one-chunk rounds: 60

@@ -9,7 +9,7 @@ import struct
 import numpy as np
 import pytest
 
-from imu_array_ros.calibration import bayes, bayes_report as br, bayes_sampler as bs
+from imu_array_ros.calibration import bayes
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.layouts import grid_array32, planar_square4
 from imu_array_ros.simulation.simulator import simulate_gaussian
@@ -28,7 +28,8 @@ def posterior():
     s, _ = simulate_gaussian(model, 20, rng)
     p = bayes.build_problem(s, model)
     lap = bayes.laplace(p, s, model)
-    post = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", ess=100, min_warmup=500, chunk=500))
+    post = bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler="serial", ess=100, min_warmup=500,
+                                                                chunk=500))
     return post, model
 
 
@@ -48,7 +49,7 @@ def test_ellipse_points_lie_on_the_chi2_contour(level):
 
     mean = np.array([1.5, -2.0])
     cov = np.array([[4.0, 1.2], [1.2, 0.9]])
-    pts = br.ellipse_points(mean, cov, level, n=200)
+    pts = bayes.ellipse_points(mean, cov, level, n=200)
     assert pts.shape == (200, 2)
     d = pts - mean
     maha = np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d)
@@ -64,18 +65,18 @@ def test_ellipse_points_lie_on_the_chi2_contour(level):
 
 def test_ellipse_points_rejects_bad_input():
     with pytest.raises(ValueError):
-        br.ellipse_points([0, 0], np.eye(2), level=1.0)
+        bayes.ellipse_points([0, 0], np.eye(2), level=1.0)
     with pytest.raises(ValueError):
-        br.ellipse_points([0, 0], np.eye(3))
+        bayes.ellipse_points([0, 0], np.eye(3))
     # a singular covariance: a segment, not an error
-    pts = br.ellipse_points([0, 0], np.diag([1.0, 0.0]))
+    pts = bayes.ellipse_points([0, 0], np.diag([1.0, 0.0]))
     assert np.allclose(pts[:, 1], 0.0) and np.isfinite(pts).all()
 
 
 def test_panel_layout_follows_the_board():
     """array32: 4 x 4 per side; the top side (z = +1 mm) left, x to the right, y up, a spacer between."""
     nominal = SensorModel.from_description(grid_array32()).positions
-    place, rows, widths = br.panel_layout(nominal)
+    place, rows, widths = bayes.panel_layout(nominal)
     assert rows == 4 and widths == [1.0] * 4 + [0.25] + [1.0] * 4
     assert len(set(place.values())) == 32
     xs, ys = (sorted(set(np.round(nominal[:, a], 6))) for a in (0, 1))
@@ -86,7 +87,7 @@ def test_panel_layout_follows_the_board():
     # not a grid (every IMU at its own x, y, z): rows of up to 8, highest z first
     rng = np.random.default_rng(3)
     scattered = rng.normal(size=(11, 3))
-    place, rows, widths = br.panel_layout(scattered)
+    place, rows, widths = bayes.panel_layout(scattered)
     assert rows == 2 and len(widths) == 8
     first = min(place, key=lambda i: place[i])
     assert first == int(np.argmax(scattered[:, 2]))
@@ -103,21 +104,21 @@ def test_plot_ellipses_with_truth_and_several_labels(tmp_path):
     estimates = {lab: (truth + rng.normal(0.0, 1e-4, nominal.shape), cov * f)
                  for lab, f in (("MCMC", 1.0), ("Laplace", 1.3), ("BCD", 0.7))}
     big = tmp_path / "ellipses32.png"
-    place = br.plot_ellipses(big, names, nominal, estimates, prior_std=np.full((k, 3), 1e-3), truth=truth,
-                             reference=names[0], colors={"BCD": "k"})
+    place = bayes.plot_ellipses(big, names, nominal, estimates, prior_std=np.full((k, 3), 1e-3), truth=truth,
+                                reference=names[0], colors={"BCD": "k"})
     assert place["imu_00"] == (3, 0) and place["imu_15"] == (0, 3) and place["imu_16"] == (3, 5)
     w32, h32 = _png_size(big)
     small = tmp_path / "ellipses4.png"
     model4 = SensorModel.from_description(planar_square4())
-    br.plot_ellipses(small, model4.names, model4.positions,
-                     {"one": (model4.positions, np.tile(np.eye(3) * 1e-10, (4, 1, 1)))}, package=None)
+    bayes.plot_ellipses(small, model4.names, model4.positions,
+                        {"one": (model4.positions, np.tile(np.eye(3) * 1e-10, (4, 1, 1)))}, package=None)
     w4, h4 = _png_size(small)
     assert w32 > 1.8 * w4 and h32 > h4  # the figure grows with the count
     assert not list(tmp_path.glob(".*"))  # no temporary left behind
     with pytest.raises(ValueError):
-        br.plot_ellipses(tmp_path / "bad.png", names, nominal, {"x": (nominal[:3], cov)})
+        bayes.plot_ellipses(tmp_path / "bad.png", names, nominal, {"x": (nominal[:3], cov)})
     with pytest.raises(ValueError):
-        br.plot_ellipses(tmp_path / "bad.png", names, nominal, estimates, reference="nope")
+        bayes.plot_ellipses(tmp_path / "bad.png", names, nominal, estimates, reference="nope")
     assert not (tmp_path / "bad.png").exists()
 
 
@@ -126,16 +127,16 @@ def test_plot_ellipses_with_truth_and_several_labels(tmp_path):
 
 def test_lowest_ess_coords_match_the_summary(posterior):
     post, _ = posterior
-    coords = br.lowest_ess_coords(post, 4)
+    coords = bayes.lowest_ess_coords(post, 4)
     ess = post.summary["ess_bulk"]
     expected = [lab for lab in ess.sort_values().index[:4]]
     assert [f"position[{i}, {a}]" for i, a in coords] == expected
-    assert len(br.lowest_ess_coords(post, 100)) == post.draws.shape[-1]
+    assert len(bayes.lowest_ess_coords(post, 100)) == post.draws.shape[-1]
 
 
 def test_diagnostics_table_values(posterior):
     post, _ = posterior
-    rows = br.diagnostics_table(post)
+    rows = bayes.diagnostics_table(post)
     d = post.draws.shape[-1]
     assert len(rows) == d
     assert [(r["imu"], r["axis"]) for r in rows] == [(n, a) for n in post.free_names for a in "xyz"]
@@ -163,7 +164,7 @@ def test_disagreements_name_the_coordinates():
             {"imu": "a", "axis": "y", "z": -2.5, "sd_ratio": 1.0},
             {"imu": "b", "axis": "z", "z": 0.1, "sd_ratio": 0.5},
             {"imu": "b", "axis": "x", "z": float("nan"), "sd_ratio": 1.3}]
-    dis = br.disagreements(rows)
+    dis = bayes.disagreements(rows)
     assert [(d["imu"], d["axis"]) for d in dis] == [("a", "y"), ("b", "z"), ("b", "x")]
     assert "z = -2.50" in dis[0]["why"] and "sd ratio 0.50" in dis[1]["why"]
 
@@ -171,7 +172,7 @@ def test_disagreements_name_the_coordinates():
 def test_write_report_writes_every_file(posterior, tmp_path):
     post, model = posterior
     out = tmp_path / "report" / "bayes"  # created, parents too
-    paths = br.write_report(post, out, truth=model.positions, extra={"recording": "sim", "seed": 0})
+    paths = bayes.write_report(post, out, truth=model.positions, extra={"recording": "sim", "seed": 0})
     names = {p.name for p in paths}
     assert names == {"diagnostics.json", "diagnostics.md", "ellipses.png", "trace.png", "autocorr.png",
                      "posterior.nc"}
@@ -193,12 +194,12 @@ def test_write_report_writes_every_file(posterior, tmp_path):
     assert run["ess_bulk_min"] == pytest.approx(post.ess_bulk_min)
     rows = doc["rows"]
     assert len(rows) == d == 3 * len(post.free_names)
-    table = br.diagnostics_table(post)
+    table = bayes.diagnostics_table(post)
     for r, t in zip(rows, table):
         assert r["imu"] == t["imu"] and r["mean_um"] == pytest.approx(t["mean_um"])
         assert r["truth_um"] == pytest.approx(0.0)  # simulated at the nominal positions
         assert r["z_truth"] == pytest.approx(r["mean_um"] / r["sd_um"])
-    assert doc["disagreements"] == br.disagreements(table)
+    assert doc["disagreements"] == bayes.disagreements(table)
 
     md = (out / "diagnostics.md").read_text()
     assert "**MCMC vs Laplace:**" in md
@@ -206,7 +207,7 @@ def test_write_report_writes_every_file(posterior, tmp_path):
     assert "| N | Var[log-likelihood estimate] |" in md
     assert sum(line.startswith(f"| {n} |") for n in post.free_names for line in md.splitlines()) == d
 
-    from imu_array_ros.calibration.bayes_sampler import arviz
+    from imu_array_ros.calibration.bayes import arviz
 
     idata = arviz().from_netcdf(str(out / "posterior.nc"))
     np.testing.assert_allclose(idata.posterior["position"].values.reshape(c, m, d), post.draws)
@@ -219,7 +220,7 @@ def test_write_report_without_plots_and_with_a_disagreement(posterior, tmp_path)
     mean = lap.mean.copy()
     mean[4] += 3.0 * post.flat[:, 4].std(ddof=1)
     shifted = dataclasses.replace(post, laplace=dataclasses.replace(lap, mean=mean))
-    paths = br.write_report(shifted, tmp_path, plots=False)
+    paths = bayes.write_report(shifted, tmp_path, plots=False)
     assert {p.name for p in paths} == {"diagnostics.json", "diagnostics.md", "posterior.nc"}
     assert not list(tmp_path.glob("*.png"))
     imu, axis = post.free_names[1], "y"
@@ -238,7 +239,7 @@ def test_write_report_survives_a_failing_netcdf(posterior, tmp_path, monkeypatch
             raise OSError("no engine")
 
     monkeypatch.setattr(type(post), "inference_data", lambda self: Broken())
-    paths = br.write_report(post, tmp_path, plots=False)
+    paths = bayes.write_report(post, tmp_path, plots=False)
     assert {p.name for p in paths} == {"diagnostics.json", "diagnostics.md"}
     assert not (tmp_path / "posterior.nc").exists()
     assert not list(tmp_path.glob(".*"))
@@ -249,11 +250,11 @@ def test_write_report_survives_a_failing_netcdf(posterior, tmp_path, monkeypatch
 def test_trace_and_autocorr_of_chosen_coordinates(posterior, tmp_path):
     post, _ = posterior
     name = post.free_names[0]
-    shown = br.plot_trace(tmp_path / "t.png", post, coords=[(name, "z"), f"position[{post.free_names[2]}, x]"])
+    shown = bayes.plot_trace(tmp_path / "t.png", post, coords=[(name, "z"), f"position[{post.free_names[2]}, x]"])
     assert shown == [(name, "z"), (post.free_names[2], "x")]
-    assert br.plot_autocorr(tmp_path / "a.png", post, max_coords=2) == br.lowest_ess_coords(post, 2)
-    br.plot_trace(tmp_path / "t4.png", post, max_coords=4)
+    assert bayes.plot_autocorr(tmp_path / "a.png", post, max_coords=2) == bayes.lowest_ess_coords(post, 2)
+    bayes.plot_trace(tmp_path / "t4.png", post, max_coords=4)
     assert _png_size(tmp_path / "t.png")[1] < _png_size(tmp_path / "t4.png")[1]  # a row per coordinate
     assert _png_size(tmp_path / "a.png")[0] > 0
     with pytest.raises(ValueError):
-        br.plot_trace(tmp_path / "bad.png", post, coords=[(post.names[post.problem.reference], "x")])
+        bayes.plot_trace(tmp_path / "bad.png", post, coords=[(post.names[post.problem.reference], "x")])
