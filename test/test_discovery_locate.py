@@ -7,7 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from imu_array_ros.discovery.locate import REGIMES, localize, relative_psd, rigid_body_test
+from imu_array_ros.discovery.excess import REGIMES
+from imu_array_ros.discovery.locate import localize
+from imu_array_ros.discovery.rigid import rigid_body_test
+from imu_array_ros.discovery.spectra import relative_psd
 
 N, K, FS = 4000, 8, 100.0
 NAMES = [f"imu_{i}" for i in range(K)]

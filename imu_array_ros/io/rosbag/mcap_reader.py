@@ -1,4 +1,4 @@
-"""One MCAP file read through the ``mcap`` library: summary, chunks, CRCs, batches of messages.
+"""One MCAP file read through the ``mcap`` library: chunks, CRCs, batches of messages.
 
 Knows nothing about message semantics: :meth:`McapFile.iter_batches` hands
 out *where* the payloads of selected channels are (one
@@ -6,14 +6,16 @@ out *where* the payloads of selected channels are (one
 chunk: buffer, offsets, lengths, log times).  The CDR layer
 (:mod:`imu_array_ros.io.rosbag.cdr_columns`) does the rest.
 
-Container (the ``mcap`` library): the footer and summary
-(``SeekingReader.get_summary``), chunk records (``Chunk.read``),
+Container (the ``mcap`` library): chunk records (``Chunk.read``),
 decompression and chunk CRCs (``get_chunk_data_stream(validate_crc=True)``;
 ``zstd``, ``lz4`` or none; :func:`decompress_chunk`) and every other
-record's fields.  Files whose summary has no chunk index (no summary,
-unchunked, or chunk indexes not written) are streamed once with
-``StreamReader``.  The summary CRC (footer) and the data-section CRC
-(DataEnd) are verified as well; a CRC of 0 means "not computed" (MCAP spec)
+record's fields.  Opening (magic, footer, summary CRC, summary, chunk index)
+and the schemas and channels a file declares:
+:mod:`imu_array_ros.io.rosbag.mcap_summary`.  Files whose summary has no
+chunk index (no summary, unchunked, or chunk indexes not written) are
+streamed once with ``StreamReader``
+(:mod:`imu_array_ros.io.rosbag.mcap_stream`).  The data-section CRC
+(DataEnd) is verified as well; a CRC of 0 means "not computed" (MCAP spec)
 and is not checked.  Indexed chunks are read and decompressed ahead by a
 worker thread.
 
@@ -25,7 +27,7 @@ index does not list are read too, and the DataEnd record's position is
 known for the data-section CRC.
 
 A file without footer (a recorder killed mid-write) is refused with a one-line
-error naming ``imu-array recover`` (:func:`recover_command`;
+error naming ``imu-array recover`` (:func:`~imu_array_ros.io.rosbag.mcap_summary.recover_command`;
 :func:`imu_array_ros.io.rosbag.recover.recover_recording`).
 
 A recording (rosbag2 directory or bare ``.mcap`` file, several files):
@@ -38,20 +40,16 @@ from __future__ import annotations
 
 import io
 import os
-import shlex
-import struct
 import zlib
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, Callable, Iterator
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
-from mcap.exceptions import EndOfFile, InvalidMagic, McapError
-from mcap.reader import FOOTER_SIZE, SeekingReader
-from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, Message, MessageIndex, Schema
-from mcap.stream_reader import MAGIC_SIZE, CRCValidationError, StreamReader, get_chunk_data_stream, read_magic
+from mcap.records import Chunk, ChunkIndex, DataEnd
+from mcap.stream_reader import MAGIC_SIZE, CRCValidationError, get_chunk_data_stream
 
 from imu_array_ros.errors import RecordingError
 from imu_array_ros.io.rosbag.mcap_format import (
@@ -71,67 +69,23 @@ from imu_array_ros.io.rosbag.mcap_locate import (
     message_index_offsets,
     ordered_records,
 )
+from imu_array_ros.io.rosbag.mcap_stream import streamed_batches
+from imu_array_ros.io.rosbag.mcap_summary import (
+    PARSE_ERRORS,
+    ChannelInfo,
+    CorruptMcap,
+    McapDeclarations,
+    read_layout,
+    record_body,
+    recover_command,
+)
 
-__all__ = [
-    "ChannelInfo",
-    "LoadedChunk",
-    "McapFile",
-    "decompress_chunk",
-    "recover_command",
-    "SUPPORTED_COMPRESSIONS",
-]
+__all__ = ["ChannelInfo", "LoadedChunk", "McapFile", "decompress_chunk", "recover_command", "SUPPORTED_COMPRESSIONS"]
 
 _PREFETCH = 2  # chunks read + decompressed ahead by a worker thread
-_LOOSE_BATCH = 1 << 16  # messages outside chunks handed out per batch when streaming
 
 #: Chunk compressions the reader decompresses ("" = none).
 SUPPORTED_COMPRESSIONS = ("", "lz4", "zstd")
-
-#: Errors the mcap library and struct raise on malformed bytes.
-_PARSE_ERRORS = (McapError, struct.error, ValueError, IndexError, OverflowError, KeyError)
-
-
-class _Corrupt(Exception):
-    """Internal: a structural problem; translated into RecordingError with file context."""
-
-
-def recover_command(source: str | os.PathLike) -> str:
-    """The command that salvages a damaged recording (for error messages)."""
-    return f"`imu-array recover {shlex.quote(str(source))} --out OUT`"
-
-
-@dataclass(frozen=True)
-class ChannelInfo:
-    """One MCAP channel (a topic with one type/encoding/QoS within one file)."""
-
-    id: int
-    topic: str
-    message_encoding: str
-    schema_name: str
-    schema_encoding: str
-    metadata: dict[str, str] = field(default_factory=dict)
-
-
-@dataclass
-class LoadedChunk:
-    """One indexed chunk as read by the worker thread, with the top-level records after it.
-
-    data: the decompressed chunk records; index (K,) int64 message record
-    offsets in ``data`` from the Message Index records that follow the chunk
-    (None: no index); raw: the file bytes from the chunk record (file offset
-    ``offset``) up to the next indexed chunk (or the end of the data section);
-    records: (opcode, position in ``raw``, body length) of the top-level
-    records after the chunk's Message Index records, in file order;
-    data_crc: CRC-32 of the data section up to the DataEnd record when
-    ``raw`` holds it, else None.
-    """
-
-    offset: int
-    raw: bytes
-    data: bytes
-    index: np.ndarray | None
-    records: list[tuple[int, int, int]]
-    data_crc: int | None = None
 
 
 # --------------------------------------------------------------------------- chunks (mcap library)
@@ -158,9 +112,26 @@ def decompress_chunk(chunk: Chunk) -> bytes:
     return data
 
 
-def _body_stream(buf, pos: int, ln: int) -> ReadDataStream:
-    """Library record reader over the body of the record at ``buf[pos]`` (opcode offset)."""
-    return ReadDataStream(io.BytesIO(bytes(memoryview(buf)[pos + 9 : pos + 9 + ln])))
+@dataclass
+class LoadedChunk:
+    """One indexed chunk as read by the worker thread, with the top-level records after it.
+
+    data: the decompressed chunk records; index (K,) int64 message record
+    offsets in ``data`` from the Message Index records that follow the chunk
+    (None: no index); raw: the file bytes from the chunk record (file offset
+    ``offset``) up to the next indexed chunk (or the end of the data section);
+    records: (opcode, position in ``raw``, body length) of the top-level
+    records after the chunk's Message Index records, in file order;
+    data_crc: CRC-32 of the data section up to the DataEnd record when
+    ``raw`` holds it, else None.
+    """
+
+    offset: int
+    raw: bytes
+    data: bytes
+    index: np.ndarray | None
+    records: list[tuple[int, int, int]]
+    data_crc: int | None = None
 
 
 # --------------------------------------------------------------------------- one MCAP file
@@ -176,6 +147,7 @@ class McapFile:
 
     Attributes: ``schemas`` id -> (name, encoding); ``channels`` id ->
     :class:`ChannelInfo` (those of the summary, then those met while reading);
+    both held by ``declared`` (:class:`~imu_array_ros.io.rosbag.mcap_summary.McapDeclarations`);
     ``chunks``: the summary's chunk index records (``mcap.records.ChunkIndex``)
     sorted by file offset, empty when the file is streamed; ``has_summary``:
     the summary lists the channels; ``indexed``: read by seeking chunk by chunk
@@ -185,10 +157,8 @@ class McapFile:
     def __init__(self, path: str | os.PathLike, *, source: str | os.PathLike | None = None) -> None:
         self.path = Path(path)
         self.source = Path(source) if source is not None else self.path
-        self.schemas: dict[int, tuple[str, str]] = {}
-        self.channels: dict[int, ChannelInfo] = {}
+        self.declared = McapDeclarations()
         self.chunks: list[ChunkIndex] = []
-        self.profile = ""
         self.has_summary = False
         self.indexed = False
         self.size = 0
@@ -201,16 +171,30 @@ class McapFile:
         except OSError as err:
             raise RecordingError(f"{self.path}: cannot open: {err.strerror}") from None
         try:
-            self._open()
-        except _Corrupt as err:
+            layout = read_layout(self._fh, self.path, self.source, self.declared)
+        except CorruptMcap as err:
             self.close()
             raise self._corrupt(err) from None
-        except _PARSE_ERRORS as err:
+        except PARSE_ERRORS as err:
             self.close()
             raise self._corrupt(err) from None
         except BaseException:
             self.close()
             raise
+        self.size, self.chunks, self.has_summary = layout.size, layout.chunks, layout.has_summary
+        self.indexed, self._data_end = layout.indexed, layout.data_end
+
+    @property
+    def schemas(self) -> dict[int, tuple[str, str]]:
+        return self.declared.schemas
+
+    @property
+    def channels(self) -> dict[int, ChannelInfo]:
+        return self.declared.channels
+
+    @property
+    def profile(self) -> str:
+        return self.declared.profile
 
     # -- lifecycle
     def close(self) -> None:
@@ -236,87 +220,6 @@ class McapFile:
             f"{self.path}: corrupt chunk at byte {offset}: {text}; "
             f"{recover_command(self.source)} keeps the intact chunks"
         )
-
-    # -- opening
-    def _open(self) -> None:
-        fh = self._fh
-        assert fh is not None
-        self.size = size = os.fstat(fh.fileno()).st_size
-        try:
-            read_magic(ReadDataStream(fh))
-        except (InvalidMagic, EndOfFile, struct.error):
-            fh.seek(0)
-            if fh.read(8) == b"SQLite f":
-                raise RecordingError(
-                    f"{self.path}: sqlite3 rosbag2 storage is not supported; convert to mcap (`ros2 bag convert`)"
-                ) from None
-            raise RecordingError(f"{self.path}: not an MCAP file (bad magic)") from None
-        footer_pos = size - MAGIC_SIZE - FOOTER_SIZE
-        truncated = footer_pos < MAGIC_SIZE
-        if not truncated:
-            fh.seek(size - MAGIC_SIZE)
-            try:
-                read_magic(ReadDataStream(fh))
-            except InvalidMagic:
-                truncated = True
-        if truncated:
-            raise RecordingError(
-                f"{self.path}: truncated MCAP file (no footer/summary: was the recorder stopped before "
-                f"closing it?); salvage it with {recover_command(self.source)}"
-            )
-        fh.seek(footer_pos)
-        footer = next(iter(StreamReader(fh, skip_magic=True).records), None)
-        if not isinstance(footer, Footer):
-            raise _Corrupt("no footer record before the end magic")
-        summary_start = footer.summary_start
-        if summary_start and not MAGIC_SIZE <= summary_start <= footer_pos:
-            raise _Corrupt("summary offset outside the file")
-        if footer.summary_crc:
-            start = summary_start or footer_pos
-            fh.seek(start)
-            crc = zlib.crc32(fh.read(size - MAGIC_SIZE - 4 - start))  # through the footer's summary_offset_start
-            if crc != footer.summary_crc:
-                raise _Corrupt("summary CRC mismatch (the summary / index section is damaged)")
-        if not summary_start:
-            return  # no summary: streamed
-        fh.seek(0)
-        summary = SeekingReader(fh).get_summary()
-        if summary is None:
-            return
-        for sid, schema in summary.schemas.items():
-            self.schemas[sid] = (schema.name, schema.encoding)
-        for channel in summary.channels.values():
-            self._add_channel(channel)
-        self.has_summary = bool(self.channels)  # the summary repeats the channels
-        chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
-        prev = MAGIC_SIZE
-        for c in chunks:
-            if c.chunk_start_offset < prev or c.chunk_length < 9 or c.chunk_start_offset + c.chunk_length > summary_start:
-                raise _Corrupt(f"chunk index entry for byte {c.chunk_start_offset} overlaps or leaves the data section")
-            prev = c.chunk_start_offset + c.chunk_length
-        self.chunks = chunks
-        self.indexed = bool(chunks)
-        self._data_end = summary_start
-
-    def _add_channel(self, ch: Channel) -> None:
-        sname, senc = self.schemas.get(ch.schema_id, ("", ""))
-        self.channels[ch.id] = ChannelInfo(ch.id, ch.topic, ch.message_encoding, sname, senc, dict(ch.metadata))
-
-    def _add_schema(self, schema: Schema) -> None:
-        self.schemas[schema.id] = (schema.name, schema.encoding)
-
-    def _register(self, buf, records: list[tuple[int, int, int]]) -> bool:
-        """Parse the Header / Schema / Channel records among ``records``; True if a channel was added."""
-        added = False
-        for op, pos, ln in records:
-            if op == OP_SCHEMA:
-                self._add_schema(Schema.read(_body_stream(buf, pos, ln)))
-            elif op == OP_CHANNEL:
-                self._add_channel(Channel.read(_body_stream(buf, pos, ln)))
-                added = True
-            elif op == OP_HEADER:
-                self.profile = Header.read(_body_stream(buf, pos, ln)).profile
-        return added
 
     # -- chunks
     def _decompress(self, chunk: Chunk, offset: int) -> bytes:
@@ -347,7 +250,7 @@ class McapFile:
         try:
             op, ln = RECORD_HEAD.unpack_from(raw, 0)
             if op != OP_CHUNK or 9 + ln != c.chunk_length:
-                raise _Corrupt("the chunk index points at no chunk record")
+                raise CorruptMcap("the chunk index points at no chunk record")
             stream = io.BytesIO(raw)
             stream.seek(9)
             chunk = Chunk.read(ReadDataStream(stream))
@@ -357,7 +260,7 @@ class McapFile:
             while k < len(records) and records[k][0] == OP_MESSAGE_INDEX:
                 k += 1
             index = message_index_offsets(raw, records[:k])
-        except (_Corrupt, *_PARSE_ERRORS) as err:
+        except (CorruptMcap, *PARSE_ERRORS) as err:
             raise self._chunk_error(c.chunk_start_offset, str(err)) from None
         return LoadedChunk(c.chunk_start_offset, raw, data, index, records[k:])
 
@@ -382,7 +285,8 @@ class McapFile:
         if self.indexed:
             yield from self._indexed_batches(lut, refresh)
         else:
-            yield from self._streamed_batches(lut, refresh)
+            yield from streamed_batches(self._fh, self.size, self.declared, lut, refresh, decompress=self._decompress,
+                                        chunk_batch=self._chunk_batch, corrupt=self._corrupt)
 
     def _indexed_batches(self, lut: np.ndarray, refresh: Callable[[], None]) -> Iterator[tuple[int, MessageBatch]]:
         fh = self._fh
@@ -418,10 +322,11 @@ class McapFile:
                     ahead[i] = None
                     if i + _PREFETCH < n:
                         ahead.append(pool.submit(load, i + _PREFETCH))
-                    yield len(got.raw) + (len(head) if i == 0 else 0), self._chunk_batch(got, lut, refresh)
+                    yield (len(got.raw) + (len(head) if i == 0 else 0),
+                           self._chunk_batch(got.offset, got.data, got.index, lut, refresh))
                     yield from self._top_level(got.raw, got.offset, got.records, lut, refresh, got.data_crc)
                     if i + 1 == n and not any(op == OP_DATA_END for op, _, _ in got.records):
-                        raise self._corrupt(_Corrupt("no DataEnd record at the end of the data section"))
+                        raise self._corrupt(CorruptMcap("no DataEnd record at the end of the data section"))
             finally:
                 for f in ahead:
                     if f is not None:
@@ -455,102 +360,36 @@ class McapFile:
                     yield 0, self._batch(buf, np.asarray(loose, dtype=np.int64), lut)
                     loose = []
                 if op in (OP_SCHEMA, OP_CHANNEL, OP_HEADER):
-                    if self._register(buf, [(op, pos, ln)]):
+                    if self.declared.register(buf, [(op, pos, ln)]):
                         refresh()
                 elif op == OP_CHUNK:  # not in the chunk index
-                    chunk = Chunk.read(_body_stream(buf, pos, ln))
+                    chunk = Chunk.read(record_body(buf, pos, ln))
                     data = self._decompress(chunk, base + pos)
                     j = k
                     while j < len(records) and records[j][0] == OP_MESSAGE_INDEX:
                         j += 1
                     index = message_index_offsets(buf, records[k:j])
                     k = j
-                    got = LoadedChunk(base + pos, b"", data, index, [])
-                    yield 0, self._chunk_batch(got, lut, refresh)
+                    yield 0, self._chunk_batch(base + pos, data, index, lut, refresh)
                 elif op == OP_DATA_END:
-                    expected = DataEnd.read(_body_stream(buf, pos, ln)).data_section_crc
+                    expected = DataEnd.read(record_body(buf, pos, ln)).data_section_crc
                     if expected and data_crc is not None and expected != data_crc:
-                        raise self._corrupt(_Corrupt("data section CRC mismatch (DataEnd)"))
-        except (_Corrupt, *_PARSE_ERRORS) as err:
+                        raise self._corrupt(CorruptMcap("data section CRC mismatch (DataEnd)"))
+        except (CorruptMcap, *PARSE_ERRORS) as err:
             raise self._corrupt(err, f" (record at byte {base + pos})") from None
         if loose:
             yield 0, self._batch(buf, np.asarray(loose, dtype=np.int64), lut)
 
-    def _streamed_batches(self, lut: np.ndarray, refresh: Callable[[], None]) -> Iterator[tuple[int, MessageBatch]]:
-        """No chunk index: stream every record once (``StreamReader``, data-section CRC checked)."""
-        fh = self._fh
-        assert fh is not None
-        fh.seek(0)
-        reader = StreamReader(fh, emit_chunks=True, validate_crcs=True)
-        done = 0
-        pending: tuple[int, bytes, list] | None = None  # (offset, data, index parts) of the last chunk
-        loose: list[Message] = []
-
-        def flush_chunk() -> MessageBatch:
-            offset, data, parts = pending
-            index = np.concatenate(parts).astype(np.int64) if parts else None
-            return self._chunk_batch(LoadedChunk(offset, b"", data, index, []), lut, refresh)
-
-        def flush_loose() -> MessageBatch:
-            batch = self._message_batch(loose, lut)
-            loose.clear()
-            return batch
-
-        pos = 0
-        try:
-            for record in reader.records:
-                if isinstance(record, MessageIndex) and pending is not None:
-                    if record.records:
-                        entries = np.asarray(record.records, dtype=np.uint64)[:, 1]
-                        if entries.max() <= np.iinfo(np.int64).max:
-                            pending[2].append(entries)
-                    pos = fh.tell()
-                    continue
-                if pending is not None:
-                    now = fh.tell()
-                    yield now - done, flush_chunk()
-                    done, pending = now, None
-                if isinstance(record, Message):
-                    loose.append(record)
-                    if len(loose) >= _LOOSE_BATCH:
-                        now = fh.tell()
-                        yield now - done, flush_loose()
-                        done = now
-                    pos = fh.tell()
-                    continue
-                if loose:
-                    yield 0, flush_loose()
-                if isinstance(record, Chunk):
-                    pending = (pos, self._decompress(record, pos), [])
-                elif isinstance(record, Schema):
-                    self._add_schema(record)
-                elif isinstance(record, Channel):
-                    self._add_channel(record)
-                    refresh()
-                elif isinstance(record, Header):
-                    self.profile = record.profile
-                pos = fh.tell()
-        except CRCValidationError as err:
-            if isinstance(err.record, DataEnd):
-                raise self._corrupt(_Corrupt("data section CRC mismatch (DataEnd)")) from None
-            raise self._corrupt(err, f" (record at byte {pos})") from None
-        except (_Corrupt, *_PARSE_ERRORS) as err:
-            raise self._corrupt(err, f" (record at byte {pos})") from None
-        if pending is not None:
-            yield fh.tell() - done, flush_chunk()
-        if loose:
-            yield 0, flush_loose()
-        yield max(self.size - fh.tell(), 0), self._message_batch([], lut)
-
-    def _chunk_batch(self, got: LoadedChunk, lut: np.ndarray, refresh: Callable[[], None]) -> MessageBatch:
-        data = got.data
+    def _chunk_batch(self, offset: int, data: bytes, index: np.ndarray | None, lut: np.ndarray,
+                     refresh: Callable[[], None]) -> MessageBatch:
+        """Batch of the selected messages of a decompressed chunk (``index``: its Message Index offsets)."""
         arr = np.frombuffer(data, dtype=np.uint8)
         try:
-            off, others = locate_messages(data, arr, got.index)
-            if others and self._register(data, others):
+            off, others = locate_messages(data, arr, index)
+            if others and self.declared.register(data, others):
                 refresh()
-        except (_Corrupt, *_PARSE_ERRORS) as err:
-            raise self._chunk_error(got.offset, str(err)) from None
+        except (CorruptMcap, *PARSE_ERRORS) as err:
+            raise self._chunk_error(offset, str(err)) from None
         return self._batch(data, off, lut, arr)
 
     def _batch(self, data: bytes, off: np.ndarray, lut: np.ndarray, arr: np.ndarray | None = None) -> MessageBatch:
@@ -559,20 +398,3 @@ class McapFile:
             return message_batch(data, off, lut, arr)
         except ValueError as err:
             raise RecordingError(f"{self.path}: {err}") from None
-
-    @staticmethod
-    def _message_batch(messages: list[Message], lut: np.ndarray) -> MessageBatch:
-        """Batch of the selected ones among library Message records (streamed, outside chunks)."""
-        channel = np.fromiter((m.channel_id for m in messages), dtype=np.int64, count=len(messages))
-        topic = lut[channel] if len(messages) else np.zeros(0, np.int32)
-        keep = np.flatnonzero(topic >= 0)
-        datas = [messages[i].data for i in keep]
-        length = np.fromiter((len(d) for d in datas), dtype=np.int64, count=len(datas))
-        offset = np.cumsum(length) - length
-        return MessageBatch(
-            buffer=np.frombuffer(b"".join(datas), dtype=np.uint8),
-            topic=topic[keep],
-            log_time=np.fromiter((messages[i].log_time for i in keep), dtype=np.int64, count=len(keep)),
-            offset=offset,
-            length=length,
-        )

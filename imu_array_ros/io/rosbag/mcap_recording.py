@@ -22,7 +22,8 @@ from typing import Callable, Iterator, Mapping
 
 from imu_array_ros.errors import RecordingError
 from imu_array_ros.io.rosbag.mcap_locate import MessageBatch
-from imu_array_ros.io.rosbag.mcap_reader import ChannelInfo, McapFile, recover_command
+from imu_array_ros.io.rosbag.mcap_reader import McapFile
+from imu_array_ros.io.rosbag.mcap_summary import ChannelInfo, recover_command
 from imu_array_ros.util.files import load_yaml_file
 
 __all__ = ["McapRecording", "read_rosbag2_metadata"]

@@ -24,8 +24,8 @@ import numpy as np
 
 from imu_array_ros.errors import RecordingError
 from imu_array_ros.io.rosbag.cdr_columns import MessageLayout, decode_columns
-from imu_array_ros.io.rosbag.mcap_reader import ChannelInfo
 from imu_array_ros.io.rosbag.mcap_recording import McapRecording
+from imu_array_ros.io.rosbag.mcap_summary import ChannelInfo
 
 __all__ = ["TopicColumns", "list_topics", "check_topic", "read_topics"]
 
