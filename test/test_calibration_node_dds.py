@@ -180,8 +180,8 @@ def test_calibration_reaches_the_fusion_node(ros, caller, tmp_path):
     """Twist with moved IMUs -> the service writes the calibrated description, the fusion node
     reloads it, and what it publishes from then on is the offline fusion with the calibrated
     description -- sample for sample, and measurably not the fusion with the nominal one."""
-    from imu_array_ros.cli.commands import load_array
-    from imu_array_ros.fusion.live import build_fusion
+    from imu_array_ros.workflows import load_array
+    from imu_array_ros.workflows import build_fusion
     from imu_array_ros.io.rosbag.recording import read_imu_recording
     from imu_array_ros.model.description import load_description
     from imu_array_ros.model.samples import ImuSamples

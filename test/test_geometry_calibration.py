@@ -8,8 +8,8 @@ import os
 import numpy as np
 import pytest
 
-from imu_array_ros.calibration.geometry import calibrate_and_write, calibrate_geometry
-from imu_array_ros.calibration.output import backup_path
+from imu_array_ros.calibration.geometry import calibrate_geometry
+from imu_array_ros.calibration.result import backup_path
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.fusion.model_fusion import ModelFusion
 from imu_array_ros.model.description import load_description, save_description
@@ -18,6 +18,7 @@ from imu_array_ros.model.layouts import grid_array32, tetrahedron4
 from imu_array_ros.model.samples import ImuSamples, MotionTruth
 from imu_array_ros.simulation.perturb import perturb
 from imu_array_ros.simulation.simulator import simulate_measurements, simulate_random, simulate_twist
+from imu_array_ros.workflows import calibrate
 
 W = np.deg2rad(2000.0)  # carlsson2017 Fig. 4: |omega| = 2000 deg/s, |omega_dot| = 2000 deg/s^2
 
@@ -203,6 +204,12 @@ def test_reference_is_configurable_and_held(nominal32):
 
 
 # --------------------------------------------------------------------------- writing
+
+
+def calibrate_and_write(desc, samples, out, **options):
+    """What the node's service and ``imu-array calibrate geometry`` run: calibrate, then the one install path."""
+    cal = calibrate("geometry", samples, desc, **options)
+    return cal.details, cal.install(desc, out)
 
 
 @pytest.fixture

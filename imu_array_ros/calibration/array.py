@@ -31,13 +31,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from imu_array_ros.calibration.output import provenance
+from imu_array_ros.calibration.result import provenance
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["MOVING_TERMS", "ArrayCalibration", "calibrate_array", "array_description"]
+__all__ = ["MOVING_TERMS", "ArrayCalibration", "calibrate_array"]
 
 #: what the moving stage fits by default
 MOVING_TERMS = ("position", "gyroscope_gain", "gyroscope_misalignment")
@@ -47,7 +47,8 @@ MOVING_TERMS = ("position", "gyroscope_gain", "gyroscope_misalignment")
 class ArrayCalibration:
     """The stages of :func:`calibrate_array`: model (every stage applied), poses (StillPoses),
     static (StaticCalibration or None), moving (FitResult or None), skipped: stage -> reason,
-    moving_samples: (used, total) of the moving stage, seconds."""
+    moving_samples: (used, total) of the moving stage, moving_window: the samples the moving stage
+    fitted (None: no moving stage), seconds."""
 
     model: SensorModel
     poses: object
@@ -56,6 +57,7 @@ class ArrayCalibration:
     skipped: dict[str, str] = field(default_factory=dict)
     moving_samples: tuple[int, int] = (0, 0)
     moving_terms: tuple[str, ...] = ()
+    moving_window: ImuSamples | None = field(default=None, repr=False)
     seconds: float = 0.0
 
     def stds(self) -> dict[str, np.ndarray]:
@@ -136,7 +138,7 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
     except CalibrationError as err:
         skipped["static"] = str(err)
         say(f"static stage skipped: {err}")
-    moving, used_total = None, (0, 0)
+    moving, used_total, window = None, (0, 0), None
     moving_terms = tuple(moving_terms)
     try:
         if not moving_terms:
@@ -150,7 +152,8 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
         used = selection.used
         used_total = (selection.n_used, len(samples))
         say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
-        moving = fit_terms(moving_samples.select(used), current, moving_terms, reference=reference,
+        window = moving_samples.select(used)
+        moving = fit_terms(window, current, moving_terms, reference=reference,
                            motion0=selection.motion[used], max_iterations=max_iterations,
                            progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
         current = moving.model
@@ -165,14 +168,5 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                                f"moving stage: {skipped['moving']}")
     return ArrayCalibration(model=current, poses=poses, static=static, moving=moving, skipped=skipped,
                             moving_samples=used_total, moving_terms=moving_terms,
+                            moving_window=window if moving is not None else None,
                             seconds=time.perf_counter() - t0)
-
-
-def array_description(desc, result):
-    """``desc`` with every field an :class:`ArrayCalibration` set (and every non-identity term), their
-    ``_std`` and the ``calibration:`` block."""
-    stds = result.stds()
-    model = result.model
-    names = list(stds) + [n for n, t in model.terms.items() if n not in stds and not t.is_identity]
-    out = model.to_description(desc, names=names, stds=stds)
-    return out.with_imus(out.imus, calibration=result.record())

@@ -53,7 +53,8 @@ from typing import Callable
 
 import numpy as np
 
-from imu_array_ros.calibration.scoring import loglik_constant, profile_window, window_loglik
+from imu_array_ros.calibration.result import fit_statistics, provenance
+from imu_array_ros.calibration.scoring import loglik_constant, profile_window
 from imu_array_ros.calibration.selection import MIN_EXCITATION, check_samples, require_rotation, select_rotating
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
@@ -62,7 +63,7 @@ from imu_array_ros.model.reference import reference_index
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 
-__all__ = ["GeometryCalibration", "calibrate_geometry", "calibrate_and_write", "METHODS", "DEFAULT_METHOD",
+__all__ = ["GeometryCalibration", "calibrate_geometry", "METHODS", "DEFAULT_METHOD",
            "MIN_EXCITATION"]
 
 METHODS = ("joint", "bcd")
@@ -143,8 +144,6 @@ class GeometryCalibration:
 
     def record(self) -> dict:
         """The ``calibration:`` block of the written description."""
-        from imu_array_ros.calibration.output import fit_statistics, provenance
-
         f = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
         return {
             "method": f"geometry ({self.method}): maximum likelihood of the accelerometer positions jointly with the "
@@ -276,31 +275,3 @@ def _bcd(samples: ImuSamples, model: SensorModel, ref: int, max_iterations: int,
             break
         model = model.with_terms(position=model.positions + step)
     return model, iterations, converged, history
-
-
-# --------------------------------------------------------------------------- calibrate and write (node and CLI)
-
-
-def calibrate_and_write(desc, samples: ImuSamples, out, *, before_install: Callable[[], None] | None = None,
-                        **kwargs):
-    """Calibrate the positions of description ``desc`` on a window and install the result at ``out``
-    (:func:`~imu_array_ros.calibration.output.install_calibration`: atomic, ``<out>.bak`` kept, refused
-    when the file already there has the higher log-likelihood on the same samples).  ``kwargs`` go to
-    :func:`calibrate_geometry`; ``before_install()`` runs after the calibration and before anything is
-    written (it may raise to abandon it, as ``progress`` may during the iterations).
-    Returns (GeometryCalibration, Installed); what the node's service and
-    ``imu-array calibrate geometry`` both run."""
-    from imu_array_ros.calibration.output import geometry_description, install_calibration
-
-    model = SensorModel.from_description(desc)
-    result = calibrate_geometry(samples, model, **kwargs)
-    if before_install is not None:
-        before_install()
-    window = samples.select(result.used)
-
-    def score(previous) -> float:
-        return window_loglik(window, SensorModel.from_description(previous))
-
-    installed = install_calibration(geometry_description(desc, result), out, score=score,
-                                    new_score=result.loglik_after)
-    return result, installed

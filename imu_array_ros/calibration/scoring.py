@@ -24,7 +24,7 @@ from imu_array_ros.fusion.model_fusion import ModelFusion
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context
 
-__all__ = ["WindowProfile", "profile_window", "window_loglik", "loglik_constant"]
+__all__ = ["WindowProfile", "WindowScorer", "profile_window", "window_loglik", "loglik_constant"]
 
 
 @dataclass
@@ -74,3 +74,14 @@ def profile_window(samples: ImuSamples, model: SensorModel) -> WindowProfile:
 def window_loglik(samples: ImuSamples, model: SensorModel) -> float:
     """Log-likelihood of ``samples`` under ``model`` with every sample's motion fitted."""
     return profile_window(samples, model).loglik
+
+
+@dataclass
+class WindowScorer:
+    """A calibration's :class:`~imu_array_ros.calibration.result.Scorer` on a window of samples:
+    :func:`window_loglik`."""
+
+    samples: ImuSamples
+
+    def __call__(self, model: SensorModel) -> float:
+        return window_loglik(self.samples, model)

@@ -45,7 +45,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from imu_array_ros.calibration.output import fit_statistics
+from imu_array_ros.calibration.result import fit_statistics
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, fit_terms
 from imu_array_ros.fitting.motion_models import StaticMotion
@@ -56,7 +56,7 @@ from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms.triad import triad_matrix, triads_in_reference_frame
 
 __all__ = ["ACCELEROMETER_TERMS", "STATIC_TERMS", "METHODS", "StaticCalibration", "calibrate_static",
-           "compensate", "consistency", "consistency_db", "static_loglik", "reframe_accelerometers",
+           "compensate", "consistency", "consistency_db", "static_loglik", "PoseScorer", "reframe_accelerometers",
            "MIN_POSES", "HUBER"]
 
 ACCELEROMETER_TERMS = ("accelerometer_gain", "accelerometer_nonorthogonality", "accelerometer_misalignment",
@@ -238,6 +238,20 @@ def static_loglik(accel, gyro, counts, model: SensorModel, gravity: float = STAN
     file is compared with a new one on the same poses)."""
     return fit_motion(pose_samples(accel, gyro, model), model, motion_model=StaticMotion(gravity),
                       sigma=_sigma(model, counts))[1]
+
+
+@dataclass
+class PoseScorer:
+    """A calibration's :class:`~imu_array_ros.calibration.result.Scorer` on still-pose averages:
+    :func:`static_loglik` of (P, K, 3) ``accel`` and ``gyro`` averaged over ``counts`` (P, K) samples."""
+
+    accel: np.ndarray
+    gyro: np.ndarray
+    counts: np.ndarray
+    gravity: float = STANDARD_GRAVITY
+
+    def __call__(self, model: SensorModel) -> float:
+        return static_loglik(self.accel, self.gyro, self.counts, model, self.gravity)
 
 
 def calibrate_static(accel, gyro, counts, model: SensorModel, *, method: str = "ml",

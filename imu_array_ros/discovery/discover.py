@@ -223,16 +223,16 @@ def _localize(residuals, expected, motion, samples, model, still_threshold):
 def _sim_residuals(samples, sim, model: SensorModel):
     """(recording - simulation) / (sqrt 2 sigma) and its expectation 1 on the axes valid in both."""
     if len(sim.stamps) != len(samples.stamps):
-        raise CalibrationError(f"--sim: the simulated recording has {len(sim.stamps)} samples, the recording "
+        raise CalibrationError(f"sim: the simulated recording has {len(sim.stamps)} samples, the recording "
                                f"{len(samples.stamps)}; simulate the same run (same stamps)")
     differ = np.flatnonzero(sim.stamps != samples.stamps)
     if differ.size:
         i = int(differ[0])
-        raise CalibrationError(f"--sim: the simulated recording's stamps do not match the recording's at "
+        raise CalibrationError(f"sim: the simulated recording's stamps do not match the recording's at "
                                f"{differ.size} of {len(sim.stamps)} samples (first: sample {i}, "
                                f"{int(sim.stamps[i])} vs {int(samples.stamps[i])} ns); simulate the same run")
     if tuple(sim.names) != tuple(samples.names):
-        raise CalibrationError("--sim: the simulated recording's IMUs differ from the recording's")
+        raise CalibrationError("sim: the simulated recording's IMUs differ from the recording's")
     valid = model.valid(samples.accel, samples.gyro) & model.valid(sim.accel, sim.gyro)
     d = np.concatenate([samples.accel - sim.accel, samples.gyro - sim.gyro], axis=2) / (np.sqrt(2) * model.std)
     return np.where(valid, d, np.nan), np.where(valid, 1.0, np.nan)
@@ -429,7 +429,7 @@ def _heldout(samples, model: SensorModel, findings, blocks, base_motion, base_r)
 
 def _validate(label, other, model: SensorModel, found: SensorModel, still_threshold) -> dict:
     if tuple(other.names) != tuple(model.names):
-        raise CalibrationError(f"--validate {label}: its IMUs differ from the description's")
+        raise CalibrationError(f"validate {label}: its IMUs differ from the description's")
     before, motion, _ = fit_summary(other, model, still_threshold=still_threshold)
     after, _, _ = fit_summary(other, found, still_threshold=still_threshold, motion0=motion)
     return {"recording": str(label), "before": before.to_dict(), "after": after.to_dict(),

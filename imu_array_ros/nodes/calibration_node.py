@@ -5,7 +5,7 @@ and keeps the latest ``window`` seconds (or ``window_samples``) of array samples
 (:class:`imu_array_ros.io.window.SampleWindow`).  The service
 ``calibrate_geometry`` (``std_srvs/srv/Trigger``; ``/calibrate_geometry`` unless
 the node runs in a namespace) calibrates the accelerometer positions on a copy of
-that window (:func:`imu_array_ros.calibration.geometry.calibrate_and_write`) and
+that window (:func:`imu_array_ros.workflows.calibrate` ``"geometry"``, installed by its one install path) and
 writes ``output_file``, the calibrated description ``fusion_node`` watches
 (its ``calibration_file``).  Response: success and the calibration's one-line
 summary, or success false and a one-line reason; the file is only ever replaced
@@ -33,13 +33,13 @@ from pathlib import Path
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
-from imu_array_ros.cli.commands import load_array
 from imu_array_ros.errors import ConfigError, ImuArrayError
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.io.window import SampleWindow
 from imu_array_ros.model.description import load_description
 from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, declare
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
+from imu_array_ros.workflows import calibrate, load_array
 
 __all__ = ["CalibrationNode", "main", "SERVICE"]
 
@@ -217,18 +217,17 @@ class CalibrationNode(Node):
         return response
 
     def _run_calibration(self) -> tuple[bool, str]:
-        from imu_array_ros.calibration.geometry import calibrate_and_write
-
         p = self.p
         try:
             try:
                 desc, from_file = self._starting_point()
             except ConfigError as err:
                 return False, f"output_file {err}; not replaced"
-            result, installed = calibrate_and_write(
-                desc, self.window.snapshot(), self.out, reference=p.reference_imu or None, method=p.method,
-                max_iterations=p.max_iterations or None, min_excitation=p.min_excitation, progress=self._progress,
-                before_install=self._progress)
+            cal = calibrate("geometry", self.window.snapshot(), desc, reference=p.reference_imu or None,
+                            method=p.method, max_iterations=p.max_iterations or None,
+                            min_excitation=p.min_excitation, progress=self._progress)
+            self._progress()  # shutting down: abandon it before anything is written
+            installed = cal.install(desc, self.out)
         except _Cancelled:
             return False, "the node is shutting down; calibration abandoned, nothing written"
         except ImuArrayError as err:
@@ -238,7 +237,7 @@ class CalibrationNode(Node):
             return False, f"internal error: {type(err).__name__}: {err}"
         start = "from the calibration on file" if from_file else "from the array's nominal positions"
         kept = f", previous kept as {installed.backup}" if installed.backup else ""
-        return True, f"{result.summary()}; started {start}; wrote {installed.out}{kept}"
+        return True, f"{cal.summary()}; started {start}; wrote {installed.out}{kept}"
 
     # ------------------------------------------------------------------ shutdown
 

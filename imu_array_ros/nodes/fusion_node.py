@@ -18,12 +18,12 @@ from geometry_msgs.msg import AccelWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
-from imu_array_ros.cli.commands import load_array
 from imu_array_ros.errors import ImuArrayError
 from imu_array_ros.fusion.live import LiveFusion
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
+from imu_array_ros.workflows import load_array
 
 __all__ = ["FusionNode", "main", "NIS_WARN_RATIO"]
 

@@ -1,0 +1,38 @@
+"""``discover --apply``: the findings of mismatch discovery as a calibration (the contract of
+:mod:`imu_array_ros.calibration.result`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imu_array_ros.calibration.result import Calibration, provenance
+from imu_array_ros.calibration.scoring import WindowScorer
+from imu_array_ros.model.samples import ImuSamples
+
+__all__ = ["findings_calibration"]
+
+
+def findings_calibration(discovery, samples: ImuSamples, source: str | None = None) -> Calibration:
+    """The description extended with the terms :func:`~imu_array_ros.discovery.discover.discover` found
+    (values and Cramér-Rao std of the last joint fit, on the IMUs they were found on), scored on
+    ``samples`` (the recording it ran on).  Raises nothing; with no findings the model is the input's."""
+    d = discovery
+    std = {}
+    for name in sorted({f.effect for f in d.findings}):
+        sd = np.full(d.model.terms[name].values.shape, np.nan)
+        for f in d.findings:
+            if f.effect == name:
+                sd[f.k] = f.std
+        std[name] = sd
+    record = {
+        "method": "imu-array discover: terms found by mismatch discovery, fitted by the engine (fit_terms); "
+                  "*_std = Cramer-Rao bound",
+        **provenance(),
+        **({} if source is None else {"recording": str(source)}),
+        "findings": [f"{f.effect} on {f.sensor}" for f in d.findings],
+        "log_likelihood_before": float(d.baseline.loglik),
+        "log_likelihood_after": float(d.after.loglik),
+    }
+    line = (f"{len(d.findings)} findings; log-likelihood {d.baseline.loglik:.8g} -> {d.after.loglik:.8g}")
+    return Calibration(method="discover", model=d.model, std=std, record=record, scorer=WindowScorer(samples),
+                       data="recording", summary_line=line, details=d)
