@@ -1,4 +1,6 @@
-"""``imu-array calibrate fit``: the fitting engine from the command line, end to end."""
+"""``imu-array calibrate fit`` (the fitting engine) and ``calibrate geometry`` from the command line, end to
+end, and ``discover --apply``: each installs through the one install path (``OUT.bak``, never over a
+better file)."""
 
 from __future__ import annotations
 
@@ -8,7 +10,9 @@ import pytest
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
 
-from conftest import ARRAY32, START, assert_user_error, cli
+from conftest import ARRAY32, REPO, START, assert_user_error, cli
+
+CORNERS = REPO / "config" / "mimu4444bt_corners.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -78,6 +82,28 @@ def test_existing_output_is_kept_without_force(recording, capsys):
     assert_user_error(cli(capsys, "calibrate", "fit", recording / "rec", "--array", ARRAY32, "--terms", "position",
                           "--out", out), "keep.yaml")
     assert out.read_text() == "precious: true\n"
+
+
+def test_fit_installs_like_every_calibration_keeping_a_backup_and_never_a_worse_file(recording, capsys):
+    """The one install path: with --force a worse file on disk (the nominal description) is replaced and
+    kept as OUT.bak; a better one (the true sensors, which a position-only fit cannot match) is kept and
+    the fit refused, nothing written."""
+    out, bak = recording / "install.yaml", recording / "install.yaml.bak"
+    out.write_bytes(ARRAY32.read_bytes())
+    code, _, err = cli(capsys, "calibrate", "fit", recording / "rec", "--array", ARRAY32, "--terms", "position",
+                       "--out", out, "--force")
+    assert code == 0, err
+    assert f"previous {out} kept as {bak}" in err and f"wrote {out}" in err
+    assert bak.read_bytes() == ARRAY32.read_bytes()
+    assert load_description(out).calibration["terms"] == ["position"]
+    better = recording / "better.yaml"
+    better.write_bytes((recording / "true.yaml").read_bytes())
+    before = better.read_bytes()
+    line = assert_user_error(cli(capsys, "calibrate", "fit", recording / "rec", "--array", ARRAY32, "--terms",
+                                 "position", "--out", better, "--force", "-q"),
+                             str(recording / "rec"), str(better), "not replaced: the calibration on file fits")
+    assert "log-likelihood" in line
+    assert better.read_bytes() == before and not (recording / "better.yaml.bak").exists()
 
 
 def test_motion_that_cannot_identify_the_term_is_refused(tmp_path, capsys):
@@ -167,3 +193,57 @@ def test_geometry_refuses_a_still_recording_and_a_worse_result_leaving_out_untou
     assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", d / "x.yaml",
                           "--start", "10", "-q"), "no samples between 10 s")
     assert not (d / "x.yaml").exists()
+
+
+# --------------------------------------------------------------------------- discover --apply
+
+
+@pytest.fixture(scope="module")
+def corners_recording(tmp_path_factory):
+    """An icosahedron session then 6 s of twisting of the corners array, with an accelerometer bias on imu_3
+    and a 0.4 mm position error on imu_6 (the true description saved beside it)."""
+    import yaml
+
+    from imu_array_ros.cli import main
+
+    d = tmp_path_factory.mktemp("apply")
+    data = yaml.safe_load(CORNERS.read_text())
+    data["imu_array"]["imus"][2]["accelerometer"] = {"bias": [0.02, -0.01, 0.015]}
+    data["imu_array"]["imus"][5]["position"][0] += 0.0004
+    (d / "truth.yaml").write_text(yaml.safe_dump(data))
+    assert main(["simulate", "--array", str(d / "truth.yaml"), "--motion", "icosahedron", "--still-seconds", "0.5",
+                 "--transition-seconds", "0.5", "--twist-seconds", "6", "--seed", "5", "--start-time", START,
+                 "--out", str(d / "rec"), "-q"]) == 0
+    return d
+
+
+DISCOVER_ONE = ("--no-plots", "--no-empirical", "--terms", "position,accelerometer_bias", "--max-findings", "1")
+
+
+def test_discover_apply_replaces_a_worse_file_keeping_a_backup(corners_recording, capsys):
+    d = corners_recording
+    out = d / "applied.yaml"
+    out.write_bytes(CORNERS.read_bytes())
+    code, _, err = cli(capsys, "discover", d / "rec", "--array", CORNERS, "--report", d / "report", "--apply", out,
+                       "--force", *DISCOVER_ONE)
+    assert code == 0, err
+    assert "found position on imu_6" in err
+    assert f"previous {out} kept as {out}.bak" in err and f"wrote {out}" in err
+    assert (d / "applied.yaml.bak").read_bytes() == CORNERS.read_bytes()
+    applied = load_description(out)
+    assert applied.calibration["findings"] == ["position on imu_6"]
+    assert abs(applied.positions[5, 0] - load_description(CORNERS).positions[5, 0] - 0.0004) < 1e-4
+    assert (d / "report" / "report.json").exists()
+
+
+def test_discover_apply_never_replaces_a_better_file_and_writes_nothing(corners_recording, capsys):
+    """The true description on disk explains the recording better than one finding does: refused, the
+    file untouched, no backup and no report written."""
+    d = corners_recording
+    out = d / "true_copy.yaml"
+    out.write_bytes((d / "truth.yaml").read_bytes())
+    assert_user_error(cli(capsys, "discover", d / "rec", "--array", CORNERS, "--report", d / "refused", "--apply",
+                          out, "--force", "-q", *DISCOVER_ONE),
+                      str(out), "not replaced: the calibration on file fits")
+    assert out.read_bytes() == (d / "truth.yaml").read_bytes()
+    assert not (d / "true_copy.yaml.bak").exists() and not (d / "refused").exists()

@@ -291,3 +291,24 @@ def test_shipped_sample_recording_is_reproduced_by_its_documented_command(tmp_pa
     t_shipped, t_again = read_truth(REPO / "bags" / "twist32_sample"), read_truth(tmp_path / "again")
     np.testing.assert_array_equal(t_again.omega, t_shipped.omega)
     np.testing.assert_array_equal(t_again.specific_force, t_shipped.specific_force)
+
+
+# --------------------------------------------------------------------------- core errors told with the user's flags
+
+
+def test_core_errors_naming_a_parameter_are_told_with_its_flag():
+    """The core names what it was given (``chains 1: ...``, ``(n_draws)``); the command line says the flag."""
+    from imu_array_ros.cli.calibrate.bayes import FLAGS
+    from imu_array_ros.cli.options import as_flags
+    from imu_array_ros.errors import CalibrationError
+
+    cases = [("chains 1: at least 2 are needed for R-hat", "--chains 1: at least 2 are needed for R-hat"),
+             ("scheduler tcp://h:9: cannot connect", "--scheduler tcp://h:9: cannot connect"),
+             ("widen the noise (accel_std), or give the draws (n_draws)", "widen the noise (--accel-std), or give "
+                                                                          "the draws (--draws)"),
+             ("too few samples with rotation: the chains stop", "too few samples with rotation: the chains stop")]
+    for core, told in cases:
+        with pytest.raises(CalibrationError) as caught:
+            with as_flags(FLAGS):
+                raise CalibrationError(core)
+        assert str(caught.value) == told

@@ -110,6 +110,28 @@ def test_a_worse_static_calibration_does_not_replace_a_better_one(session, capsy
     assert out.read_bytes() == before
 
 
+def test_all_installs_through_the_one_install_path(session, capsys):
+    """calibrate all (with a moving stage) compares with the file on disk too, on the poses and the moving
+    samples: a worse file (the nominal description) is replaced and kept as OUT.bak; a better one (the true
+    sensors, which a position-only moving stage cannot match) is kept and the calibration refused."""
+    out, bak = session / "all_install.yaml", session / "all_install.yaml.bak"
+    out.write_bytes(NILSSON14.read_bytes())
+    code, _, err = cli(capsys, "calibrate", "all", session / "rec", "--array", NILSSON14, "--moving-terms", "position",
+                       "--out", out, "--force")
+    assert code == 0, err
+    assert f"previous {out} kept as {bak}" in err and f"wrote {out}" in err
+    assert bak.read_bytes() == NILSSON14.read_bytes()
+    record = yaml.safe_load(out.read_text())["calibration"]
+    assert [s["stage"] for s in record["stages"]] == ["still poses", "static", "moving"]
+    better = session / "truth_copy.yaml"
+    better.write_bytes((session / "truth.yaml").read_bytes())
+    assert_user_error(cli(capsys, "calibrate", "all", session / "rec", "--array", NILSSON14, "--moving-terms",
+                          "position", "--out", better, "--force", "-q"),
+                      str(session / "rec"), "not replaced: the calibration on file fits")
+    assert better.read_bytes() == (session / "truth.yaml").read_bytes()
+    assert not (session / "truth_copy.yaml.bak").exists()
+
+
 def test_bad_terms_and_wrong_array(session, capsys):
     assert_user_error(cli(capsys, "calibrate", "static", session / "rec", "--array", NILSSON14, "--out",
                           session / "x.yaml", "--terms", "position", "-q"), "static terms")

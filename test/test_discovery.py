@@ -140,7 +140,7 @@ def test_injected_effect_is_concealed_per_sample():
 def recordings(tmp_path_factory):
     """A recording of a true array with an accelerometer bias on imu_3 and a position error on imu_6, a
     second recording of the same array, and the nominal description."""
-    from imu_array_ros.cli.parser import main
+    from imu_array_ros.cli import main
 
     tmp = tmp_path_factory.mktemp("discover")
     d = yaml.safe_load(Path(CORNERS).read_text())
@@ -199,7 +199,7 @@ def test_cli_discover_user_errors(capsys, recordings, tmp_path):
     assert_user_error(cli(capsys, "discover", str(rec), "--array", CORNERS, "--report", str(tmp_path / "r"),
                           "--terms", "position,warp", "-q"), "--terms", "warp")
     # the user's simulation must be of the same run
-    from imu_array_ros.cli.parser import main
+    from imu_array_ros.cli import main
     other = tmp_path / "other"
     assert main(["simulate", "--array", CORNERS, "--duration", "3", "--out", str(other), "-q"]) == 0
     assert_user_error(cli(capsys, "discover", str(rec), "--array", CORNERS, "--report", str(tmp_path / "r"),
@@ -220,7 +220,7 @@ def test_cli_discover_user_errors(capsys, recordings, tmp_path):
 def test_cli_discover_with_the_users_simulation(capsys, recordings, tmp_path):
     """--sim: the localisation reads recording - simulation; a simulation of the same run by the nominal
     model locates the imu_6 position error and the imu_3 bias."""
-    from imu_array_ros.cli.parser import main
+    from imu_array_ros.cli import main
 
     tmp, rec, _ = recordings
     sim = tmp_path / "sim"

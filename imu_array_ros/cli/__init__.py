@@ -1,8 +1,10 @@
-"""``imu-array``: the offline command line (same core functions as the ROS nodes).
+"""``imu-array``: the offline command line (the same workflows as the ROS nodes and the Python API).
 
-* :mod:`.parser` -- argparse with validating types; :func:`main`, :func:`build_parser`;
-* :mod:`.commands` -- one typed function per subcommand (``simulate``, ``fuse``,
-  ``import_openshoe``, ``residuals``), callable from Python too;
+* :mod:`.parser` -- :func:`build_parser` (assembled from the subcommand modules) and :func:`main`;
+* one module per subcommand, its parser (``add_parser``) beside its typed handler (``run``):
+  :mod:`.simulate`, :mod:`.fuse`, :mod:`.import_openshoe`, :mod:`.fake_device`, :mod:`.residuals`,
+  :mod:`.calibrate` (one module per method), :mod:`.discover`, :mod:`.recover`;
+* :mod:`.options` -- validating argument types, the options the subcommands share, reading the inputs;
 * :mod:`.progress` -- progress and summary lines on stderr.
 
 User mistakes (bad options, bad files, unsafe outputs) print one line

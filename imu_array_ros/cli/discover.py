@@ -1,31 +1,66 @@
 """``imu-array discover``: where a recording differs from the model, which physics is missing, and the fit after.
 
 Reads the recording (and ``--sim``, ``--validate`` recordings) with the
-description, runs :func:`imu_array_ros.discovery.discover.discover` and writes
+description, runs :func:`imu_array_ros.workflows.discover` and writes
 ``DIR/report.json``, ``DIR/report.md`` and the plots; ``--apply OUT.yaml``
-writes the description extended with the findings (atomically), so fusion,
-the nodes and the calibrations use the improved model.
+installs the description extended with the findings
+(:func:`imu_array_ros.workflows.findings_calibration`, the one install path:
+atomic, the previous file kept as ``OUT.yaml.bak``, refused when the file there
+fits the recording better), so fusion, the nodes and the calibrations use the
+improved model.
 """
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
-import numpy as np
-
-from imu_array_ros.calibration.output import provenance
-from imu_array_ros.cli.calibrate import parse_list, write_calibrated
+from imu_array_ros import workflows
+from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, as_flags, parse_list, \
+    positive_float, positive_int
 from imu_array_ros.cli.progress import Progress, info
+from imu_array_ros.discovery.report import PLOTS, write_report
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.outputs import check_output
+from imu_array_ros.model.description import ArrayDescription
+from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.util.extras import require
 
-__all__ = ["discover_command"]
+__all__ = ["add_parser", "run"]
 
 
-def _report_outputs(report: Path, inputs, force: bool, plots: bool) -> Path:
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    sp = subparsers.add_parser("discover", help="where a recording differs from the model, which physics the model "
+                                                "left out (terms found, confirmed on held-out blocks), and the fit "
+                                                "after")
+    add_recording_inputs(sp, array="array description YAML",
+                         calibration="calibrated description (same schema) to start from")
+    sp.add_argument("--report", required=True, type=Path,
+                    help="directory for report.md, report.json and the plots (created if missing)")
+    sp.add_argument("--sim", type=Path,
+                    help="your own simulated recording of the same run (same stamps and IMUs): localise "
+                         "recording - simulation instead of recording - model prediction")
+    sp.add_argument("--apply", type=Path, metavar="OUT.yaml",
+                    help="write the description extended with the found terms (not written when nothing is found)")
+    sp.add_argument("--validate", type=Path, nargs="+", metavar="REC",
+                    help="other recordings of the same array: log-likelihood and NIS with and without the findings")
+    sp.add_argument("--terms", help="comma-separated candidate terms (default: every registered term)")
+    sp.add_argument("--alpha", type=positive_float, default=0.01,
+                    help="family-wise false-finding rate per recording, in (0, 1) (default 0.01)")
+    sp.add_argument("--block", type=positive_float, default=0.5, metavar="SECONDS",
+                    help="time block of the robust test and the held-out folds, s (default 0.5)")
+    sp.add_argument("--max-findings", type=positive_int, default=8, help="cap on the findings (default 8)")
+    sp.add_argument("--no-plots", action="store_true", help="no PNG plots (report.md and report.json only)")
+    sp.add_argument("--no-empirical", action="store_true", help="do not model the unexplained residual")
+    add_force_quiet(sp, force="replace an existing report in --report and an existing --apply YAML (only files of "
+                              "those kinds; the YAML kept as OUT.yaml.bak, unless it fits the recording better than "
+                              "the description with the findings)")
+    sp.set_defaults(handler=run)
+    return sp
+
+
+def _check_report(report: Path, inputs, force: bool, plots: bool) -> None:
     """Check every file the report writes into ``report`` (a directory, created if missing)."""
-    from imu_array_ros.discovery.report import PLOTS
-
     if report.exists() and not report.is_dir():
         raise OutputError(f"{report}: --report must be a directory (it is a file)")
     if not report.exists():
@@ -40,50 +75,46 @@ def _report_outputs(report: Path, inputs, force: bool, plots: bool) -> Path:
     if plots:
         for name in PLOTS:
             check_output(report / name, inputs, "png", force, option="--report")
-    return report
 
 
-def discover_command(recording: Path, array: Path, report: Path, *, calibration: Path | None = None,
-                     sim: Path | None = None, apply: Path | None = None, validate: list[Path] | None = None,
-                     terms: str | None = None, alpha: float = 0.01, block: float = 0.5, max_findings: int = 8,
-                     no_plots: bool = False, no_empirical: bool = False, force: bool = False,
-                     quiet: bool = False) -> int:
+def _read(path: Path, desc: ArrayDescription, label: str, quiet: bool) -> ImuSamples:
+    samples, _ = workflows.read_recording(path, desc, progress=Progress(f"reading {label}", quiet))
+    if len(samples.stamps) == 0:
+        raise CalibrationError(f"{path}: no array samples")
+    return samples
+
+
+def run(recording: Path, *, array: Path, report: Path, calibration: Path | None = None, sim: Path | None = None,
+        apply: Path | None = None, validate: list[Path] | None = None, terms: str | None = None,
+        alpha: float = 0.01, block: float = 0.5, max_findings: int = 8, no_plots: bool = False,
+        no_empirical: bool = False, force: bool = False, quiet: bool = False) -> int:
     """Mismatch discovery on ``recording`` with the description ``array`` (``calibration``: its calibrated values)."""
-    from imu_array_ros.cli.commands import load_array
-    from imu_array_ros.discovery.discover import DiscoveryOptions, discover
-    from imu_array_ros.discovery.report import write_report
-    from imu_array_ros.io.rosbag.recording import read_imu_recording
-    from imu_array_ros.model.sensor_model import SensorModel
-
     validate = list(validate or [])
     inputs = [recording, array, calibration, sim, *validate]
-    options = DiscoveryOptions(terms=tuple(parse_list(terms)) if terms else None, alpha=alpha, block_s=block,
-                               max_findings=max_findings, empirical=not no_empirical)
+    options = workflows.DiscoveryOptions(terms=tuple(parse_list(terms)) if terms else None, alpha=alpha,
+                                         block_s=block, max_findings=max_findings, empirical=not no_empirical)
     try:
         options.candidate_terms()
     except CalibrationError as err:
         raise CalibrationError(f"--terms: {err}") from None
     if not 0 < alpha < 1:
         raise CalibrationError(f"--alpha must be in (0, 1), got {alpha}")
-    _report_outputs(Path(report), inputs, force, not no_plots)
+    report = Path(report)
+    _check_report(report, inputs, force, not no_plots)
+    if not no_plots:
+        require("matplotlib", "plots", "the report's plots (or pass --no-plots)")
     if apply is not None:
         apply = check_output(apply, inputs, "yaml", force, option="--apply",
-                             other_outputs=[("--report", Path(report) / "report.json")])
-    desc, source = load_array(array, calibration)
-    model = SensorModel.from_description(desc)
+                             other_outputs=[("--report", report / "report.json")])
+    desc, _ = workflows.load_array(array, calibration)
 
-    def read(path: Path, label: str):
-        samples, stats = read_imu_recording(path, desc, progress=Progress(f"reading {label}", quiet))
-        if len(samples.stamps) == 0:
-            raise CalibrationError(f"{path}: no array samples")
-        return samples
-
-    samples = read(recording, str(recording))
+    samples = _read(recording, desc, str(recording), quiet)
     info(quiet, f"read {len(samples.stamps)} array samples of {len(desc.imus)} IMUs from {recording}")
-    sim_samples = read(sim, f"--sim {sim}") if sim is not None else None
-    others = [(str(p), read(p, f"--validate {p}")) for p in validate]
-    d = discover(samples, model, options=options, sim=sim_samples, validate=others,
-                 progress=lambda text: info(quiet, f"discover: {text}"))
+    sim_samples = _read(sim, desc, f"--sim {sim}", quiet) if sim is not None else None
+    others = [(str(p), _read(p, desc, f"--validate {p}", quiet)) for p in validate]
+    with as_flags({"sim": "--sim", "validate": "--validate"}):
+        d = workflows.discover(samples, desc, options=options, sim=sim_samples, validate=others,
+                               progress=lambda text: info(quiet, f"discover: {text}"))
     info(quiet, f"baseline: log-likelihood {d.baseline.loglik:.8g}, NIS still {d.baseline.nis_still:.4g}, "
                 f"moving {d.baseline.nis_moving:.4g}")
     for f in d.findings:
@@ -97,36 +128,18 @@ def discover_command(recording: Path, array: Path, report: Path, *, calibration:
                     f"{u['share_of_residual']:.0%} of the excess")
     info(quiet, f"after: log-likelihood {d.after.loglik:.8g}, NIS still {d.after.nis_still:.4g}, "
                 f"moving {d.after.nis_moving:.4g}")
-    try:
-        written = write_report(d, Path(report), plots=not no_plots, source=str(recording))
-    except OSError as err:
-        raise OutputError(f"{report}: cannot write the report: {err.strerror or err}") from None
-    info(quiet, f"wrote {', '.join(str(p) for p in written)}")
     if apply is not None:
+        # before the report: a refused install (the file there fits the recording better) writes nothing
         if not d.findings:
             info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
         else:
-            _apply(d, desc, apply, recording)
+            installed = workflows.findings_calibration(d, samples, source=str(recording)).install(desc, apply)
+            if installed.backup is not None:
+                info(quiet, f"previous {apply} kept as {installed.backup}")
             info(quiet, f"wrote {apply}")
+    try:
+        written = write_report(d, report, plots=not no_plots, source=str(recording))
+    except OSError as err:
+        raise OutputError(f"{report}: cannot write the report: {err.strerror or err}") from None
+    info(quiet, f"wrote {', '.join(str(p) for p in written)}")
     return 0
-
-
-def _apply(d, desc, out: Path, recording: Path) -> None:
-    names = sorted({f.effect for f in d.findings})
-    stds = {}
-    for n in names:
-        sd = np.full(d.model.terms[n].values.shape, np.nan)
-        for f in d.findings:
-            if f.effect == n:
-                sd[f.k] = f.std
-        stds[n] = sd
-    record = {
-        "method": "imu-array discover: terms found by mismatch discovery, fitted by the engine (fit_terms); "
-                  "*_std = Cramer-Rao bound",
-        **provenance(),
-        "recording": str(recording),
-        "findings": [f"{f.effect} on {f.sensor}" for f in d.findings],
-        "log_likelihood_before": float(d.baseline.loglik),
-        "log_likelihood_after": float(d.after.loglik),
-    }
-    write_calibrated(d.model, desc, names, stds, record, out, "--apply")

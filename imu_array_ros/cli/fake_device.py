@@ -17,10 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from imu_array_ros import workflows
+from imu_array_ros.cli.options import MAX_SIMULATED_SAMPLES, non_negative_float, non_negative_int, positive_float
 from imu_array_ros.cli.progress import info
 from imu_array_ros.errors import ImuArrayError
 
-__all__ = ["fake_device", "probability", "openshoe_rate"]
+__all__ = ["add_parser", "run", "probability", "openshoe_rate"]
 
 _DRAIN_S = 2.0  # after the last byte: how long the host may take to read what is buffered
 
@@ -46,13 +48,48 @@ def openshoe_rate(text: str) -> float:
         raise argparse.ArgumentTypeError(str(err).replace(f"got {float(text)!r}", f"got {text!r}")) from None
 
 
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    sp = subparsers.add_parser("fake-device", help="simulated OpenShoe array on a pseudo-terminal (no hardware needed)")
+    sp.add_argument("--array", required=True, type=Path,
+                    help="array description YAML: the number of IMUs per packet (and the sensor model when simulating)")
+    sp.add_argument("--capture", type=Path,
+                    help="raw capture to replay byte for byte (e.g. exp_1.bin; IMU order = capture order); "
+                         "default: simulated hand twisting")
+    sp.add_argument("--duration", type=positive_float, help="simulated seconds, > 0 (default 60)")
+    sp.add_argument("--rate", type=openshoe_rate, metavar="HZ",
+                    help="simulated sample rate: 1000, 500, 250, 125, 62.5, 31.25 or 15.625 Hz (default 1000; "
+                         "the host's rate divider decimates it)")
+    sp.add_argument("--seed", type=non_negative_int, help="seed of the simulated motion and noise and of the "
+                                                          "faults, >= 0 (default 0)")
+    sp.add_argument("--link", type=Path, metavar="PATH",
+                    help="symlink to create for the port (default: in a new temporary directory); an existing PATH "
+                         "is replaced only if it is a symlink to a pseudo-terminal")
+    sp.add_argument("--speed", type=non_negative_float, default=1.0,
+                    help="playback speed, x real time, >= 0; 0 = as fast as the port is read (default 1)")
+    sp.add_argument("--loop", action="store_true", help="replay the data forever (default: stop at its end)")
+    sp.add_argument("--garbage-every", type=non_negative_int, default=0, metavar="N",
+                    help="insert random bytes after every N-th packet (default 0: never)")
+    sp.add_argument("--bit-error-rate", type=probability, default=0.0, metavar="P",
+                    help="probability of flipping each bit, 0 <= P < 1 (default 0)")
+    sp.add_argument("--drop-byte-rate", type=probability, default=0.0, metavar="P",
+                    help="probability of losing each byte, 0 <= P < 1 (default 0)")
+    sp.add_argument("--unplug-at", type=positive_float, metavar="SECONDS",
+                    help="simulate unplugging this many seconds after the port appears (the host must reconnect "
+                         "and send the start command again)")
+    sp.add_argument("--unplug-duration", type=non_negative_float, default=1.0, metavar="SECONDS",
+                    help="seconds the device stays unplugged, >= 0 (default 1)")
+    sp.add_argument("-q", "--quiet", action="store_true", help="only the port path on stdout (errors still appear)")
+    sp.set_defaults(handler=run)
+    return sp
+
+
 class _Terminated(Exception):
     """SIGTERM, turned into an exception so the device closes cleanly."""
 
 
-def fake_device(
-    array: Path,
+def run(
     *,
+    array: Path,
     capture: Path | None = None,
     duration: float | None = None,
     rate: float | None = None,
@@ -76,13 +113,11 @@ def fake_device(
     :class:`~imu_array_ros.io.openshoe.fake_device.FakeArrayDevice` (``unplug_at``:
     seconds after the port appears).
     """
-    from imu_array_ros.cli.commands import MAX_SIMULATED_SAMPLES
     from imu_array_ros.io.openshoe.fake_device import FakeArrayDevice, check_link
-    from imu_array_ros.model.description import load_description
 
     if link is not None:
         check_link(Path(link))  # before any work
-    desc = load_description(array)
+    desc, _ = workflows.load_array(array)
     k = len(desc.imus)
     if k > 32:
         raise ImuArrayError(f"{array}: describes {k} IMUs, but the OpenShoe IMU mask selects at most 32")

@@ -1,0 +1,50 @@
+"""``imu-array calibrate all``: the whole array from one recording.
+
+Still poses -> accelerometer intrinsics and gyroscope biases; the moving phase ->
+positions, gyroscope gain and misalignment (``workflows.calibrate("all", ...)``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from imu_array_ros.cli.calibrate.common import add_calibration_inputs, add_still_options, still_options
+from imu_array_ros.cli.calibrate.static import calibrate_stages
+from imu_array_ros.cli.options import add_force_quiet, parse_list
+from imu_array_ros.fitting import check_terms
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    sp = subparsers.add_parser("all", help="the whole array from one recording: still poses -> accelerometer "
+                                           "intrinsics and gyroscope biases; moving phase -> positions, gyroscope "
+                                           "gain and misalignment")
+    add_calibration_inputs(sp)
+    sp.add_argument("--reference", help="IMU that defines the array frame and holds the gauge (default: the first)")
+    sp.add_argument("--static-method", choices=("ml", "pca"), default="ml", help="static stage method (default ml)")
+    sp.add_argument("--moving-terms",
+                    help="comma-separated terms of the moving stage (default position,gyroscope_gain,"
+                         "gyroscope_misalignment; empty: no moving stage)")
+    add_still_options(sp)
+    sp.add_argument("--out", required=True, type=Path, help="calibrated description YAML to write (old kept as OUT.bak)")
+    sp.add_argument("--plot", type=Path, metavar="PNG", help="also write the static stage's plot")
+    add_force_quiet(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak, unless it fits the "
+                              "poses and the moving samples better than the new calibration; and an existing --plot")
+    sp.set_defaults(handler=run)
+    return sp
+
+
+def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, reference: str | None = None,
+        static_method: str = "ml", moving_terms: str | None = None, gravity: float | None = None,
+        still_gyro: float | None = None, still_accel: float | None = None, still_min_duration: float | None = None,
+        plot: Path | None = None, force: bool = False, quiet: bool = False) -> int:
+    """Whole-array calibration: still poses -> static stage -> moving stage, one description."""
+    options = still_options(gravity, still_gyro, still_accel, still_min_duration)
+    if moving_terms is not None:  # "" : no moving stage
+        options["moving_terms"] = tuple(parse_list(moving_terms) or ())
+        if options["moving_terms"]:
+            check_terms(options["moving_terms"])  # before reading anything
+    return calibrate_stages("all", recording, array=array, out=out, calibration=calibration, plot=plot,
+                            force=force, quiet=quiet, reference=reference, static_method=static_method, **options)
