@@ -80,16 +80,16 @@ def case(nominal, true, t: int, seed: int, tag: int, **motion):
 
     rng = np.random.default_rng([seed, t, tag])
     s, _ = simulate_gaussian(true, t, rng, **motion)
-    p = bayes.build_problem(s.stamps, s.accel, s.gyro, nominal)
-    lap = bayes.laplace(p, s.stamps, s.accel, s.gyro, nominal)
+    p = bayes.build_problem(s, nominal)
+    lap = bayes.laplace(p, s, nominal)
     return s, p, lap
 
 
 def run_sampler(p, lap, settings, label: str):
-    from imu_array_ros.calibration import bayes_sampler as bs
+    from imu_array_ros.calibration import bayes
 
     c0, w0 = _rusage(), time.perf_counter()
-    post = bs.sample_posterior(p, lap, settings, progress=lambda text: say(f"  [{label}] {text}"))
+    post = bayes.sample_posterior(p, lap, settings, progress=lambda text: say(f"  [{label}] {text}"))
     measured = _rusage() - c0
     say(f"  [{label}] {post.summary_line()}; measured {measured:.1f} core-s, {time.perf_counter() - w0:.1f} s")
     return post, measured
@@ -111,14 +111,14 @@ def run_record(post, measured: float) -> dict:
 
 
 def fig2(problems: dict, replicates: int, seed: int) -> dict:
-    from imu_array_ros.calibration.bayes import loglik_variance
+    from imu_array_ros.calibration import bayes
 
     out = {}
     for t, (p, lap) in problems.items():
         for where, theta in (("prior mean", p.prior.mean), ("Laplace mean", lap.mean)):
             rng = np.random.default_rng([seed, t, 7])
             t0 = time.perf_counter()
-            var = [loglik_variance(p.with_(n_draws=n), theta, replicates, rng) for n in NS]
+            var = [bayes.loglik_variance(p.with_(n_draws=n), theta, replicates, rng) for n in NS]
             slope = float(np.polyfit(np.log(NS), np.log(var), 1)[0])
             c = float(np.exp(np.mean(np.log(np.array(var) * np.array(NS)))))  # least-squares c of c/N in logs
             chosen = next((n for n, v in zip(NS, var) if v <= 0.1), None)
@@ -209,15 +209,15 @@ def plot_fig4(path: Path, posts: dict, nominal, true_pos) -> None:
 
 
 def agreement(post) -> dict:
-    from imu_array_ros.calibration import bayes_sampler as bs
+    from imu_array_ros.calibration import bayes
 
-    a = bs.laplace_agreement(post)
+    a = bayes.laplace_agreement(post)
     sd = np.sqrt(np.diag(post.covariance))
     z = (post.laplace.mean - post.mean) / sd
     ratio = np.sqrt(np.diag(post.laplace.covariance)) / sd
-    bad = (np.abs(z) > bs.AGREE_MEAN_Z) | (ratio < bs.AGREE_SD_RATIO[0]) | (ratio > bs.AGREE_SD_RATIO[1])
+    bad = (np.abs(z) > bayes.AGREE_MEAN_Z) | (ratio < bayes.AGREE_SD_RATIO[0]) | (ratio > bayes.AGREE_SD_RATIO[1])
     names = [f"{n} {ax}" for n in post.free_names for ax in "xyz"]
-    worst = np.argsort(-np.maximum(np.abs(z) / bs.AGREE_MEAN_Z, np.abs(np.log(ratio)) / np.log(1.25)))[:3]
+    worst = np.argsort(-np.maximum(np.abs(z) / bayes.AGREE_MEAN_Z, np.abs(np.log(ratio)) / np.log(1.25)))[:3]
     a.update({"n_disagree": int(bad.sum()), "worst": [{"coord": names[i], "mean_z": float(z[i]),
                                                        "sd_ratio": float(ratio[i])} for i in worst],
               "median_post_std_um": float(np.median(sd) * UM),
@@ -239,8 +239,7 @@ def main() -> int:
     ap.add_argument("--no-baseline", action="store_true", help="skip the paper-kernel baseline")
     args = ap.parse_args()
 
-    from imu_array_ros.calibration import bayes_sampler as bs
-    from imu_array_ros.calibration.bayes_report import plot_ellipses, plot_trace
+    from imu_array_ros.calibration import bayes
     from imu_array_ros.util.files import atomic_write_text
 
     t_start = time.perf_counter()
@@ -260,14 +259,14 @@ def main() -> int:
     posts, runs = {}, {}
     for t in TS:
         _, p, lap = cases[t]
-        post, measured = run_sampler(p, lap, bs.SamplerSettings(seed=args.seed), f"T={t} default")
+        post, measured = run_sampler(p, lap, bayes.SamplerSettings(seed=args.seed), f"T={t} default")
         posts[t], runs[t] = post, run_record(post, measured)
     baseline = {}
     if not args.no_baseline:
         for t in TS:
             _, p, lap = cases[t]
-            st = bs.SamplerSettings(proposal="isotropic", rho=0.0, seed=args.seed, max_warmup=ISO_WARMUP,
-                                    max_iterations=ISO_ITER)
+            st = bayes.SamplerSettings(proposal="isotropic", rho=0.0, seed=args.seed, max_warmup=ISO_WARMUP,
+                                       max_iterations=ISO_ITER)
             post, measured = run_sampler(p, lap, st, f"T={t} paper kernel")
             baseline[t] = run_record(post, measured)
             del post
@@ -285,15 +284,15 @@ def main() -> int:
     prior_std = np.full((nominal.n_imus, 3), 3e-3)
     common = dict(prior_std=prior_std, prior_mean=nominal.positions, truth=true_pos, reference="imu_00",
                   colors=colors)
-    plot_ellipses(fig5_png, nominal.names, nominal.positions, estimates, view=4.0, **common,
-                  title="carlsson2021 Fig. 5 setting: 50 % credible ellipses of the x-y positions (mm relative to "
-                        "nominal), prior and whole package in view")
+    bayes.plot_ellipses(fig5_png, nominal.names, nominal.positions, estimates, view=4.0, **common,
+                        title="carlsson2021 Fig. 5 setting: 50 % credible ellipses of the x-y positions (mm relative to "
+                              "nominal), prior and whole package in view")
     # the estimates are µm from the truth, which lies up to ~0.3 mm from nominal: centre the panels on the truth
     for path, view, what in ((fig5z_png, None, "automatic zoom (T = 5)"),
                              (fig5zz_png, FIG5_ZOOM_MM, "zoom for T = 50 / 500")):
-        plot_ellipses(path, nominal.names, true_pos, estimates, view=view, origin="true", **common,
-                      title=f"50 % credible ellipses, mm relative to the TRUE position (the panel origin), {what}")
-    plot_trace(fig3_png, posts[500], coords=[(IMU2, "x")])
+        bayes.plot_ellipses(path, nominal.names, true_pos, estimates, view=view, origin="true", **common,
+                            title=f"50 % credible ellipses, mm relative to the TRUE position (the panel origin), {what}")
+    bayes.plot_trace(fig3_png, posts[500], coords=[(IMU2, "x")])
 
     # 4. Laplace vs MCMC, plus weak excitation
     agree = {f"T = {t}": agreement(posts[t]) for t in TS}
@@ -302,7 +301,7 @@ def main() -> int:
         label = f"T = {t}, weak excitation"
         try:
             _, p, lap = case(nominal, true, t, args.seed, 1, **WEAK)
-            post, measured = run_sampler(p, lap, bs.SamplerSettings(seed=args.seed), label)
+            post, measured = run_sampler(p, lap, bayes.SamplerSettings(seed=args.seed), label)
         except Exception as err:  # noqa: BLE001 - reported, not hidden
             say(f"  [{label}] FAILED: {type(err).__name__}: {err}")
             agree[label] = {"error": f"{type(err).__name__}: {err}"}
@@ -397,7 +396,7 @@ def main() -> int:
            f"Fig. 3-style trace of {IMU2} x, T = 500:\n\n![Fig. 3]({fig3_png.name})\n\n")
 
     md += "## 4. Laplace approximation against the chains\n\n"
-    md += ("`laplace_agreement`: " + bs.laplace_agreement.__doc__.strip() + " Criterion: "
+    md += ("`laplace_agreement`: " + bayes.laplace_agreement.__doc__.strip() + " Criterion: "
            + next(iter(a for a in agree.values() if "criterion" in a), {}).get("criterion", "") + ".  "
            "Weak excitation: omega_std 100 deg/s, omega_dot_std 3500 deg/s^2 (s unchanged), its own motion "
            "realisation.\n\n")

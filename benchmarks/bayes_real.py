@@ -140,7 +140,7 @@ def estimate(rec: dict):
     return None
 
 
-def noise_estimate(st, acc, gyr, model) -> dict:
+def noise_estimate(sel, model) -> dict:
     """Setting (c)'s sigma_a: the ML estimate of the accelerometer noise on the T selected samples.
 
     The fit is the one setting (a)'s ``laplace`` runs (``calibrate_geometry``, joint solver, the
@@ -148,25 +148,26 @@ def noise_estimate(st, acc, gyr, model) -> dict:
     and sample of its accelerometer residuals at the ML positions and motion (the ML estimate of a common
     white-noise std).  As a check, the positions and motion are refitted once with that sigma_a on the
     same samples (``fit_terms``: no sample selection) and the RMS recomputed."""
-    from imu_array_ros.calibration.geometry import _profile, calibrate_geometry
+    from imu_array_ros.calibration.geometry import calibrate_geometry
+    from imu_array_ros.calibration.scoring import profile_window
     from imu_array_ros.fitting.engine import fit_terms
     from imu_array_ros.fusion.model_fusion import ModelFusion
     from imu_array_ros.model.sensor_model import motion_context
 
     k = model.n_imus
-    geo = calibrate_geometry(st, acc, gyr, model, reference=0, method="joint", min_excitation=0.0)
+    geo = calibrate_geometry(sel, model, reference=0, method="joint", min_excitation=0.0)
     rms = np.asarray(geo.rms_after, dtype=float)
     sigma = float(np.sqrt(np.mean(rms ** 2)))  # every selected sample is complete: equal counts per IMU
     m = dataclasses.replace(model, acc_std=np.full((k, 3), sigma))
-    fit = fit_terms(st, acc, gyr, m, ["position"], reference=0)
-    refit = float(np.sqrt(np.mean(_profile(st, acc, gyr, fit.model).rms ** 2)))
+    fit = fit_terms(sel, m, ["position"], reference=0)
+    refit = float(np.sqrt(np.mean(profile_window(sel, fit.model).rms ** 2)))
     # the gyroscopes at the same fit: how far they are from one rigid-body omega (the noise model says 0.0039 rad/s)
-    fused, _ = ModelFusion(geo.model).fuse(st, acc, gyr)
-    rows = np.searchsorted(st, fused.stamps)
+    fused, _ = ModelFusion(geo.model).fuse(sel)
+    rows = np.searchsorted(sel.stamps, fused.stamps)
     ctx = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, geo.model.rotations,
                          derivatives=True)
     _, gyr_pred = geo.model.predict(ctx)
-    gyro_rms = float(np.sqrt(np.mean((gyr[rows] - gyr_pred) ** 2)))
+    gyro_rms = float(np.sqrt(np.mean((sel.gyro[rows] - gyr_pred) ** 2)))
     return {"sigma_a": sigma, "rms_per_imu": rms.tolist(), "fit_samples_used": int(geo.samples_used),
             "nis_after": float(geo.nis_after), "sigma_after_one_refit": refit, "gyro_residual_rms": gyro_rms,
             "gyro_std_model": float(np.mean(model.gyro_std))}
@@ -185,43 +186,41 @@ def laplace_model(problem, model):
 
 def run_capture(i: int, desc, model, args) -> dict:
     """Everything for one capture: every setting."""
-    from imu_array_ros.calibration import bayes, bayes_sampler
-    from imu_array_ros.calibration.bayes_sampler import VAR_REPLICATES, _diagnostics
+    from imu_array_ros.calibration import bayes
     from imu_array_ros.calibration.geometry import calibrate_geometry
+    from imu_array_ros.calibration.selection import MIN_EXCITATION, select_rotating
     from imu_array_ros.errors import CalibrationError
     from imu_array_ros.io.openshoe.capture import import_capture
 
     samples = import_capture(DATA / f"exp_{i}.bin", desc)[0]
-    stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
     t0 = time.perf_counter()
-    idx, dropped, usable = bayes.select_samples(stamps, accel, gyro, model, args.samples)
+    idx, dropped, usable = bayes.select_samples(samples, model, args.samples)
     select_s = time.perf_counter() - t0
-    all_idx, _, _ = bayes.select_samples(stamps, accel, gyro, model, None)
-    rate = np.mean(np.linalg.norm(gyro, axis=2), axis=1)  # rotation invariant: mean over IMUs of |gyro|
-    st, acc, gyr = stamps[idx], accel[idx], gyro[idx]
+    all_idx, _, _ = bayes.select_samples(samples, model, None)
+    rate = np.mean(np.linalg.norm(samples.gyro, axis=2), axis=1)  # rotation invariant: mean over IMUs of |gyro|
+    sel = samples.select(idx)
     # the samples the gyroscope test drops: what the fused-motion test saw in them
-    from imu_array_ros.calibration import geometry
-
-    used_geo, _, motion = geometry._select(stamps, accel, gyro, model, geometry.MIN_EXCITATION)
-    still = used_geo.copy()
+    by_motion = select_rotating(samples, model, MIN_EXCITATION)
+    motion = by_motion.motion
+    still = by_motion.used.copy()
     still[all_idx] = False
     out = {
-        "capture": f"exp_{i}", "samples_total": int(len(stamps)), "usable": int(usable),
+        "capture": f"exp_{i}", "samples_total": int(len(samples)), "usable": int(usable),
         "dropped": {key: int(v) for key, v in dropped.items()}, "selected": int(len(idx)),
         "moving_selected": int(np.sum(rate[idx] > MOVING_RAD_S)),
         "moving_usable": int(np.sum(rate[all_idx] > MOVING_RAD_S)),
-        "max_gyro_over_clip_selected": float(np.max(np.abs(gyr)) / model.gyro_clip),
-        "max_acc_over_clip_selected": float(np.max(np.abs(acc)) / model.acc_clip),
+        "max_gyro_over_clip_selected": float(np.max(np.abs(sel.gyro)) / model.gyro_clip),
+        "max_acc_over_clip_selected": float(np.max(np.abs(sel.accel)) / model.acc_clip),
         "select_seconds": select_s, "settings": {},
         "still_fused_omega_dot_median": float(np.median(np.linalg.norm(motion[still, 3:6], axis=1)))
         if still.any() else None,
         "still_gyro_rate_median": float(np.median(rate[still])) if still.any() else None,
     }
-    say(f"exp_{i}: {len(idx)} of {usable} usable samples ({len(stamps)} total, dropped {dropped}); "
+    say(f"exp_{i}: {len(idx)} of {usable} usable samples ({len(samples)} total, dropped {dropped}); "
         f"{out['moving_selected']} of the selected have mean |gyro| > {MOVING_RAD_S} rad/s")
     if ML_SIGMA in [SETTINGS[lab][0] for lab in args.settings]:
         t0 = time.perf_counter()
-        out["noise_estimate"] = noise_estimate(st, acc, gyr, model)
+        out["noise_estimate"] = noise_estimate(sel, model)
         out["noise_estimate"]["seconds"] = time.perf_counter() - t0
         say(f"exp_{i}: ML accelerometer noise on the {len(idx)} samples: {out['noise_estimate']['sigma_a']:.4g} m/s^2 "
             f"(one refit: {out['noise_estimate']['sigma_after_one_refit']:.4g})")
@@ -234,15 +233,14 @@ def run_capture(i: int, desc, model, args) -> dict:
         rec = {"accel_std": accel_std if accel_std is not None else float(np.mean(model.acc_std)),
                "omega_covariance": omega_cov, "seed": seed}
         out["settings"][label] = rec
-        settings = bayes_sampler.SamplerSettings(
+        settings = bayes.SamplerSettings(
             chains=args.chains, workers=args.workers, seed=seed, ess=args.ess,
             max_warmup=args.max_warmup, max_iterations=args.max_iterations)
         rec["sampler_settings"] = dataclasses.asdict(settings)
         try:
             t0 = time.perf_counter()
-            problem = bayes.build_problem(st, acc, gyr, model, reference=0, accel_std=accel_std,
-                                          omega_covariance=omega_cov)
-            lap = bayes.laplace(problem, st, acc, gyr, model)
+            problem = bayes.build_problem(sel, model, reference=0, accel_std=accel_std, omega_covariance=omega_cov)
+            lap = bayes.laplace(problem, sel, model)
             rec["laplace_seconds"] = time.perf_counter() - t0
         except CalibrationError as err:
             rec["error"] = f"Laplace: {err}"
@@ -252,25 +250,25 @@ def run_capture(i: int, desc, model, args) -> dict:
         rec["omega_std_median"] = float(np.median(np.sqrt(np.einsum("tii->t", cov_w) / 3)))  # rad/s, per axis
         lm = laplace_model(problem, model)
         # how many of the T samples the Laplace's ML fit uses (its noise-dependent excitation test may drop some)
-        geo_lap = calibrate_geometry(st, acc, gyr, lm, reference=0, method="joint", min_excitation=0.0)
+        geo_lap = calibrate_geometry(sel, lm, reference=0, method="joint", min_excitation=0.0)
         rec.update({"laplace_mean_free": lap.mean.tolist(), "laplace_cov_free": lap.covariance.tolist(),
                     "laplace_fit_samples_used": int(geo_lap.samples_used)})
         try:
-            post = bayes_sampler.sample_posterior(problem, lap, settings,
-                                                  progress=lambda s, lab=label: say(f"exp_{i} ({lab}): {s}"))
+            post = bayes.sample_posterior(problem, lap, settings,
+                                          progress=lambda s, lab=label: say(f"exp_{i} ({lab}): {s}"))
         except CalibrationError as err:
             rec["error"] = str(err)
             rec["refused"] = "too noisy to sample" in str(err)
             say(f"exp_{i} ({label}): sampler refused: {err}")
             if rec["refused"]:  # the tuning table: the same call with the same generator as the sampler's
-                _, table = bayes_sampler.choose_draws(problem, lap.mean, settings.loglik_var,
-                                                      np.random.default_rng(settings.seed))
+                _, table = bayes.choose_draws(problem, lap.mean, settings.loglik_var,
+                                              np.random.default_rng(settings.seed))
                 rec["var_loglik"] = [[int(n), float(v)] for n, v in table]
         else:
             rec["refused"] = False
             say(f"exp_{i} ({label}): {post.summary_line()}")
-            ess_t, ess_tail_t, rhat_t = _diagnostics(post.draws)  # theta alone (the sampler adds the log-lik)
-            _, _, rhat_ll = _diagnostics(post.loglik[..., None])
+            ess_t, ess_tail_t, rhat_t = bayes.chain_diagnostics(post.draws)  # theta alone (the sampler adds the log-lik)
+            _, _, rhat_ll = bayes.chain_diagnostics(post.loglik[..., None])
             rng = np.random.default_rng(seed + 100000)
             p_n = problem.with_(n_draws=post.n_draws)
             lap_chol = np.linalg.cholesky(lap.covariance)
@@ -287,7 +285,7 @@ def run_capture(i: int, desc, model, args) -> dict:
                 "theta_only": {"ess_bulk_min": ess_t, "ess_tail_min": ess_tail_t, "rhat_max": rhat_t},
                 "rhat_loglik_estimate": rhat_ll,
                 "mean_free": post.mean.tolist(), "cov_free": post.covariance.tolist(),
-                "laplace_agreement": bayes_sampler.laplace_agreement(post),
+                "laplace_agreement": bayes.laplace_agreement(post),
                 "ratio_noise_sd": {str(r): ratio_noise(p_n, lap.mean, lap_chol, r, rng) for r in RHO_CHECK},
                 "mode_check": mode_check(problem, lap, post, rng),
             })
@@ -296,8 +294,7 @@ def run_capture(i: int, desc, model, args) -> dict:
         # the ML estimate on every usable sample of the capture (select_samples with no cap), the Laplace's noise
         t0 = time.perf_counter()
         try:
-            geo = calibrate_geometry(stamps[all_idx], accel[all_idx], gyro[all_idx], lm, reference=0,
-                                     method="joint", min_excitation=0.0)
+            geo = calibrate_geometry(samples.select(all_idx), lm, reference=0, method="joint", min_excitation=0.0)
         except CalibrationError as err:
             rec["ml_error"] = str(err)
             say(f"exp_{i} ({label}): ML FAILED: {err}")
@@ -321,8 +318,8 @@ def run_capture(i: int, desc, model, args) -> dict:
         out["swap"] = {}
         for key, (sa, oc) in {"sigma_c+model": (c["accel_std"], "model"), "sigma_c+sample": (c["accel_std"], "sample"),
                               "0.79+model": (PAPER_SIGMA_A, "model"), "0.79+sample": (PAPER_SIGMA_A, "sample")}.items():
-            pr = bayes.build_problem(st, acc, gyr, model, reference=0, accel_std=sa, omega_covariance=oc)
-            out["swap"][key] = {str(n): bayes.loglik_variance(pr.with_(n_draws=n), theta, VAR_REPLICATES, rng)
+            pr = bayes.build_problem(sel, model, reference=0, accel_std=sa, omega_covariance=oc)
+            out["swap"][key] = {str(n): bayes.loglik_variance(pr.with_(n_draws=n), theta, bayes.VAR_REPLICATES, rng)
                                 for n in (1, 16)}
         say(f"exp_{i}: Var[log p_N] at N = 1 with the ingredients swapped: "
             + ", ".join(f"{k} {v['1']:.3g}" for k, v in out["swap"].items()))

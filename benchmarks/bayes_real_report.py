@@ -56,7 +56,7 @@ def _intro() -> str:
 def summary(results, comps, args) -> str:
     """One table, a column per setting: the sampler, the Laplace approximation, agreement between captures and
     with the ML on all usable samples."""
-    from imu_array_ros.calibration.bayes_sampler import MAX_DRAWS
+    from imu_array_ros.calibration.bayes import MAX_DRAWS
 
     labels = [lab for lab in SETTINGS if _recs(results, lab)]
     if not labels:
@@ -153,7 +153,7 @@ def summary(results, comps, args) -> str:
 
 def swap_table(results) -> str:
     """Var[log p_N] with the settings' ingredients swapped (sigma_a and omega covariance), per capture."""
-    from imu_array_ros.calibration.bayes_sampler import VAR_REPLICATES
+    from imu_array_ros.calibration.bayes import VAR_REPLICATES
 
     sw = [(r["capture"], r["swap"]) for r in results if "swap" in r]
     if not sw:
@@ -204,7 +204,7 @@ def samples_table(results) -> str:
 
 def markdown(results, comps, names, free, args, header: str) -> str:
     """The whole results file but the interpretation: ``header`` (the run's), the setting, the tables."""
-    from imu_array_ros.calibration.bayes_sampler import MAX_DRAWS, UNTUNABLE, VAR_REPLICATES
+    from imu_array_ros.calibration.bayes import MAX_DRAWS, UNTUNABLE, VAR_REPLICATES
 
     axes = "xyz"
     md = header + _intro()
@@ -383,8 +383,7 @@ def markdown(results, comps, names, free, args, header: str) -> str:
 def plots(results, names, nominal, free, out_dir: Path, args, traces: bool = True) -> list[str]:
     """The ellipse figure per setting with posteriors (from the means and covariances) and, with ``traces``,
     the trace plot of its posterior with the lowest ESS (needs the chains)."""
-    from imu_array_ros.calibration.bayes import PACKAGE_SIZE, PRIOR_STD
-    from imu_array_ros.calibration.bayes_report import ellipse_radius, plot_ellipses, plot_trace
+    from imu_array_ros.calibration.bayes import PACKAGE_SIZE, PRIOR_STD, ellipse_radius, plot_ellipses, plot_trace
 
     written = []
     k = len(names)

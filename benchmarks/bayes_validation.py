@@ -8,7 +8,7 @@ the truth and every check below has a known answer.
 
 1. Coverage / simulation-based calibration (Talts et al. 2018) over independent datasets, one Dask task
    per dataset on a ``LocalCluster`` of single-threaded worker processes, each sampling with the default
-   :class:`~imu_array_ros.calibration.bayes_sampler.SamplerSettings` (serial chains inside the task).
+   :class:`~imu_array_ros.calibration.bayes.SamplerSettings` (serial chains inside the task).
 2. Agreement of the default sampler with a long plain PmMH random-walk reference chain on one dataset.
 3. Correlated pseudo-marginal (rho 0.9) against independent random numbers (rho 0), N = 1 for both.
 
@@ -66,15 +66,15 @@ def dataset(seed: int, n_samples: int):
     pos[1:] += rng.normal(size=pos[1:].shape) * bayes.PRIOR_STD
     true = nominal.with_terms(position=pos)
     s, _ = simulate_gaussian(true, n_samples, rng)
-    p = bayes.build_problem(s.stamps, s.accel, s.gyro, nominal)
-    lap = bayes.laplace(p, s.stamps, s.accel, s.gyro, nominal)
+    p = bayes.build_problem(s, nominal)
+    lap = bayes.laplace(p, s, nominal)
     return p, lap, p.theta_of(pos)
 
 
 def _ess_per_coordinate(draws: np.ndarray) -> np.ndarray:
-    from imu_array_ros.calibration.bayes_sampler import arviz
+    from imu_array_ros.calibration import bayes
 
-    az = arviz()
+    az = bayes.arviz()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return np.asarray(az.ess(az.convert_to_dataset({"theta": draws}), method="bulk")["theta"].values)
@@ -94,11 +94,11 @@ def coverage_run(seed: int, n_samples: int, rank_draws: int) -> dict:
     """One dataset: sample its posterior with the default settings; small arrays only."""
     from scipy import stats
 
-    from imu_array_ros.calibration import bayes_sampler as bs
+    from imu_array_ros.calibration import bayes
 
     t_cpu, t_wall = time.process_time(), time.perf_counter()
     p, lap, theta = dataset(seed, n_samples)
-    post = bs.sample_posterior(p, lap, bs.SamplerSettings(scheduler="serial", seed=seed))
+    post = bayes.sample_posterior(p, lap, bayes.SamplerSettings(scheduler="serial", seed=seed))
     c, m, d = post.draws.shape
     flat = post.flat
     # SBC rank of the truth among rank_draws roughly independent draws, spread evenly over the pooled chains
@@ -182,12 +182,12 @@ def chain_run(label: str, seed: int, n_samples: int, settings: dict, sampler_see
     Every configuration gets its own ``sampler_seed``: with one seed two configurations would start from the
     same points and, where their kernels draw random numbers alike (rho 0 and rho 0.9 here), run on common
     random numbers, which couples the chains and makes a two-sample test blind."""
-    from imu_array_ros.calibration import bayes_sampler as bs
+    from imu_array_ros.calibration import bayes
 
     t_cpu = time.process_time()
     p, lap, theta = dataset(seed, n_samples)
-    st = bs.SamplerSettings(scheduler="serial", seed=sampler_seed, **settings)
-    post = bs.sample_posterior(p, lap, st)
+    st = bayes.SamplerSettings(scheduler="serial", seed=sampler_seed, **settings)
+    post = bayes.sample_posterior(p, lap, st)
     ess = _ess_per_coordinate(post.draws)
     thinned = [_thin(post.draws[:, :, j], ess[j]).tolist() for j in range(p.dim)]
     thinned2 = [_thin(post.draws[:, :, j], ess[j] / 2).tolist() for j in range(p.dim)]
@@ -842,11 +842,11 @@ def run_all(args, chain_specs: dict) -> dict:
     """The Dask part: the coverage tasks, then the four sampler runs on the fixed dataset."""
     from distributed import as_completed
 
-    from imu_array_ros.calibration.bayes_sampler import _dask_client  # TODO(issue 20): the public dask_client
+    from imu_array_ros.calibration import bayes
 
     header = machine_header(TITLE)
     t_start = time.perf_counter()
-    with _dask_client("local", args.workers) as client:
+    with bayes.dask_client("local", args.workers) as client:
         startup = time.perf_counter() - t_start
         print(f"cluster up in {startup:.1f} s: {client}", flush=True)
         # ---- 1. coverage: one task per dataset

@@ -9,8 +9,9 @@ service ``--repeat`` times from its own rclpy client (``output_file`` removed
 before each call, so every call calibrates from the nominal positions and
 writes), timing call -> response.  Baseline, in this process, alternating with
 the calls (so under the same background: the driver streaming, the node
-buffering): :func:`imu_array_ros.calibration.geometry.calibrate_and_write` on
-the recording's samples with the node's defaults.
+buffering): what the node runs, :func:`imu_array_ros.workflows.calibrate`
+(``"geometry"``) and the result's ``install``, on the recording's samples with
+the node's defaults.
 
 Also measured: the node's own calibration time (its log line ``calibration
 done in X s``), a second call made while the first runs (refused: its round
@@ -78,12 +79,13 @@ class Others:
 
 def baseline(desc, samples, out: Path) -> tuple[float, str]:
     """The node's calibration called directly: seconds, summary."""
-    from imu_array_ros.calibration.geometry import calibrate_and_write
+    from imu_array_ros.workflows import calibrate
 
     out.unlink(missing_ok=True)
     t0 = time.perf_counter()
-    result, _ = calibrate_and_write(desc, samples.stamps, samples.accel, samples.gyro, out)
-    return time.perf_counter() - t0, result.summary()
+    cal = calibrate("geometry", samples, desc)
+    cal.install(desc, out)
+    return time.perf_counter() - t0, cal.summary()
 
 
 class Client:
@@ -241,10 +243,10 @@ def report(args, res: dict, load: tuple[str, str]) -> str:
           "default: method joint, min_excitation 1.0); the benchmark's own rclpy client calls "
           "`/calibrate_geometry` once the window is full, with `output_file` removed before every call (so each "
           "calibrates from the nominal positions and writes the file).\n\n"
-          f"Baseline, same run: `calibrate_and_write` on the recording's {res['n']} samples with the same "
-          "defaults (the node's window holds the same samples, rotated by the loop), called in the benchmark's "
-          "process alternately with the service calls, so under the same background (the driver streaming, the "
-          "node buffering).\n\n"
+          "Baseline, same run: `calibrate('geometry', ...)` then `.install` (what the node runs) on the "
+          f"recording's {res['n']} samples with the same defaults (the node's window holds the same samples, "
+          "rotated by the loop), called in the benchmark's process alternately with the service calls, so under "
+          "the same background (the driver streaming, the node buffering).\n\n"
           "| | runs | median / max (s) |\n|---|---|---|\n"
           f"| service round trip (call -> response) | {len(trips)} | **{stats(trips)}** |\n"
           f"| calibration inside the node (its log) | {len(node_s)} | {stats(node_s) if node_s else '-'} |\n"

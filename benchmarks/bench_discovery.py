@@ -32,7 +32,7 @@ OUT = RESULTS / "discovery.md"
 
 def _time(samples, model):
     t0 = time.perf_counter()
-    fit_motion(samples.stamps, samples.accel, samples.gyro, model)
+    fit_motion(samples, model)
     base = time.perf_counter() - t0
     t0 = time.perf_counter()
     d = discover(samples, model, options=DiscoveryOptions(),

@@ -83,7 +83,7 @@ def joint_case(seconds: float, repeat: int, runs: int, small_runs: int, rng: np.
     nominal = SensorModel.from_description(load_description(REPO / "config" / "array32.yaml"))
     true = truth_in_gauge(nominal, perturb(nominal, rng, JOINT_SIZES), FREE)
     samples, _ = simulate_twist(true, seconds, 200.0, rng)
-    args = (samples.stamps, samples.accel, samples.gyro, nominal, FREE)
+    args = (samples, nominal, FREE)
     fits = timed(lambda: fit_terms(*args), repeat)
     times, res = fits.wall, fits.result
     tracemalloc.start()
@@ -95,7 +95,7 @@ def joint_case(seconds: float, repeat: int, runs: int, small_runs: int, rng: np.
     for _ in range(runs - 1):  # more recordings: new motion, noise and true values
         true_i = truth_in_gauge(nominal, perturb(nominal, rng, JOINT_SIZES), FREE)
         samples_i, _ = simulate_twist(true_i, seconds, 200.0, rng)
-        res_i = fit_terms(samples_i.stamps, samples_i.accel, samples_i.gyro, nominal, FREE)
+        res_i = fit_terms(samples_i, nominal, FREE)
         pooled.append(joint_errors(res_i, true_i))
         iterations.append(res_i.iterations)
     cpus = cpu_affinity()
@@ -133,7 +133,7 @@ def joint_small(runs: int, rng: np.random.Generator, seconds: float = 2.0) -> st
     for _ in range(runs):
         true = truth_in_gauge(nominal, perturb(nominal, rng, JOINT_SIZES), FREE)
         samples, _ = simulate_twist(true, seconds, 200.0, rng)
-        pooled.append(joint_errors(fit_terms(samples.stamps, samples.accel, samples.gyro, nominal, FREE), true))
+        pooled.append(joint_errors(fit_terms(samples, nominal, FREE), true))
     return (f"The same terms on {len(SUBSET)} IMUs of the array ({', '.join(nominal.names)}), {runs} recordings of "
             f"{seconds:g} s (new motion, noise and true values each):\n\n" + joint_table(pooled))
 
@@ -221,7 +221,7 @@ def _mc_runs(nominal: SensorModel, name: str, runs: int, draw) -> dict:
     for _ in range(runs):
         true, samples = draw()
         try:
-            res = fit_terms(samples.stamps, samples.accel, samples.gyro, nominal, [name])
+            res = fit_terms(samples, nominal, [name])
         except CalibrationError:  # a recording that does not excite the term (short, random motion)
             refused += 1
             continue

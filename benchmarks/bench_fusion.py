@@ -90,7 +90,7 @@ def with_dropouts(s: ImuSamples, rate: float, rng: np.random.Generator) -> tuple
 
 def peak_memory(fusion: MLFusion, s: ImuSamples, k: int) -> int:
     tracemalloc.start()
-    fusion.fuse(s.stamps[:k], s.accel[:k], s.gyro[:k])
+    fusion.fuse(s.select(slice(0, k)))
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     return peak
@@ -119,11 +119,11 @@ def main() -> None:
     }
     rows = []
     for label, s in cases.items():
-        fusion.fuse(s.stamps[:100], s.accel[:100], s.gyro[:100])  # warm the geometry cache
-        t_batch = best_of(lambda: fusion.fuse(s.stamps, s.accel, s.gyro), r)
+        fusion.fuse(s.select(slice(0, 100)))  # warm the geometry cache
+        t_batch = best_of(lambda: fusion.fuse(s), r)
         t_tensor = best_of(lambda: tensor_method(s, model), r)  # same-run baseline: closed-form least squares
         m = 2000
-        t_one = best_of(lambda: [fusion.fuse(s.stamps[i:i + 1], s.accel[i:i + 1], s.gyro[i:i + 1]) for i in range(m)], 1)
+        t_one = best_of(lambda: [fusion.fuse(s.select(slice(i, i + 1))) for i in range(m)], 1)
         t_ref = np.nan
         if ref is not None:
             ref.fuse(s.stamps[:100], s.accel[:100], s.gyro[:100])
@@ -139,12 +139,12 @@ def main() -> None:
     for nd in sorted({args.dropout_samples, n}):
         base = ImuSamples(twist.stamps[:nd], twist.accel[:nd], twist.gyro[:nd], twist.names)
         holes, drop = with_dropouts(base, DROPOUT_RATE, rng)
-        fused, stats = fusion.fuse(holes.stamps, holes.accel, holes.gyro)  # also builds the dropout table
+        fused, stats = fusion.fuse(holes)  # also builds the dropout table
         assert stats.fused == nd
         t_full, t_drop, t_ref = [], [], [np.nan]
         for _ in range(max(r, 15) if nd <= 50_000 else r):  # interleaved, so both see the same machine state
-            t_full.append(best_of(lambda: fusion.fuse(base.stamps, base.accel, base.gyro), 1))
-            t_drop.append(best_of(lambda: fusion.fuse(holes.stamps, holes.accel, holes.gyro), 1))
+            t_full.append(best_of(lambda: fusion.fuse(base), 1))
+            t_drop.append(best_of(lambda: fusion.fuse(holes), 1))
         if ref is not None and nd == args.dropout_samples:
             ref.fuse(holes.stamps, holes.accel, holes.gyro)  # warm its per-pattern cache, as above
             t_ref = [best_of(lambda: ref.fuse(holes.stamps, holes.accel, holes.gyro), 1) for _ in range(r)]

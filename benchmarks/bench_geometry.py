@@ -78,10 +78,10 @@ def rmse(model: SensorModel, true: SensorModel) -> float:
 
 def run_size(nominal, n, data, repeat, bcd: bool, rng, literal: bool = False) -> dict:
     true, s, start = case(nominal, n, data, rng)
-    args = (s.stamps, s.accel, s.gyro, start)
+    args = (s, start)
     print(f"N = {n} ({data}): load {load()}", flush=True)
     out = dict(n=n, data=data, load_start=load())
-    out["fuse"], out["fuse_c"], _ = repeated(lambda: ModelFusion(start).fuse(s.stamps, s.accel, s.gyro), max(repeat, 3))
+    out["fuse"], out["fuse_c"], _ = repeated(lambda: ModelFusion(start).fuse(s), max(repeat, 3))
     out["joint_t"], out["joint_c"], out["joint"] = repeated(lambda: calibrate_geometry(*args, method="joint"), repeat)
     print(f"  joint wall {out['joint_t']} cpu {out['joint_c']} s, {out['joint'].iterations} it", flush=True)
     if bcd:
@@ -99,7 +99,7 @@ def profile_joint(nominal, rng, top: int = 12) -> str:
     true, s, start = case(nominal, TARGET_N, "twist", rng)
     prof = cProfile.Profile()
     prof.enable()
-    calibrate_geometry(s.stamps, s.accel, s.gyro, start, method="joint")
+    calibrate_geometry(s, start, method="joint")
     prof.disable()
     buf = io.StringIO()
     stats = pstats.Stats(prof, stream=buf)

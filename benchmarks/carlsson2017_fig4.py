@@ -100,8 +100,7 @@ def bcd_chain(samples, start: SensorModel, true: SensorModel, recenter: bool, ch
     out, model, done, converged_at = [sse(start, true)], start, 0, None
     for k in checkpoints:
         if converged_at is None:
-            r = calibrate_geometry(samples.stamps, samples.accel, samples.gyro, model, method="bcd",
-                                   max_iterations=k - done, recenter=recenter)
+            r = calibrate_geometry(samples, model, method="bcd", max_iterations=k - done, recenter=recenter)
             model = r.model
             if r.converged:
                 converged_at = done + r.iterations
@@ -117,7 +116,7 @@ def run_task(task):
     true, samples, start = realisation(seed, n, i, w, wd)
     res = dict(kind=kind, n=n, i=i, w=w, wd=wd, count=3 * (true.n_imus - 1))
     try:
-        j = calibrate_geometry(samples.stamps, samples.accel, samples.gyro, start, method="joint")
+        j = calibrate_geometry(samples, start, method="joint")
         res.update(sse_joint=sse(j.model, true), ssd=float(np.sum(j.position_std[1:] ** 2)),
                    joint_iterations=j.iterations, joint_converged=j.converged, joint_seconds=j.seconds)
         if chains:
@@ -125,8 +124,7 @@ def run_task(task):
                 s, conv = bcd_chain(samples, start, true, rec, CHECKPOINTS)
                 res[f"sse_{label}"], res[f"conv_{label}"] = s, conv
         if bcd_iter:
-            b = calibrate_geometry(samples.stamps, samples.accel, samples.gyro, start, method="bcd",
-                                   max_iterations=bcd_iter, recenter=False)
+            b = calibrate_geometry(samples, start, method="bcd", max_iterations=bcd_iter, recenter=False)
             res["sse_bcd_fixed"] = sse(b.model, true)
     except CalibrationError as exc:
         res["refused"] = str(exc)
@@ -161,7 +159,7 @@ def refuse_two(seed: int) -> str:
     lines = []
     for method in ("joint", "bcd"):
         try:
-            calibrate_geometry(samples.stamps, samples.accel, samples.gyro, start, method=method)
+            calibrate_geometry(samples, start, method=method)
             lines.append(f"{method}: NOT refused")
         except CalibrationError as exc:
             lines.append(f"{method}: CalibrationError: {exc}")

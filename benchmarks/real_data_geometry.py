@@ -71,7 +71,7 @@ def nis(samples, model: SensorModel) -> tuple[float, float]:
     """Profile NIS of ``samples`` under ``model`` with every sample's motion at its exact ML estimate
     (``fit_terms`` Gauss-Newton on the motion, no parameter step; saturated axes masked):
     (all axes: sum z^2 per degree of freedom, accelerometers: sum z^2 over accelerometer axes / their count)."""
-    f = fit_terms(samples.stamps, samples.accel, samples.gyro, model, ["position"], max_iterations=0)
+    f = fit_terms(samples, model, ["position"], max_iterations=0)
     r = f.residuals[..., :3]
     return float(f.nis_before), float(np.nansum(r ** 2) / np.count_nonzero(np.isfinite(r)))
 
@@ -80,7 +80,7 @@ def fusion_nis(samples, model: SensorModel, desc) -> tuple[float, int]:
     """(NIS ratio observed / expected over every fused sample, fused samples) as ``imu-array residuals``
     computes it: ModelFusion (non-linear terms compensated on the readings) + normalized_residuals."""
     fusion = ModelFusion(model, acc_range=desc.accelerometer_range, gyro_range=desc.gyroscope_range)
-    fused, _ = fusion.fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, _ = fusion.fuse(samples)
     rep = normalized_residuals(samples, model, fused)
     o = rep.observed["still"] + rep.observed["moving"]
     e = rep.expected["still"] + rep.expected["moving"]
@@ -94,16 +94,15 @@ def rms(v) -> float:
 def calibrate(name, samples, nominal, intrinsics, log) -> dict:
     """Every fit of one capture's motion phase; returns the results (CalibrationError text on failure)."""
     out = {}
-    s = (samples.stamps, samples.accel, samples.gyro)
     t0 = time.perf_counter()
     try:
-        out["none"] = calibrate_geometry(*s, nominal)
+        out["none"] = calibrate_geometry(samples, nominal)
     except CalibrationError as exc:
         out["none"] = f"CalibrationError: {exc}"
     log(f"{name}: no intrinsics: {out['none'] if isinstance(out['none'], str) else out['none'].summary()} "
         f"[{time.perf_counter() - t0:.1f} s]")
     t0 = time.perf_counter()
-    joint = fit_terms(*s, nominal, ("position",) + intrinsics)
+    joint = fit_terms(samples, nominal, ("position",) + intrinsics)
     out["joint"] = joint
     out["joint_s"] = time.perf_counter() - t0
     log(f"{name}: joint fit of position + intrinsics: {joint.iterations} iterations, converged {joint.converged}, "
@@ -111,13 +110,13 @@ def calibrate(name, samples, nominal, intrinsics, log) -> dict:
     model = nominal.with_terms(**{t: joint.model.terms[t].values for t in intrinsics})
     t0 = time.perf_counter()
     try:
-        out["intr"] = calibrate_geometry(*s, model)
+        out["intr"] = calibrate_geometry(samples, model)
     except CalibrationError as exc:
         out["intr"] = f"CalibrationError: {exc}"
     log(f"{name}: intrinsics fitted: {out['intr'] if isinstance(out['intr'], str) else out['intr'].summary()} "
         f"[{time.perf_counter() - t0:.1f} s]")
     t0 = time.perf_counter()
-    held = fit_terms(*s, nominal, intrinsics)
+    held = fit_terms(samples, nominal, intrinsics)
     out["held"] = held
     out["held_s"] = time.perf_counter() - t0
     log(f"{name}: intrinsics with positions held nominal: {held.iterations} iterations, converged {held.converged}, "

@@ -45,7 +45,7 @@ REDUCED = ("accelerometer_gain", "accelerometer_nonorthogonality", "acceleromete
 def nis_ratio(samples, model: SensorModel, desc) -> tuple[float, float]:
     """(still, moving) NIS ratio observed / expected of the whole recording, as ``imu-array residuals``."""
     fusion = ModelFusion(model, acc_range=desc.accelerometer_range, gyro_range=desc.gyroscope_range)
-    fused, _ = fusion.fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, _ = fusion.fuse(samples)
     rep = normalized_residuals(samples, model, fused)
     return tuple(float(rep.observed[r].sum() / rep.expected[r].sum()) for r in ("still", "moving"))
 
@@ -63,14 +63,14 @@ def main() -> None:
         c = path.stem
         samples[c] = import_capture(path, desc)[0]
         s = samples[c]
-        poses[c] = p = find_still_poses(s.stamps, s.accel, s.gyro, nominal)
+        poses[c] = p = find_still_poses(s, nominal)
         fits[c], times[c] = {}, {}
         for label, kw in (("full", {}), ("per-IMU", {"terms": REDUCED}), ("pca", {"method": "pca"})):
             t0 = time.process_time()
             fits[c][label] = calibrate_static(p.accel, p.gyro, p.counts, nominal, **kw)
             times[c][label] = time.process_time() - t0
         t0 = time.process_time()
-        fits[c]["all"] = calibrate_array(s.stamps, s.accel, s.gyro, nominal)
+        fits[c]["all"] = calibrate_array(s, nominal)
         times[c]["all"] = time.process_time() - t0
         log(f"{c}: {len(p)} poses ({p.spread()['min_eigenvalue']:.3f} min eigenvalue), "
             f"{len(p.rejected)} rejected; full: {fits[c]['full'].summary()}; all: {fits[c]['all'].summary()}")

@@ -41,7 +41,7 @@ STANDARD = ("position", "accelerometer_gain", "accelerometer_misalignment", "acc
 def nis(samples, model: SensorModel, desc) -> tuple[float, float]:
     """(still, moving) NIS ratios of ``samples`` fused and analysed with ``model``."""
     fusion = ModelFusion(model, acc_range=desc.accelerometer_range, gyro_range=desc.gyroscope_range)
-    fused, _ = fusion.fuse(samples.stamps, samples.accel, samples.gyro)
+    fused, _ = fusion.fuse(samples)
     s = normalized_residuals(samples, model, fused).summary()
     return s["still"]["ratio_all"], s["moving"]["ratio_all"]
 
@@ -61,7 +61,7 @@ def main() -> None:
     (OUT / tag).mkdir(exist_ok=True)
     for name, samples in captures.items():
         t0 = time.perf_counter()
-        fit = fit_terms(samples.stamps, samples.accel, samples.gyro, nominal, terms)
+        fit = fit_terms(samples, nominal, terms)
         dt = time.perf_counter() - t0
         fits[name] = fit
         save_description(fit.model.to_description(desc, names=terms, stds=fit.std), OUT / tag / f"{name}.yaml")

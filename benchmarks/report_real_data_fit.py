@@ -51,10 +51,10 @@ def main() -> None:
     rows, ext_rows, tables = [], [], ""
     for i, path in enumerate(sorted(DATA.glob("exp_*.bin"))):
         samples, _ = import_capture(path, desc)
-        fused, stats = fusion.fuse(samples.stamps, samples.accel, samples.gyro)
+        fused, stats = fusion.fuse(samples)
         real = normalized_residuals(samples, sensor_model, fused)
         sim_samples = simulate_same_motion(fused, sensor_model, np.random.default_rng(i), like=samples)
-        sim_fused, _ = fusion.fuse(sim_samples.stamps, sim_samples.accel, sim_samples.gyro)
+        sim_fused, _ = fusion.fuse(sim_samples)
         sim = normalized_residuals(sim_samples, sensor_model, sim_fused)
         r, s = real.summary(), sim.summary()
         ext_rows.append(f"| {path.name} " + range_extension(samples, fused, model) + "\n")

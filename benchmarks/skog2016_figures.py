@@ -34,7 +34,7 @@ def curve(desc, direction, speeds, rng, tensor=False):
     for speed in speeds:
         truth = random_motion(N, np.deg2rad(speed), np.deg2rad(1000.0), rng, omega_direction=direction)
         s = simulate_measurements(desc, truth, rng)
-        f, _ = fusion.fuse(s.stamps, s.accel, s.gyro)
+        f, _ = fusion.fuse(s)
         rmse = np.rad2deg(np.sqrt(np.mean((f.omega - truth.omega) ** 2, axis=0)))
         bound = np.rad2deg(np.sqrt(np.diag(crb(truth.omega[:1], model, gyro_valid=model.gyro_unsaturated(s.gyro[:1]))[0])[:3]))
         row = [speed, *rmse, *bound]
