@@ -238,12 +238,12 @@ def test_discover_apply_replaces_a_worse_file_keeping_a_backup(corners_recording
 
 def test_discover_apply_never_replaces_a_better_file_and_writes_nothing(corners_recording, capsys):
     """The true description on disk explains the recording better than one finding does: refused, the
-    file untouched, no backup and no report written."""
+    file untouched and no backup; the report is written first, so the run's work is not lost."""
     d = corners_recording
     out = d / "true_copy.yaml"
     out.write_bytes((d / "truth.yaml").read_bytes())
     assert_user_error(cli(capsys, "discover", d / "rec", "--array", CORNERS, "--report", d / "refused", "--apply",
                           out, "--force", "-q", *DISCOVER_ONE),
-                      str(out), "not replaced: the calibration on file fits")
+                      str(out), "not replaced: the calibration on file fits", f"the report is in {d / 'refused'}")
     assert out.read_bytes() == (d / "truth.yaml").read_bytes()
-    assert not (d / "true_copy.yaml.bak").exists() and not (d / "refused").exists()
+    assert not (d / "true_copy.yaml.bak").exists() and (d / "refused" / "report.json").exists()

@@ -78,7 +78,7 @@ def _check_report(report: Path, inputs, force: bool, plots: bool) -> None:
 
 
 def _read(path: Path, desc: ArrayDescription, label: str, quiet: bool) -> ImuSamples:
-    samples, _ = workflows.read_recording(path, desc, progress=Progress(f"reading {label}", quiet))
+    samples, _ = workflows.read_imu_recording(path, desc, progress=Progress(f"reading {label}", quiet))
     if len(samples.stamps) == 0:
         raise CalibrationError(f"{path}: no array samples")
     return samples
@@ -128,18 +128,21 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
                     f"{u['share_of_residual']:.0%} of the excess")
     info(quiet, f"after: log-likelihood {d.after.loglik:.8g}, NIS still {d.after.nis_still:.4g}, "
                 f"moving {d.after.nis_moving:.4g}")
-    if apply is not None:
-        # before the report: a refused install (the file there fits the recording better) writes nothing
-        if not d.findings:
-            info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
-        else:
-            installed = workflows.findings_calibration(d, samples, source=str(recording)).install(desc, apply)
-            if installed.backup is not None:
-                info(quiet, f"previous {apply} kept as {installed.backup}")
-            info(quiet, f"wrote {apply}")
     try:
         written = write_report(d, report, plots=not no_plots, source=str(recording))
     except OSError as err:
         raise OutputError(f"{report}: cannot write the report: {err.strerror or err}") from None
     info(quiet, f"wrote {', '.join(str(p) for p in written)}")
+    if apply is not None:
+        # after the report: a refused install (the file there fits the recording better) loses no work
+        if not d.findings:
+            info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
+        else:
+            try:
+                installed = workflows.findings_calibration(d, samples, source=str(recording)).install(desc, apply)
+            except CalibrationError as err:
+                raise CalibrationError(f"{err} (the report is in {report})") from None
+            if installed.backup is not None:
+                info(quiet, f"previous {apply} kept as {installed.backup}")
+            info(quiet, f"wrote {apply}")
     return 0

@@ -207,7 +207,7 @@ def read_array_recording(recording: Path, array: Path, calibration: Path | None,
     desc, source = workflows.load_array(array, calibration)
     workflows.check_fusable(desc, source)
     check_imus(desc, *imus)
-    samples, stats = workflows.read_recording(recording, desc, progress=Progress("reading", quiet))
+    samples, stats = workflows.read_imu_recording(recording, desc, progress=Progress("reading", quiet))
     info(quiet, f"read {stats.samples} array samples of {len(desc.imus)} IMUs")
     return desc, samples
 

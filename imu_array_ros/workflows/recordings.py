@@ -20,12 +20,10 @@ from imu_array_ros.simulation.perturb import DEFAULT_ERROR_SCALES, perturb
 from imu_array_ros.simulation.simulator import simulate_random, simulate_twist
 from imu_array_ros.workflows.arrays import check_fusable
 
-__all__ = ["read_recording", "import_openshoe", "simulate", "Simulated", "MOTIONS", "icosahedron_seconds"]
+__all__ = ["read_imu_recording", "import_openshoe", "simulate", "Simulated", "MOTIONS", "icosahedron_seconds"]
 
 #: what :func:`simulate` can simulate
 MOTIONS = ("twist", "random", "icosahedron")
-
-read_recording = read_imu_recording
 
 
 def import_openshoe(capture: str | Path, desc: ArrayDescription, *, start_ns: int | None = None,

@@ -317,6 +317,9 @@ def _salvage_file(path: Path, salvage: _Salvage, stats: RecoverStats, progress) 
             if isinstance(record, (Schema, Channel)):
                 salvage.register(record)
             elif isinstance(record, Message):
+                if not 0 <= record.log_time < 2 ** 63:  # damaged bytes read as a message: no int64 ns stamp
+                    res.lost_counted += 1
+                    continue
                 stamps = np.array([record.log_time], dtype=np.int64)
                 data = np.frombuffer(record.data, dtype=np.uint8)
                 salvage.add(record.channel_id, stamps, data.reshape(1, -1).copy())
