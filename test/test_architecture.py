@@ -204,3 +204,25 @@ def test_benchmarks_use_the_public_code_only():
                     if a.name.startswith("_") and not a.name.startswith("__"):
                         bad.append(f"{path.name}:{node.lineno}: imports the private {a.name} from {node.module}")
     assert not bad, "\n".join(bad)
+
+
+@pytest.mark.parametrize("module", ["imu_array_ros", "imu_array_ros.workflows"])
+def test_lazy_exports_resolve_and_match_what_type_checkers_see(module):
+    """The public API and the workflows layer import their names on first use (PEP 562); every exported name
+    resolves, comes from the module the table says, and is imported under ``TYPE_CHECKING`` too (so the
+    layer check above and type checkers see the same dependencies)."""
+    import importlib
+
+    mod = importlib.import_module(module)
+    path = Path(mod.__file__)
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    checked: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING":
+            checked |= {a.asname or a.name for n in node.body if isinstance(n, ast.ImportFrom) for a in n.names}
+    assert set(mod.EXPORTS) == checked
+    for name, source in mod.EXPORTS.items():
+        value = getattr(mod, name)
+        assert getattr(importlib.import_module(source), name) is value, name
+    with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
+        getattr(mod, "nothing_here")

@@ -26,7 +26,7 @@ def residuals(samples: ImuSamples, desc: ArrayDescription, *, fused: FusedSample
     already fused with that description; default: fused here).  ``{"recording": report}``; with
     ``compare_simulated`` also ``"simulated_same_motion"``: a simulated recording of the same fused motion
     (seeded), with the same readings missing, analysed the same way -- what the model alone would give."""
-    fusion = build_fusion(desc)
+    fusion = build_fusion(desc, t0_ns=int(samples.stamps[0]) if len(samples) else None)  # drifts count from there
     if fused is None:
         fused, _ = fuse_chunked(fusion, samples, progress)
     model = fusion.model
