@@ -80,6 +80,11 @@ def test_every_method_returns_one_contract(method, data, options, fitted, reques
     # the same calibration again is not worse: replaced, the old file kept as the backup
     again = cal.install(desc, out)
     assert again.backup == backup_path(out) and again.backup.read_bytes() == before
+    # applied to a calibrated description, the earlier record is kept (one level) as provenance
+    chained = cal.apply(load_description(out)).calibration
+    assert chained["previous"]["time"] == cal.record["time"] and "previous" not in chained["previous"]
+    assert cal.apply(chained_desc := cal.apply(desc)).calibration["previous"] == cal.record
+    assert "previous" not in cal.apply(desc).calibration and chained_desc.calibration == cal.record
 
 
 def test_unknown_method_is_one_line(twist):

@@ -138,9 +138,14 @@ class Calibration:
         return self.summary_line
 
     def apply(self, desc: ArrayDescription) -> ArrayDescription:
-        """``desc`` (same IMUs) with the calibrated values of :attr:`terms`, their ``_std`` and the record."""
+        """``desc`` (same IMUs) with the calibrated values of :attr:`terms`, their ``_std`` and the record.
+        When ``desc`` is itself calibrated, its record is kept in the new one as ``previous`` (one level:
+        what the fields this calibration did not fit, and their ``_std``, come from)."""
         out = self.model.to_description(desc, names=self.terms, stds=self.std)
-        return out.with_imus(out.imus, calibration=self.record)
+        record = dict(self.record)
+        if desc.calibration:
+            record["previous"] = {k: v for k, v in desc.calibration.items() if k != "previous"}
+        return out.with_imus(out.imus, calibration=record)
 
     def score_of(self, model: SensorModel | ArrayDescription) -> float:
         """The scorer's log-likelihood of ``model`` (a description is turned into its model)."""
