@@ -133,7 +133,7 @@ from hypothesis import strategies as st  # noqa: E402
 
 from imu_array_ros.model.description import description_from_dict, dump_description, term_fields  # noqa: E402
 from imu_array_ros.model.sensor_model import SensorModel  # noqa: E402
-from imu_array_ros.model.terms import REGISTRY  # noqa: E402
+from imu_array_ros.model.terms import REGISTRY, candidate_names  # noqa: E402
 
 _FINITE = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 _POSITIVE = st.floats(1e-3, 1e3, allow_nan=False, allow_infinity=False)
@@ -152,6 +152,8 @@ def _imu_dicts(draw, i):
     d = {"name": f"imu_{i}", "position": draw(_field_strategy(term_fields()["position"], _FINITE)),
          "orientation": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]}
     for key, f in term_fields().items():
+        if f.session:
+            continue  # refused in a description (test_session_states_are_refused)
         section = d if len(f.path) == 1 else d.setdefault(f.path[0], {})
         if key != "position" and draw(st.booleans()):
             section[f.path[-1]] = draw(_field_strategy(f, _POSITIVE if f.positive else _FINITE))
@@ -176,6 +178,21 @@ def test_every_term_field_and_its_std_round_trips(data):
     assert description_to_dict(desc) == data
     back = description_from_dict(yaml.safe_load(dump_description(desc)))
     assert description_to_dict(back) == data
+
+
+def test_session_states_are_refused(tmp_path, array32):
+    """A session state (a clock phase) is not a device constant: a description holding one is refused by
+    name, and a model holding one writes every field but it."""
+    data = description_to_dict(array32)
+    data["imu_array"]["imus"][2]["sample_clock"] = {"period": 1e-3, "phase": 2e-4}
+    with pytest.raises(ConfigError, match=r"sample_clock.phase.*session state"):
+        description_from_dict(data, "x.yaml")
+    model = SensorModel.from_description(array32)
+    clock = np.tile([1e-3, 250.0, 3e-4], (32, 1))
+    desc = model.with_terms(sample_clock=clock).to_description(array32, stds={"sample_clock": np.full((32, 3), 1.0)})
+    assert desc.imus[2].value("sample_clock.rate") == 250.0 and desc.imus[2].value("sample_clock.phase") == 0.0
+    text = dump_description(desc)
+    assert "phase" not in text and "rate: 250.0" in text and "rate_std: 1.0" in text
 
 
 def test_schema_is_the_registry():
@@ -224,14 +241,15 @@ def test_saving_keeps_gyroscope_nonorthogonality_and_new_terms(tmp_path, array32
     """The foundation's writer dropped gyroscope.nonorthogonality; every term now survives a save."""
     model = SensorModel.from_description(array32)
     values = {name: REGISTRY[name].default_values(32) + rng.normal(0, 1e-3, (32, REGISTRY[name].dim()))
-              for name in REGISTRY}
+              for name in candidate_names()}
     model = model.with_terms(**values)
     stds = {name: np.full((32, REGISTRY[name].dim()), 1e-4) for name in ("position", "gyroscope_g_sensitivity")}
     path = tmp_path / "cal.yaml"
     save_description(model.to_description(array32, stds=stds), path)
     back = load_description(path)
     for name, term in SensorModel.from_description(back).terms.items():
-        np.testing.assert_array_equal(term.values, values[name], err_msg=name)
+        np.testing.assert_array_equal(term.values, values[name] if name in values else term.default_values(32),
+                                      err_msg=name)
     np.testing.assert_array_equal(back.imus[5].stds["gyroscope.g_sensitivity"], np.full((3, 3), 1e-4))
     assert "g_sensitivity_std:" in path.read_text() and "nonorthogonality:" in path.read_text()
 

@@ -19,7 +19,7 @@ from imu_array_ros.discovery.explain import evaluate_candidates
 from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
-from imu_array_ros.model.terms import term_names
+from imu_array_ros.model.terms import candidate_names
 from imu_array_ros.simulation.concealed import Scenario, build, score, standard_suite
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -87,7 +87,7 @@ def test_score_statistics_are_chi_square_on_a_null_recording(nominal):
     s = built.samples
     motion, _, _ = fit_motion(s, nominal)
     blocks = ((s.stamps - s.stamps[0]) // int(0.5e9)).astype(np.int64)
-    sb = score_blocks(s, nominal, term_names(), motion, blocks)
+    sb = score_blocks(s, nominal, candidate_names(), motion, blocks)
     cands = evaluate_candidates(sb, nominal.names, np.arange(blocks[-1] + 1) % 4)
     assert len(cands) == 14 * 8
     ratio = np.mean([c.statistic / c.dof for c in cands])

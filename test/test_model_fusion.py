@@ -36,9 +36,10 @@ def every_term():
 
     rng = np.random.default_rng(20261121)
     nominal = SensorModel.from_description(grid_array32())
-    assert set(TRUE_SIZES) == set(REGISTRY)
+    # every term but the sample clocks (the time-aware tests cover those, with their session states)
+    assert set(TRUE_SIZES) == set(REGISTRY) - {"sample_clock", "stamp_clock"}
     values = {n: REGISTRY[n].default_values(32) + rng.normal(0, TRUE_SIZES[n], (32, REGISTRY[n].dim()))
-              for n in term_names()}
+              for n in term_names() if n in TRUE_SIZES}
     values["position"] = nominal.positions + rng.normal(0, TRUE_SIZES["position"], (32, 3))
     true = nominal.with_terms(**values)
     samples, truth = simulate_twist(true, 4.0, 500.0, rng, rms_rate=np.deg2rad(600))

@@ -12,7 +12,7 @@ from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.simulation.motion import random_motion
 from imu_array_ros.model.kinematics import quadratic_monomials
 
-from imu_array_ros.simulation.perturb import TERM_TEST_SIZES
+from imu_array_ros.simulation.perturb import TERM_TEST_CENTRES, TERM_TEST_SIZES
 
 from conftest import perturbed
 
@@ -32,8 +32,8 @@ def setup(rng):
     model = SensorModel(names=tuple(f"imu_{i}" for i in range(k)), frame_id="a", rotations=rot,
                         acc_std=np.full((k, 3), 0.04), gyro_std=np.full((k, 3), 1e-3),
                         terms={name: REGISTRY[name].identity(k) for name in term_names()})
-    values = {name: REGISTRY[name].default_values(k) + rng.normal(0, SIZES[name], (k, REGISTRY[name].dim()))
-              for name in term_names()}
+    values = {name: REGISTRY[name].default_values(k) + np.asarray(TERM_TEST_CENTRES.get(name, 0.0))
+              + rng.normal(0, SIZES[name], (k, REGISTRY[name].dim())) for name in term_names()}
     model = model.with_terms(**values)
     motion = dict(stamps=np.arange(n) * 5_000_000 + 10**18, omega=rng.normal(0, 5, (n, 3)),
                   omega_dot=rng.normal(0, 50, (n, 3)), specific_force=rng.normal(0, 10, (n, 3)),
@@ -61,7 +61,7 @@ def test_parameter_jacobian_matches_finite_differences(setup, name):
     scale = max(SIZES[name], 1e-3)
     for i in range(model.n_imus):
         for p in range(values.shape[1]):
-            h = 1e-6 * scale
+            h = 1e-6 * max(scale, abs(values[i, p]))
             up, dn = values.copy(), values.copy()
             up[i, p] += h
             dn[i, p] -= h
@@ -145,7 +145,7 @@ def test_linear_form_is_exact_with_per_axis_lever_arms(setup):
     np.testing.assert_allclose(np.einsum("kiz,nz->nki", lin.acc_design, z) + lin.acc_bias, acc, rtol=0, atol=1e-10)
     np.testing.assert_allclose(np.einsum("kij,nj->nki", lin.gyro_matrix, motion["omega"]) + lin.gyro_bias, gyr,
                                rtol=0, atol=1e-12)
-    assert set(model.nonlinear_terms) == {"time_offset", "accelerometer_nonlinearity", "gyroscope_g_sensitivity",
-                                          "bias_drift"}
+    assert set(model.nonlinear_terms) == {"time_offset", "sample_clock", "stamp_clock", "accelerometer_nonlinearity",
+                                          "gyroscope_g_sensitivity", "bias_drift"}
     full = model.predict(ctx)
     assert np.abs(full[0] - acc).max() > 1e-3 and np.abs(full[1] - gyr).max() > 1e-4  # they do act

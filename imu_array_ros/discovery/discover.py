@@ -41,7 +41,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.sensor_model import SensorModel
-from imu_array_ros.model.terms import REGISTRY, term_names
+from imu_array_ros.model.terms import REGISTRY, candidate_names, term_names
 
 __all__ = ["DiscoveryOptions", "Discovery", "Finding", "discover", "fit_summary"]
 
@@ -69,7 +69,7 @@ class DiscoveryOptions:
     heldout: bool = True
 
     def candidate_terms(self) -> tuple[str, ...]:
-        names = term_names() if self.terms is None else list(self.terms)
+        names = candidate_names() if self.terms is None else list(self.terms)
         unknown = [t for t in names if t not in REGISTRY]
         if unknown:
             raise CalibrationError(f"unknown term {unknown[0]!r} (known: {', '.join(term_names())})")

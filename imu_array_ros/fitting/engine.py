@@ -147,8 +147,18 @@ def fit_motion(samples: ImuSamples, model: SensorModel, motion0=None, *, motion_
 
 
 def _fixed(prob: Problem, model: SensorModel, only: dict | None) -> np.ndarray:
-    """(M,) True for the parameters ``only`` holds (its term not fitted on that IMU)."""
-    fixed = np.zeros(prob.m, dtype=bool)
+    """(M,) True for the parameters ``only`` holds (its term not fitted on that IMU) and for the fields the
+    engine never fits (``Field.fitted`` False: a clock's nominal period, a phase found by search)."""
+    fixed = np.zeros((len(prob.fit), prob.p), dtype=bool)
+    offsets = prob.offsets
+    for t in prob.free:
+        col = offsets[t]
+        for f in REGISTRY[t].fields:
+            fixed[:, col:col + f.size] = not f.fitted
+            col += f.size
+    fixed = fixed.reshape(-1)
+    if fixed.all():
+        raise CalibrationError(f"no parameter of {', '.join(prob.free)} is fitted by the engine")
     if not only:
         return fixed
     unknown = [t for t in only if t not in prob.free]

@@ -99,9 +99,15 @@ class Gauge:
         return gauge
 
 
+#: terms kept at their values at the structural point: the geometry, and the sample clocks (at their identity
+#: value a clock has no period and its rate no effect)
+STRUCTURAL = ("position", "sample_clock")
+
+
 def _structural(model: SensorModel) -> SensorModel:
-    """The model with every term but the positions at its identity value (``model`` itself if it is so)."""
-    reset = {n: t.default_values(model.n_imus) for n, t in model.terms.items() if n != "position" and not t.is_identity}
+    """The model with every term but the ``STRUCTURAL`` ones at its identity value (``model`` itself if it is so)."""
+    reset = {n: t.default_values(model.n_imus) for n, t in model.terms.items()
+             if n not in STRUCTURAL and not t.is_identity}
     return model.with_terms(**reset) if reset else model
 
 

@@ -16,6 +16,7 @@ from imu_array_ros.fitting.schur import accumulate_c, factor, gram, stacked_g
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.terms import REGISTRY, term_names
+from imu_array_ros.model.terms.timing import TimingTerm
 
 __all__ = ["Problem", "Linearization", "check_terms", "CHUNK_BYTES", "MOTION_ITERATIONS"]
 
@@ -95,7 +96,10 @@ class Problem:
         self.used = np.ones(n, dtype=bool)
         self.sizes = [REGISTRY[t].dim() for t in free]
         self.p = sum(self.sizes)
-        self.needs_derivatives = "time_offset" in free or not model.terms["time_offset"].is_identity
+        self.stamp_delays = samples.stamp_delays
+        self.needs_derivatives = (model.timed or self.stamp_delays is not None
+                                  or any(isinstance(REGISTRY[t], type) and issubclass(REGISTRY[t], TimingTerm)
+                                         for t in free))
         if self.needs_derivatives and np.any(np.diff(stamps) <= 0):
             raise CalibrationError("stamps must increase strictly (time offsets need the motion's time derivatives)")
         per_sample = 8 * (4 * 6 * k * (9 + self.p) + 2 * self.dm * self.m + 20 * 81)
@@ -208,7 +212,7 @@ class Problem:
         x = self.expand(motion, sel)
         return motion_context(self.stamps[sel], x[:, 0:3], x[:, 3:6], x[:, 6:9],
                               model.rotations, t0_ns=self.t0_ns, omega_ddot=cut(derivs[0]),
-                              specific_force_dot=cut(derivs[1]))
+                              specific_force_dot=cut(derivs[1]), stamp_delays=cut(self.stamp_delays))
 
     def residuals(self, model: SensorModel, motion: np.ndarray, derivs: tuple) -> np.ndarray:
         """(N, K, 6) normalised residuals w (y - h), 0 on masked axes, with the motion derivatives ``derivs``."""

@@ -197,6 +197,8 @@ def _field_value(source: str, where: str, value: Any, f: Field, *, std: bool = F
         x = _vector(source, where, value, f.size, positive=f.positive and not std).reshape(f.shape)
     if std and np.any(x < 0):
         raise _fail(source, where, f"a standard deviation must be >= 0, got {value!r}")
+    if not std and f.positive and f.default == 0 and np.any(x < 0):
+        raise _fail(source, where, f"must be >= 0 (0: not modelled), got {value!r}")
     return x
 
 
@@ -207,6 +209,9 @@ def _imu_terms(source: str, where: str, m: dict) -> tuple[dict, dict]:
     for key, f in term_fields().items():
         section = m if len(f.path) == 1 else m.get(f.path[0]) or {}
         leaf = f.path[-1]
+        if leaf in section and f.session:
+            raise _fail(source, f"{where}.{key}", "is a session state (it changes at every power-up; it is estimated "
+                                                  "from each recording), not a device constant: remove it")
         if leaf in section and key != "position":
             values[key] = _field_value(source, f"{where}.{key}", section[leaf], f)
         if leaf + STD_SUFFIX in section:
@@ -316,8 +321,8 @@ def _imu_dict(imu: ImuSpec) -> dict:
         d["position_std"] = _floats(imu.stds["position"])
     d["orientation"] = _floats(imu.orientation)
     for key, f in term_fields().items():
-        if key == "position" or (key not in imu.values and key not in imu.stds):
-            continue
+        if key == "position" or f.session or (key not in imu.values and key not in imu.stds):
+            continue  # a session state is never written as a device constant
         section = d.setdefault(f.path[0], {})
         for leaf, src in ((f.path[-1], imu.values), (f.path[-1] + STD_SUFFIX, imu.stds)):
             if key in src:

@@ -29,12 +29,18 @@ class ImuSamples:
         Gyroscope triad output in each IMU's own sensor frame, rad/s.
     names : tuple of K str
         IMU names, in the order of the array description.
+    own_stamps : (N, K) int64 or None
+        For IMUs that stamp their own messages (own drivers, own clocks): the stamp
+        each IMU's message paired with array sample n carried (``stamps`` is then
+        the array's grid, by default the reference IMU's stamps).  None: every IMU's
+        message carried the array sample's stamp.
     """
 
     stamps: np.ndarray
     accel: np.ndarray
     gyro: np.ndarray
     names: tuple[str, ...]
+    own_stamps: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.stamps = np.asarray(self.stamps, dtype=np.int64)
@@ -45,6 +51,17 @@ class ImuSamples:
         for label, arr in (("accel", self.accel), ("gyro", self.gyro)):
             if arr.shape != (n, k, 3):
                 raise ValueError(f"{label} has shape {arr.shape}, expected {(n, k, 3)}")
+        if self.own_stamps is not None:
+            self.own_stamps = np.asarray(self.own_stamps, dtype=np.int64)
+            if self.own_stamps.shape != (n, k):
+                raise ValueError(f"own_stamps has shape {self.own_stamps.shape}, expected {(n, k)}")
+
+    @property
+    def stamp_delays(self) -> np.ndarray | None:
+        """(N, K) s: each IMU's own stamp minus the array stamp (None without own stamps)."""
+        if self.own_stamps is None:
+            return None
+        return (self.own_stamps - self.stamps[:, None]).astype(float) * 1e-9
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -56,7 +73,8 @@ class ImuSamples:
 
     def select(self, index) -> "ImuSamples":
         """Samples picked by a boolean mask or index array (copies)."""
-        return ImuSamples(self.stamps[index], self.accel[index], self.gyro[index], self.names)
+        own = None if self.own_stamps is None else self.own_stamps[index]
+        return ImuSamples(self.stamps[index], self.accel[index], self.gyro[index], self.names, own)
 
     @property
     def readings(self) -> np.ndarray:

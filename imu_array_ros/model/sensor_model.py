@@ -3,10 +3,14 @@
 Each sensor of IMU k is a chain that starts from the motion in the nominal
 sensor frame and passes every term acting on that sensor, in ``order``::
 
-    accelerometer:  x = R^T s  -> position -> axis_offsets -> time_offset -> misalignment
+    accelerometer:  x = R^T s  -> position -> axis_offsets -> timing -> misalignment
                       -> nonorthogonality -> nonlinearity -> gain -> bias -> bias_drift
-    gyroscope:      x = R^T omega -> time_offset -> misalignment -> nonorthogonality
+    gyroscope:      x = R^T omega -> timing -> misalignment -> nonorthogonality
                       -> gain -> g_sensitivity -> bias -> bias_drift
+
+where *timing* is one stage: the signal at the reading's true sample time, the
+stamp plus the sum of the timing terms' delays (``time_offset``,
+``sample_clock``, ``stamp_clock``; :mod:`~imu_array_ros.model.terms.timing`)
 
 (with every term at its identity value this is skog2016 eq. 1-5; with the
 nilsson2014 terms it is y = K L (I + [xi]x) R^T s(r) + b).  :meth:`SensorModel.predict`
@@ -25,19 +29,22 @@ import numpy as np
 
 from imu_array_ros.model.saturation import unsaturated
 from imu_array_ros.model.terms import REGISTRY, SENSORS, MotionContext, Term, term_names
+from imu_array_ros.model.terms.timing import TimingStage, TimingTerm
 
 __all__ = ["SensorModel", "ModelJacobians", "motion_context", "motion_derivative"]
 
 
 def motion_context(stamps, omega, omega_dot, specific_force, rotations, *, t0_ns=None, omega_ddot=None,
-                   specific_force_dot=None, derivatives: bool = False) -> MotionContext:
+                   specific_force_dot=None, derivatives: bool = False, stamp_delays=None,
+                   trajectory=None) -> MotionContext:
     """A :class:`MotionContext` from arrays (N, 3) in the array frame; rotations (K, 3, 3).
 
     ``derivatives``: fill omega_ddot and specific_force_dot (when not given) by
     differentiating omega_dot and specific_force over the stamps (second-order
     central differences, one-sided at the ends; :func:`numpy.gradient`).  This is
-    how the simulator and the fitting engine obtain the derivatives the
-    ``time_offset`` term needs, so both see the same first-order model.
+    how the fitting engine obtains the derivatives the timing terms' first-order
+    shift needs.  stamp_delays (N, K) s, trajectory: see
+    :class:`~imu_array_ros.model.terms.base.MotionContext`.
     """
     f = lambda a: None if a is None else np.asarray(a, dtype=float).reshape(-1, 3)  # noqa: E731
     if derivatives:
@@ -45,7 +52,9 @@ def motion_context(stamps, omega, omega_dot, specific_force, rotations, *, t0_ns
         specific_force_dot = motion_derivative(stamps, specific_force) if specific_force_dot is None else specific_force_dot
     return MotionContext(stamps=np.asarray(stamps, dtype=np.int64).reshape(-1), omega=f(omega), omega_dot=f(omega_dot),
                          specific_force=f(specific_force), rotations=np.asarray(rotations, dtype=float),
-                         t0_ns=t0_ns, omega_ddot=f(omega_ddot), specific_force_dot=f(specific_force_dot))
+                         t0_ns=t0_ns, omega_ddot=f(omega_ddot), specific_force_dot=f(specific_force_dot),
+                         stamp_delays=None if stamp_delays is None else np.asarray(stamp_delays, dtype=float),
+                         trajectory=trajectory)
 
 
 def motion_derivative(stamps, values) -> np.ndarray:
@@ -147,15 +156,17 @@ class SensorModel:
             raise ValueError("the description's IMUs differ from the model's")
         names = [n for n in self.terms if not self.terms[n].is_identity] if names is None else list(names)
         stds = stds or {}
+        session = {f.key: f.session for n in names for f in REGISTRY[n].fields}
         imus = []
         for i, imu in enumerate(desc.imus):
             values, sd = {}, {}
             for name in names:
                 for key, v in self.terms[name].split().items():
-                    values[key] = v[i]
+                    if not session.get(key):  # a session state is never written as a device constant
+                        values[key] = v[i]
                 if name in stds:
-                    for key, v in type(self.terms[name])(np.asarray(stds[name])).split().items():
-                        if np.all(np.isfinite(v[i])):
+                    for key, v in _split(type(self.terms[name]), np.asarray(stds[name])).items():
+                        if np.all(np.isfinite(v[i])) and not session.get(key):
                             sd[key] = v[i]
             imus.append(imu.with_values(values, sd))
         return desc.with_imus(imus)
@@ -176,11 +187,30 @@ class SensorModel:
             terms[name] = terms[name].with_values(np.asarray(v, dtype=float).reshape(self.n_imus, -1))
         return replace(self, terms=terms)
 
-    def chain(self, sensor: str, keep: Iterable[str] = ()) -> list[Term]:
-        """The terms acting on ``sensor`` in order; identity terms left out unless in ``keep``."""
+    def chain(self, sensor: str, keep: Iterable[str] = (), ctx: MotionContext | None = None) -> list:
+        """The terms acting on ``sensor`` in order; identity terms left out unless in ``keep``.  The timing
+        terms come as one :class:`~imu_array_ros.model.terms.timing.TimingStage` (also when only ``ctx``
+        has stamp delays)."""
         keep = set(keep)
         out = [t for t in self.terms.values() if sensor in t.sensors and (t.name in keep or not t.is_identity)]
+        timing = [t for t in out if isinstance(t, TimingTerm)]
+        if timing or (ctx is not None and ctx.stamp_delays is not None):
+            out = [t for t in out if not isinstance(t, TimingTerm)] + [TimingStage(timing)]
         return sorted(out, key=lambda t: t.order)
+
+    @property
+    def timed(self) -> bool:
+        """True when a timing term is away from its identity value (the readings are not all at their stamps)."""
+        return any(isinstance(t, TimingTerm) and not t.is_identity for t in self.terms.values())
+
+    def sample_delays(self, ctx: MotionContext) -> np.ndarray:
+        """(N, K, 2) s: every reading's true sample time minus its stamp, [accelerometer, gyroscope]."""
+        ctx = self._prepare(ctx)
+        out = []
+        for sensor in SENSORS:
+            stage = [t for t in self.chain(sensor, ctx=ctx) if isinstance(t, TimingStage)]
+            out.append(stage[0].delay(ctx, sensor) if stage else np.zeros((ctx.n, ctx.k)))
+        return np.stack(out, axis=2)
 
     def _prepare(self, ctx: MotionContext) -> MotionContext:
         ctx.positions = self.terms["position"].values
@@ -197,7 +227,7 @@ class SensorModel:
         out = []
         for sensor in SENSORS:
             x = self._base(ctx, sensor)
-            for term in self.chain(sensor):
+            for term in self.chain(sensor, ctx=ctx):
                 x = term.apply(x, ctx, sensor)
             out.append(x)
         return out[0], out[1]
@@ -217,7 +247,7 @@ class SensorModel:
         params = {name: np.zeros((n, k, 6, self.terms[name].dim())) for name in free}
         for s, sensor in enumerate(SENSORS):
             rows = slice(3 * s, 3 * s + 3)
-            chain = self.chain(sensor, keep=free)
+            chain = self.chain(sensor, keep=free, ctx=ctx)
             x = self._base(ctx, sensor)
             inputs = []
             for term in chain:
@@ -227,7 +257,11 @@ class SensorModel:
             d = None  # d y / d (signal after the current term); None: the identity (no product needed)
             times = lambda a: a if d is None else d @ a  # noqa: E731
             for term, x_in in zip(reversed(chain), reversed(inputs)):
-                if term.name in params:
+                if isinstance(term, TimingStage):
+                    for member in term.terms:
+                        if member.name in params:
+                            params[member.name][:, :, rows] += times(term.d_params_of(member, x_in, ctx, sensor))
+                elif term.name in params:
                     params[term.name][:, :, rows] += times(term.d_params(x_in, ctx, sensor))
                 dm = term.d_motion(x_in, ctx, sensor) if with_motion else None
                 if dm is not None:
@@ -244,3 +278,13 @@ class SensorModel:
                 motion[:, :, rows, base:base + 3] += times(ctx.rot_t[None])
         return ModelJacobians(predicted=predicted, motion=motion, params=params)
 
+
+
+def _split(term_class, values: np.ndarray) -> dict[str, np.ndarray]:
+    """Field key -> (K, *shape) of a (K, P) array laid out as ``term_class``'s parameters (no validation:
+    standard deviations are not term values)."""
+    out, i = {}, 0
+    for f in term_class.fields:
+        out[f.key] = values[:, i:i + f.size].reshape((len(values),) + f.shape)
+        i += f.size
+    return out

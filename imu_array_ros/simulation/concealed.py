@@ -189,11 +189,11 @@ def standard_suite(*, arrays=("config/mimu4444bt_corners.yaml", "config/array32.
     """The committed suite: every registered term on one IMU of the 8-IMU array; the confounded pairs on
     different IMUs; two out-of-library effects; ``nulls`` null recordings; and on the 32-IMU array a subset
     of single terms and nulls."""
-    from imu_array_ros.model.terms import term_names
+    from imu_array_ros.model.terms import candidate_names
 
     corners, big = arrays
     out, s = [], seed
-    for i, term in enumerate(term_names()):
+    for i, term in enumerate(candidate_names()):
         out.append(Scenario(f"{term}@imu_{i % 8 + 1}", corners, [(term, i % 8)], seed=s))
         s += 1
     for i, (a, b) in enumerate(CONFOUNDED_PAIRS):

@@ -14,7 +14,7 @@ import numpy as np
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, term_names
 
-__all__ = ["DEFAULT_ERROR_SCALES", "TERM_TEST_SIZES", "perturb"]
+__all__ = ["DEFAULT_ERROR_SCALES", "TERM_TEST_SIZES", "TERM_TEST_CENTRES", "perturb"]
 
 #: Default 1-sigma sizes of seeded errors: positions per carlsson2017 Sec. IV
 #: (sigma_r = 1 mm would be the paper's pessimistic case; 0.1 mm is PCB placement,
@@ -37,7 +37,12 @@ TERM_TEST_SIZES = {
     "accelerometer_gain": 0.02, "accelerometer_bias": 0.3, "bias_drift": 1e-3,
     "gyroscope_misalignment": 0.01, "gyroscope_nonorthogonality": 0.01, "gyroscope_gain": 0.02,
     "gyroscope_g_sensitivity": 1e-3, "gyroscope_bias": 0.01,
+    "stamp_clock": 1e-3, "sample_clock": 1e-5,
 }
+
+#: Terms whose identity value is not a valid place to perturb around: the values (per parameter) the
+#: test sizes are added to (a sample clock of period 1 ms, its phase inside the period).
+TERM_TEST_CENTRES = {"sample_clock": (1e-3, 1500.0, 4e-4), "stamp_clock": (0.0, 100.0)}
 
 
 def perturb(model: SensorModel, rng: np.random.Generator, scales: dict[str, float] | None = None) -> SensorModel:

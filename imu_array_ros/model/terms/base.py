@@ -49,7 +49,12 @@ class Field:
 
     path: keys below the IMU's mapping, e.g. ``("accelerometer", "gain")``;
     shape: per-IMU shape, () for a scalar; unit: SI unit text; default: the
-    identity value of every element; positive: values must be > 0.
+    identity value of every element; positive: values must be > 0 (or 0 when
+    ``default`` is 0); session: a *session state* (a value that changes at every
+    power-up or recording, e.g. a clock phase), estimated from each recording and
+    never written into a description as a device constant; fitted: the fitting
+    engine estimates it (False: held, set by the user or by a dedicated estimator,
+    e.g. a nominal clock period or a phase found by search).
     """
 
     path: tuple[str, ...]
@@ -57,6 +62,8 @@ class Field:
     unit: str
     default: float = 0.0
     positive: bool = False
+    session: bool = False
+    fitted: bool = True
 
     @property
     def size(self) -> int:
@@ -88,9 +95,16 @@ class MotionContext:
     stamps (N,) int64 ns; t (N,) s since ``t0_ns`` (the recording's first stamp,
     for drifts); omega (N, 3) rad/s, omega_dot (N, 3) rad/s^2, specific_force
     (N, 3) m/s^2 at the array origin, all in the array frame.  omega_ddot and
-    specific_force_dot (N, 3): time derivatives, needed only by time offsets
+    specific_force_dot (N, 3): time derivatives, needed only by the timing terms
     (zeros when not given).  rotations (K, 3, 3): sensor -> array (nominal).
     positions (K, 3) m: accelerometer positions (the ``position`` term sets it).
+    stamp_delays (N, K) s: for IMUs that stamp their own messages, each IMU's own
+    stamp minus the array sample's stamp (None: every IMU carries the array's stamp).
+    trajectory: the motion as a function of time (``trajectory(t_ns) -> (omega,
+    omega_dot, specific_force)``, each (..., 3), at int64 ns stamps of any shape):
+    when given, the timing terms evaluate every reading at its true sample time
+    exactly (the simulator's dense truth, the fusion's interpolated estimate)
+    instead of to first order.
     """
 
     stamps: np.ndarray
@@ -102,6 +116,8 @@ class MotionContext:
     omega_ddot: np.ndarray | None = None
     specific_force_dot: np.ndarray | None = None
     positions: np.ndarray | None = field(default=None, repr=False)
+    stamp_delays: np.ndarray | None = None
+    trajectory: object | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
@@ -159,7 +175,11 @@ class Term:
     ``fields`` (the YAML fields it owns, in parameter order), ``linear`` (True
     when the term keeps the reading linear in [q(omega), omega_dot, s], so the
     fusion can carry it exactly), ``hint`` (one short sentence: the motion that
-    identifies the term's parameters, quoted when a fit cannot identify them).
+    identifies the term's parameters, quoted when a fit cannot identify them),
+    ``candidate`` (False for a term the engine cannot fit from its identity value alone:
+    a sample clock needs its period and a phase search, a stamp clock needs messages
+    with their own stamps; such terms are left out of the default candidate lists of
+    discovery and of the simulated suites).
     Instances hold ``values`` (K, P).
     """
 
@@ -168,6 +188,7 @@ class Term:
     order: ClassVar[int] = 0
     fields: ClassVar[tuple[Field, ...]] = ()
     linear: ClassVar[bool] = True
+    candidate: ClassVar[bool] = True
     description: ClassVar[str] = ""
     hint: ClassVar[str] = ""
 
