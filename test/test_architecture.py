@@ -28,7 +28,7 @@ LAYERS = {
     "model": 2,
     "io": 3,
     "fusion": 4, "fitting": 4,
-    "simulation": 5,
+    "simulation": 5, "timing": 5,
     "calibration": 6,
     "discovery": 7,
     "workflows": 8,

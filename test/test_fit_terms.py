@@ -12,8 +12,8 @@ import pytest
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.fitting.problem import Problem
-from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
 from imu_array_ros.model.layouts import grid_array32, make_description
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.samples import MotionTruth
 from imu_array_ros.model.terms import REGISTRY, candidate_names
 from imu_array_ros.simulation.motion import random_motion
@@ -81,9 +81,7 @@ def test_schur_step_is_the_dense_joint_gauss_newton_step(rng):
     dtheta = np.linalg.solve(lin.S, lin.g)
     dx = prob.motion_step(model, motion, lin, dtheta)
 
-    ctx = motion_context(samples.stamps, motion[:, :3], motion[:, 3:6], motion[:, 6:], model.rotations,
-                         omega_ddot=motion_derivative(samples.stamps, motion[:, 3:6]),
-                         specific_force_dot=motion_derivative(samples.stamps, motion[:, 6:]))
+    ctx = prob.context_at(model, motion, prob.derivatives(motion), slice(None))  # the engine's timing context
     jac = model.jacobians(ctx, free)
     w = 1.0 / model.std[None]
     y = np.concatenate([samples.accel, samples.gyro], axis=2)

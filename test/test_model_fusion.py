@@ -66,18 +66,20 @@ def test_compensation_is_what_makes_it_consistent(every_term):
 
 
 def test_chunked_stream_uses_the_recording_first_stamp(every_term):
-    """Fusing in chunks gives the same drift reference (t0 = first stamp) and nearly the same values."""
+    """Fusing in chunks gives the same drift reference (t0 = first stamp) and nearly the same values: the
+    timing terms are compensated along local cubics through each chunk's estimate (a window of ~25 ms, which
+    reaches one window further per pass at a chunk's edge) with the gyroscopes' rate offset estimated per
+    chunk, so away from the edges the values agree to a tenth of their standard deviation (measured: 0.03)."""
     _, true, samples, truth = every_term
     whole = fuse_model(samples, true)[0]
     fusion = ModelFusion(true)
     parts, _ = fuse_chunked(fusion, samples, chunk=500)
     assert fusion.t0_ns == int(samples.stamps[0])
-    # chunk edges differentiate one-sidedly, which reaches one sample further per pass;
-    # elsewhere identical to rounding
     inner = np.ones(len(samples), bool)
     for edge in range(0, len(samples) + 1, 500):
-        inner[max(edge - 3, 0):edge + 3] = False
-    np.testing.assert_allclose(parts.omega[inner], whole.omega[inner], rtol=0, atol=1e-9)
+        inner[max(edge - 40, 0):edge + 40] = False
+    std = np.sqrt(np.einsum("nii->ni", whole.covariance[:, :3, :3]))
+    assert np.all(np.abs(parts.omega[inner] - whole.omega[inner]) < 0.1 * std[inner])
     assert abs(nees(parts, truth).mean() - 9) < 4 * np.sqrt(18 / len(samples))
 
 

@@ -417,21 +417,15 @@ def test_partial_or_wrong_message_index_can_not_hide_messages(tmp_path):
 # --------------------------------------------------------------------------- stamps
 
 
-def test_unequal_stamps_name_the_topic(tmp_path):
+def test_jittered_stamps_become_incomplete_samples(tmp_path):
+    """A few stamps off on one IMU (the others' stamps coinciding) are not an error: they become incomplete
+    samples.  (An IMU whose stamps all differ is paired as stamping its own messages: test_pairing.py.)"""
     desc = make_desc()
     s = make_samples(desc, n=60, seed=17)
     chans = []
     for k, name in enumerate(NAMES):
-        stamps = s.stamps + (1000 if name == "left_front_imu" else 0)  # 1 µs off
-        p = encode_imu(stamps, name, angular_velocity=s.gyro[:, k], linear_acceleration=s.accel[:, k])
-        chans.append(ChannelData(imu_topic(name), IMU, stamps, p))
-    write_recording(tmp_path / "off.mcap", chans)
-    with pytest.raises(RecordingError) as err:
-        read_imu_recording(tmp_path / "off.mcap", desc)
-    msg = one_line(err)
-    assert "stamps of /imu_array/left_front_imu/data_raw do not match the other IMUs (100% of its samples unmatched)" in msg
-    assert "same header.stamp" in msg
-
+        p = encode_imu(s.stamps, name, angular_velocity=s.gyro[:, k], linear_acceleration=s.accel[:, k])
+        chans.append(ChannelData(imu_topic(name), IMU, s.stamps, p))
     # a few jittered stamps are not an error: they become incomplete samples
     jit = s.stamps.copy()
     jit[:5] += 1000

@@ -59,6 +59,7 @@ class ArrayCalibration:
     moving_terms: tuple[str, ...] = ()
     moving_window: ImuSamples | None = field(default=None, repr=False)
     seconds: float = 0.0
+    timing_notes: list[str] = field(default_factory=list)
 
     def stds(self) -> dict[str, np.ndarray]:
         """term -> (K, P) standard deviations of every calibrated field (the moving stage's CRB x
@@ -81,6 +82,7 @@ class ArrayCalibration:
             parts.append(f"moving: {self.moving_samples[0]} of {self.moving_samples[1]} samples, "
                          f"{', '.join(m.free)}; NIS {m.nis_before:.4g} -> {m.nis_after:.4g}, {m.iterations} iterations"
                          f"{'' if m.converged else ' (NOT converged)'}")
+        parts += [f"timing: {note}" for note in self.timing_notes]
         parts += [f"{stage} skipped: {why}" for stage, why in self.skipped.items()]
         return "; ".join(parts)
 
@@ -103,16 +105,22 @@ class ArrayCalibration:
                            "converged": bool(m.converged), "held": list(m.held),
                            "log_likelihood_before": f(m.loglik_before), "log_likelihood_after": f(m.loglik_after),
                            "nis_before": f(m.nis_before), "nis_after": f(m.nis_after)})
+        if self.timing_notes:
+            stages.append({"stage": "timing", "notes": list(self.timing_notes)})
         return {"method": "calibrate all: still poses -> static (accelerometer intrinsics, gyroscope biases) -> "
-                          "moving (positions, gyroscope gain and misalignment)",
+                          "moving (positions, gyroscope gain and misalignment) -> timing (sample clocks, time "
+                          "offsets, refitted with the moving terms)",
                 **provenance(), "stages": stages, "skipped": dict(self.skipped)}
 
 
 def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, static_method: str = "ml",
                     static_terms: Sequence[str] | None = None, moving_terms: Sequence[str] = MOVING_TERMS,
                     gravity: float = STANDARD_GRAVITY, still_options: dict | None = None,
-                    max_iterations: int = 50, progress: Callable[[str], None] | None = None) -> ArrayCalibration:
-    """Calibrate what the recording can: static stage from its still poses, moving stage from the rest.
+                    max_iterations: int = 50, progress: Callable[[str], None] | None = None,
+                    timing: bool = True, clock_period: float | None = 1e-3) -> ArrayCalibration:
+    """Calibrate what the recording can: static stage from its still poses, moving stage from the rest,
+    then (``timing``) the timing stage (:mod:`~imu_array_ros.calibration.timing`: sample clocks of period
+    ``clock_period`` searched, time offsets and clock rates fitted with the moving terms).
 
     Raises :class:`CalibrationError` only when neither stage can run (the reasons of both)."""
     from imu_array_ros.calibration.selection import MIN_EXCITATION, require_rotation, select_rotating
@@ -153,7 +161,10 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
         used_total = (selection.n_used, len(samples))
         say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
         window = moving_samples.select(used)
-        moving = fit_terms(window, current, moving_terms, reference=reference,
+        if np.any(current.terms["sample_clock"].values[:, 0] > 0):  # this recording's clock phases first
+            from imu_array_ros.timing.session import estimate_session
+            current = estimate_session(samples, current).model
+        moving = fit_terms(window, current, moving_terms, reference=reference, t0_ns=int(samples.stamps[0]),
                            motion0=selection.motion[used], max_iterations=max_iterations,
                            progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
         current = moving.model
@@ -161,12 +172,46 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
     except CalibrationError as err:
         skipped["moving"] = str(err)
         say(f"moving stage skipped: {err}")
+    timing_notes: list[str] = []
+    if timing and moving is not None:
+        moving, current, window, timing_notes = _timing_stage(samples, poses, current, moving, moving_terms, skipped,
+                                                              reference, clock_period, max_iterations, say)
+        if window is not None:
+            used_total = (len(window), len(samples))
     if static is None and not moving_terms:
         raise CalibrationError(skipped["static"])
     if static is None and moving is None:
         raise CalibrationError(f"nothing to calibrate: static stage: {skipped['static']}; "
                                f"moving stage: {skipped['moving']}")
     return ArrayCalibration(model=current, poses=poses, static=static, moving=moving, skipped=skipped,
-                            moving_samples=used_total, moving_terms=moving_terms,
+                            moving_samples=used_total, moving_terms=tuple(moving.free) if moving else moving_terms,
+                            timing_notes=timing_notes,
                             moving_window=window if moving is not None else None,
                             seconds=time.perf_counter() - t0)
+
+
+def _timing_stage(samples, poses, current, moving, moving_terms, skipped, reference, clock_period, max_iterations,
+                  say):
+    """The timing stage (:mod:`~imu_array_ros.calibration.timing`): on the contiguous moving samples (the timing
+    terms read the motion's time derivatives, so no sample is picked out), the moving terms refitted with the
+    timing terms.  Returns (moving fit, model, window, notes); on failure the moving stage's and a skip reason."""
+    from imu_array_ros.calibration.timing import prepare_timing
+    from imu_array_ros.fitting.engine import fit_terms
+
+    idx = np.flatnonzero(poses.moving)
+    try:
+        setup = prepare_timing(samples.select(idx), current, clock_period=clock_period, t0_ns=int(samples.stamps[0]))
+        for note in setup.notes:
+            say(f"timing stage: {note}")
+        terms = tuple(dict.fromkeys(tuple(moving_terms) + setup.terms))
+        window = samples.select(idx)
+        say(f"timing stage: {', '.join(terms)} on the {len(idx)} moving samples")
+        fit = fit_terms(window, setup.model, terms, reference=reference, max_iterations=max_iterations,
+                        t0_ns=int(samples.stamps[0]),
+                        progress=lambda it, cost: say(f"timing stage: iteration {it}, cost {cost:.10g}"))
+        say(f"timing stage: NIS {fit.nis_before:.4g} -> {fit.nis_after:.4g}")
+        return fit, fit.model, window, setup.notes
+    except CalibrationError as err:
+        skipped["timing"] = str(err)
+        say(f"timing stage skipped: {err}")
+        return moving, current, None, []

@@ -219,4 +219,9 @@ def read_and_fuse(recording: Path, array: Path, calibration: Path | None,
     desc, _ = workflows.load_array(array, calibration)
     fused = workflows.fuse_recording(recording, desc, read_progress=Progress("reading", quiet),
                                      fuse_progress=Progress("fusing", quiet))
+    for note in fused.read_stats.notes:
+        info(quiet, note)
+    if fused.session is not None:
+        for note in fused.session.notes:
+            info(quiet, f"session states: {note}")
     return desc, fused

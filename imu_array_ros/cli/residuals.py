@@ -57,9 +57,12 @@ def run(recording: Path, *, array: Path, calibration: Path | None = None, compar
     desc, f = read_and_fuse(recording, array, calibration, quiet)
     if f.stats.fused == 0:
         raise FusionError(f"{recording}: no sample could be fused")
-    reports = workflows.residuals(f.samples, desc, fused=f.fused, compare_simulated=compare_simulated, seed=seed,
+    reports = workflows.residuals(f.samples, desc, fused=f.fused, fusion=f.fusion, compare_simulated=compare_simulated,
+                                  seed=seed,
                                   still_threshold=still_threshold, progress=Progress("fusing simulated", quiet))
     result = json_safe({name: rep.summary() for name, rep in reports.items()})
+    if f.session is not None:
+        result["session_states"] = json_safe(f.session.summary())
 
     for name in reports:
         for regime in ("still", "moving"):

@@ -78,15 +78,16 @@ nothing is regularised silently.
 
 Approximation
 -------------
-The ``time_offset`` term reads the time derivatives omega_ddot and ds/dt of the
-motion.  They are recomputed from the current motion estimate at every
-iteration (:func:`~imu_array_ros.model.sensor_model.motion_derivative`, as the
-simulator does) and held fixed within the iteration, in the Jacobians and in
-the cost of the trial step: the dependence of sample n's reading on its
-neighbours' motion through those derivatives is neglected (keeps the normal
-equations block-arrow), and the iteration converges to the point that is
-optimal for the derivatives of its own motion.  The effect is second order in
-the offset (milliseconds) times the noise of the motion estimate.
+The timing terms (time offsets, sample clocks, stamp clocks) evaluate every reading at its true sample
+time along the motion near its sample: local cubics through the current motion estimate
+(:func:`~imu_array_ros.model.trajectory.timing_context`, as the fusion compensates them), rebuilt at
+every iteration and held fixed within it, in the predictions, the Jacobians and the cost of the trial
+step; their Jacobians are first order in the delay (d y / d theta = dx/dt d delay / d theta, the slopes
+of the same cubics; a gyroscope's rate of change is that of the angular-rate estimates, not the
+omega_dot state, which a bias field's gauge may shift).  The dependence of sample n's readings on its
+neighbours' motion through the cubics is neglected (keeps the normal equations block-arrow), and the
+iteration converges to the point that is optimal for the trajectory of its own motion.  The effect is
+second order in the delay (milliseconds) times the noise of the motion estimate.
 
 Modules
 -------

@@ -25,7 +25,10 @@ from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
 __all__ = ["FitResult", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms", "GAUGE_ORDER",
-           "NOISE_SHARE"]
+           "NOISE_SHARE", "TIMING_ROUNDS"]
+
+#: with timing terms, how many times the trajectory is rebuilt from the motion found and the fit repeated
+TIMING_ROUNDS = 3
 
 
 @dataclass
@@ -77,7 +80,7 @@ class FitResult:
 def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, imus=None, reference=None,
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
               progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None,
-              only: dict | None = None) -> FitResult:
+              only: dict | None = None, t0_ns: int | None = None) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
     samples: the readings (:class:`~imu_array_ros.model.samples.ImuSamples`: stamps (N,) int64 ns,
@@ -107,7 +110,9 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     other IMUs of ``imus`` (e.g. the findings of mismatch discovery: one term
     on one IMU, another on another; default every free term on every fitted
     IMU; with ``only``, a gauge freedom left is fixed by holding parameters as
-    with gauge="reference", whatever ``gauge`` says).  Raises
+    with gauge="reference", whatever ``gauge`` says); t0_ns: the time origin of
+    drifts and sample clocks (default the first stamp; give the recording's when
+    ``samples`` are a part of it: a sample clock's phase counts from it).  Raises
     :class:`CalibrationError` (one line) when the problem cannot be solved or
     identified.
     """
@@ -116,9 +121,9 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
         raise CalibrationError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
     fit = imu_indexes(model.names, imus, "imus")
     ref = _reference(model, fit, reference)
-    prob = Problem(samples, model, free, fit, motion_model=motion_model, sigma=sigma)
+    prob = Problem(samples, model, free, fit, motion_model=motion_model, sigma=sigma, t0_ns=t0_ns)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
-    motion, lin = prob.fit_motion(model, motion)
+    motion, lin = _fit_motion_frozen(prob, model, motion)
     motion = prob.drop(~lin.ok, motion)
     prob.check_dof(prob.m)
     lin = prob.linearize(model, motion)  # with the free parameters, at the initial point
@@ -127,7 +132,33 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     before = lin.cost
     model, motion, lin, iterations, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
                                                                     max_iterations, tolerance, progress)
+    for _ in range(TIMING_ROUNDS if prob.needs_derivatives else 0):
+        # the timing terms' trajectory was held through the optimisation: rebuild it from the motion found
+        # and optimise again, until the parameters no longer move
+        theta = prob.values(model).reshape(-1)
+        prob.freeze(motion)
+        lin = prob.linearize(model, motion)
+        model, motion, lin, more, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
+                                                                  max_iterations, tolerance, progress)
+        iterations += more
+        s_z, _ = gauge_fix.reduce(lin.S, lin.g)
+        std = np.sqrt(np.clip(np.diag(gauge_fix.expand_covariance(inverse(s_z))), 0.0, None))
+        moved = np.abs(prob.values(model).reshape(-1) - theta)
+        if np.all(moved[std > 0] < tolerance * 10 * std[std > 0]):
+            break
     return _result(prob, model, motion, lin, gauge_fix, before, dof, iterations, converged)
+
+
+def _fit_motion_frozen(prob: Problem, model: SensorModel, motion: np.ndarray):
+    """The motion-only fit; with timing terms, on a trajectory held from the initial motion, then from the
+    motion found (:meth:`Problem.freeze`), so the fit converges on a fixed problem."""
+    if not prob.needs_derivatives:
+        return prob.fit_motion(model, motion)
+    for _ in range(2):
+        prob.freeze(motion)
+        motion, lin = prob.fit_motion(model, motion)
+    prob.freeze(motion)
+    return motion, prob.linearize(model, motion, free=False)
 
 
 def fit_motion(samples: ImuSamples, model: SensorModel, motion0=None, *, motion_model=None,
@@ -142,7 +173,7 @@ def fit_motion(samples: ImuSamples, model: SensorModel, motion0=None, *, motion_
     prob = Problem(samples, model, ("position",), np.arange(model.n_imus), motion_model=motion_model,
                     sigma=sigma)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
-    motion, lin = prob.fit_motion(model, motion)
+    motion, lin = _fit_motion_frozen(prob, model, motion)
     return prob.expand(motion), prob.loglik(lin.cost), np.where(prob.valid, lin.r, np.nan)
 
 

@@ -73,8 +73,8 @@ class Gauge:
         CalibrationError if anything is not.  ``fixed`` (M,): parameters held from the start (``only``),
         outside every search."""
         structural = _structural(model)
-        if structural is not model:
-            lin = prob.linearize(structural, motion)
+        if structural is not model or prob.needs_derivatives:
+            lin = prob.linearize(structural, motion, gauge_point=True)
         scale = np.sqrt(lin.cdiag)
         scale = np.where(scale > 0, scale, 1.0)
         act = np.ones(prob.m, dtype=bool) if fixed is None else ~fixed

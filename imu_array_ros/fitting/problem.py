@@ -15,6 +15,7 @@ from imu_array_ros.fitting.motion_models import RigidMotion
 from imu_array_ros.fitting.schur import accumulate_c, factor, gram, stacked_g
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
+from imu_array_ros.model.trajectory import timing_context
 from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.model.terms.timing import TimingTerm
 
@@ -66,7 +67,7 @@ class Problem:
     """Readings, weights and the parameter layout: fitted IMUs x free terms' parameters, IMU-major."""
 
     def __init__(self, samples: ImuSamples, model: SensorModel, free: tuple[str, ...], fit: np.ndarray, *,
-                 motion_model=None, sigma=None):
+                 motion_model=None, sigma=None, t0_ns: int | None = None):
         stamps = samples.stamps
         n, k = len(stamps), model.n_imus
         if tuple(samples.names) != tuple(model.names):
@@ -77,7 +78,7 @@ class Problem:
         self.model0 = model
         self.stamps, self.free, self.fit = stamps, free, fit
         self.cols = slice(None) if len(fit) == k else fit  # the fitted IMUs, a view when all are
-        self.t0_ns = int(stamps[0])
+        self.t0_ns = int(stamps[0]) if t0_ns is None else int(t0_ns)  # drifts and sample clocks count from it
         self.raw = samples.readings
         valid = samples.valid(model)
         if not valid.any():
@@ -196,12 +197,23 @@ class Problem:
         for lo in range(0, self.n, self.chunk):
             yield lo, min(lo + self.chunk, self.n)
 
+    def freeze(self, motion: np.ndarray | None) -> None:
+        """Hold the timing context of ``motion`` (None: release it) until the next freeze: the timing
+        terms then see one fixed trajectory, so the problem does not move under the optimiser."""
+        self.frozen = None
+        if motion is not None and self.needs_derivatives:
+            self.frozen = self.derivatives(motion)
+
     def derivatives(self, motion: np.ndarray) -> tuple:
-        """(omega_ddot, specific_force_dot) of the whole recording, or (None, None) when no term reads them."""
+        """(omega_ddot, specific_force_dot, omega_rate, trajectory) of the whole recording: the local
+        cubics through the motion (:func:`~imu_array_ros.model.trajectory.timing_context`), or those
+        held by :meth:`freeze`; all None when no timing term reads them."""
         if not self.needs_derivatives:
-            return None, None
-        x = self.expand(motion)
-        return motion_derivative(self.stamps, x[:, 3:6]), motion_derivative(self.stamps, x[:, 6:9])
+            return None, None, None, None
+        if getattr(self, "frozen", None) is not None:
+            return self.frozen
+        tc = timing_context(self.stamps, self.expand(motion))
+        return tc["omega_ddot"], tc["specific_force_dot"], None, tc["trajectory"]
 
     def context(self, model: SensorModel, motion: np.ndarray, derivs: tuple, lo: int, hi: int):
         return self.context_at(model, motion, derivs, slice(lo, hi))
@@ -210,9 +222,11 @@ class Problem:
         """The motion context of the samples ``sel`` (slice or indexes); ``motion`` and ``derivs`` whole."""
         cut = lambda a: None if a is None else a[sel]  # noqa: E731
         x = self.expand(motion, sel)
+        traj = None if derivs[3] is None else derivs[3].rows(sel)
         return motion_context(self.stamps[sel], x[:, 0:3], x[:, 3:6], x[:, 6:9],
                               model.rotations, t0_ns=self.t0_ns, omega_ddot=cut(derivs[0]),
-                              specific_force_dot=cut(derivs[1]), stamp_delays=cut(self.stamp_delays))
+                              specific_force_dot=cut(derivs[1]), stamp_delays=cut(self.stamp_delays),
+                              omega_rate=cut(derivs[2]), trajectory=traj)
 
     def residuals(self, model: SensorModel, motion: np.ndarray, derivs: tuple) -> np.ndarray:
         """(N, K, 6) normalised residuals w (y - h), 0 on masked axes, with the motion derivatives ``derivs``."""
@@ -222,8 +236,12 @@ class Problem:
             out[lo:hi] = self.w[lo:hi] * (self.y[lo:hi] - np.concatenate([acc, gyr], axis=2))
         return out
 
-    def linearize(self, model: SensorModel, motion: np.ndarray, *, free: bool = True) -> Linearization:
-        """The Schur-complemented Gauss-Newton system at (model, motion); ``free=False``: motion only."""
+    def linearize(self, model: SensorModel, motion: np.ndarray, *, free: bool = True,
+                  gauge_point: bool = False) -> Linearization:
+        """The Schur-complemented Gauss-Newton system at (model, motion); ``free=False``: motion only;
+        ``gauge_point``: with the timing terms' first-order shift on the motion's own omega_dot and no
+        trajectory, the model in which a common time shift of every reading is exactly absorbed by the
+        motion (where the gauge freedoms are found)."""
         m = self.m if free else 0
         kf, p = len(self.fit), self.p
         S, g = np.zeros((m, m)), np.zeros(m)
@@ -231,6 +249,8 @@ class Problem:
         linv, h = np.empty((self.n, self.dm, self.dm)), np.empty((self.n, self.dm))
         ok, r_all = np.empty(self.n, dtype=bool), np.empty_like(self.y)
         derivs = self.derivatives(motion)
+        if gauge_point:
+            derivs = (derivs[0], derivs[1], None, None)
         for lo, hi in self.chunks():
             jac = model.jacobians(self.context(model, motion, derivs, lo, hi), self.free if m else ())
             w = self.w[lo:hi]

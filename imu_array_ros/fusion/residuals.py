@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from imu_array_ros.model.trajectory import fused_timing_context
 from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 
@@ -108,12 +109,22 @@ def normalized_residuals(samples: ImuSamples, model: SensorModel, fused: FusedSa
     # time derivatives of the estimate over the whole recording (not per chunk)
     ctx_all = motion_context(fused.stamps, fused.omega, fused.omega_dot, fused.specific_force, model.rotations,
                              t0_ns=t0, derivatives=True)
+    # readings away from their stamps are predicted along the fused trajectory, as the fusion compensates them
+    delays = samples.stamp_delays
+    timed = model.timed or delays is not None
+    tc = fused_timing_context(fused.stamps, np.concatenate([fused.omega, fused.omega_dot, fused.specific_force],
+                                                           axis=1)) if timed else None
     for lo in range(0, len(fused), chunk):
         hi = min(lo + chunk, len(fused))
         sel = idx[lo:hi]
+        if tc is None:
+            extra = dict(omega_ddot=ctx_all.omega_ddot[lo:hi], specific_force_dot=ctx_all.specific_force_dot[lo:hi])
+        else:
+            extra = dict(omega_ddot=tc["omega_ddot"][lo:hi], specific_force_dot=tc["specific_force_dot"][lo:hi],
+                         omega_rate=tc["omega_rate"][lo:hi], trajectory=tc["trajectory"].rows(slice(lo, hi)),
+                         stamp_delays=None if delays is None else delays[sel])
         ctx = motion_context(fused.stamps[lo:hi], fused.omega[lo:hi], fused.omega_dot[lo:hi],
-                             fused.specific_force[lo:hi], model.rotations, t0_ns=t0,
-                             omega_ddot=ctx_all.omega_ddot[lo:hi], specific_force_dot=ctx_all.specific_force_dot[lo:hi])
+                             fused.specific_force[lo:hi], model.rotations, t0_ns=t0, **extra)
         jac = model.jacobians(ctx)
         ya, yg = samples.accel[sel], samples.gyro[sel]
         valid = model.valid(ya, yg)

@@ -11,6 +11,15 @@ stamps shifted by the recording's span so that they keep increasing.
 With ``restamp_ns`` (the wall time of the start), samples are stamped with the
 wall time they fall due instead of the recorded time (``rate = 0``: the time
 of the call, 1 ns apart).
+
+IMUs with their own stamps (a recording read with ``own_stamps``, see
+:mod:`imu_array_ros.io.pairing`): the samples handed out keep every message's
+own recorded stamp in ``own_stamps`` (shifted with the loop), and the messages
+the pairing left unused come as rows of their own, so every message is
+replayed; timing follows the grid (the reference IMU's stamps).  Restamped, each own stamp moves with its
+array sample's stamp, so the IMUs keep their recorded offsets from each other.
+Publish with :func:`~imu_array_ros.io.rosbag.recording.imu_payloads`, which
+stamps every message with its own stamp.
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ class Replay:
 
         if rate < 0:
             raise ValueError("rate must be >= 0")
-        samples, stats = read_imu_recording(path, description, topic_prefix=topic_prefix)
+        samples, stats = read_imu_recording(path, description, topic_prefix=topic_prefix, unused_rows=True)
         self.samples: ImuSamples = samples
         self.read_stats: ReadStats = stats
         self.rate = float(rate)
@@ -72,11 +81,14 @@ class Replay:
         idx = np.concatenate([p[0] for p in parts])
         shift = np.concatenate([np.full(len(p[0]), p[1] * self.period_ns, dtype=np.int64) for p in parts])
         out = self.samples.select(idx)
-        out.stamps = out.stamps + shift
+        stamps = out.stamps + shift
         if restamp_ns is not None:
             if self.rate:
                 due = ((self._offset[idx] + shift) / self.rate).astype(np.int64)
             else:  # as fast as possible: stamped now, 1 ns apart
                 due = int(elapsed_ns) + np.arange(len(idx), dtype=np.int64)
-            out.stamps = int(restamp_ns) + due
+            stamps = int(restamp_ns) + due
+        if out.own_stamps is not None:  # each message's own stamp moves with its array sample's
+            out.own_stamps = out.own_stamps + (stamps - out.stamps)[:, None]
+        out.stamps = stamps
         return out

@@ -18,6 +18,10 @@ bounded buffer keyed by stamp and hands out array samples in stamp order:
 * when more than ``capacity`` samples are pending, the oldest are handed out
   as they are and counted as ``overflow``.
 
+IMUs that stamp their own messages (own drivers and clocks) are paired onto the
+reference IMU's stamps instead: :class:`~imu_array_ros.io.live_pairing.PairingAssembler`
+(the same interface; ``RawIntake(..., own_stamps=True)``).
+
 Rejected messages, each counted by kind and never used: ``duplicate`` (an IMU's
 stamp equal to its previous one), ``backwards`` (an IMU's stamp below its
 previous one), ``late`` (a stamp at or before the last sample handed out).
@@ -55,11 +59,14 @@ class AssemblerStats:
 
 @dataclass
 class AssembledSamples:
-    """Array samples handed out: stamps (P,), accel/gyro (P, K, 3) NaN where missing."""
+    """Array samples handed out: stamps (P,), accel/gyro (P, K, 3) NaN where missing; own_stamps
+    (P, K) each message's own stamp (the grid stamp where missing) from a
+    :class:`~imu_array_ros.io.live_pairing.PairingAssembler`, None from a :class:`SampleAssembler`."""
 
     stamps: np.ndarray
     accel: np.ndarray
     gyro: np.ndarray
+    own_stamps: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -213,12 +220,24 @@ class RawIntake:
     (:func:`~imu_array_ros.io.messages.decode_raw_imu`), undecodable ones, a wrong ``frame_id``
     (``frame_prefix + name`` expected) and non-finite values counted and dropped, the rest grouped
     by stamp in a :class:`SampleAssembler`.  Used by the fusion (``LiveFusion``) and the
-    calibration node's window (``SampleWindow``)."""
+    calibration node's window (``SampleWindow``).
 
-    def __init__(self, names, frame_prefix: str = "", sync_timeout_s: float = 0.05, capacity: int = 4096) -> None:
+    ``own_stamps=True``: IMUs that stamp their own messages; the messages are paired onto the
+    stamps of IMU ``reference`` (an index) by a
+    :class:`~imu_array_ros.io.live_pairing.PairingAssembler` instead, whose ``pop`` hands out
+    ``own_stamps`` too (same interface otherwise)."""
+
+    def __init__(self, names, frame_prefix: str = "", sync_timeout_s: float = 0.05, capacity: int = 4096, *,
+                 own_stamps: bool = False, reference: int = 0) -> None:
         self.frame_ids = [frame_prefix + n for n in names]
-        self.assembler = SampleAssembler(len(self.frame_ids), timeout_ns=int(round(sync_timeout_s * 1e9)),
-                                         capacity=capacity)
+        timeout_ns = int(round(sync_timeout_s * 1e9))
+        if own_stamps:
+            from imu_array_ros.io.live_pairing import PairingAssembler
+
+            self.assembler = PairingAssembler(len(self.frame_ids), timeout_ns=timeout_ns, reference=reference,
+                                              capacity=capacity)
+        else:
+            self.assembler = SampleAssembler(len(self.frame_ids), timeout_ns=timeout_ns, capacity=capacity)
         self.counts = InputCounts()
 
     def add(self, payloads, imu_index, now_ns: int) -> None:

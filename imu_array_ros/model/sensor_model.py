@@ -36,7 +36,7 @@ __all__ = ["SensorModel", "ModelJacobians", "motion_context", "motion_derivative
 
 def motion_context(stamps, omega, omega_dot, specific_force, rotations, *, t0_ns=None, omega_ddot=None,
                    specific_force_dot=None, derivatives: bool = False, stamp_delays=None,
-                   trajectory=None) -> MotionContext:
+                   trajectory=None, omega_rate=None) -> MotionContext:
     """A :class:`MotionContext` from arrays (N, 3) in the array frame; rotations (K, 3, 3).
 
     ``derivatives``: fill omega_ddot and specific_force_dot (when not given) by
@@ -54,7 +54,7 @@ def motion_context(stamps, omega, omega_dot, specific_force, rotations, *, t0_ns
                          specific_force=f(specific_force), rotations=np.asarray(rotations, dtype=float),
                          t0_ns=t0_ns, omega_ddot=f(omega_ddot), specific_force_dot=f(specific_force_dot),
                          stamp_delays=None if stamp_delays is None else np.asarray(stamp_delays, dtype=float),
-                         trajectory=trajectory)
+                         trajectory=trajectory, omega_rate=f(omega_rate))
 
 
 def motion_derivative(stamps, values) -> np.ndarray:

@@ -1,5 +1,8 @@
 """driver_node: one ``sensor_msgs/Imu`` per IMU per array sample, from an OpenShoe
-serial array (``mode: serial``) or a recording (``mode: replay``).
+serial array (``mode: serial``) or a recording (``mode: replay``).  A replay
+republishes every message with its own recorded stamp, also when the IMUs of the
+recording stamp their messages with their own clocks (``restamp`` moves each
+message's stamp with its array sample's, keeping the IMUs' recorded offsets).
 
 Topics: ``<topic_prefix>/<name>/data_raw`` for every IMU of ``array_config``
 (recording contract, :mod:`imu_array_ros.io.messages`), ``/diagnostics``.
@@ -18,8 +21,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from imu_array_ros.errors import ConfigError
-from imu_array_ros.io.messages import raw_imu_payloads
-from imu_array_ros.io.rosbag.recording import imu_topic
+from imu_array_ros.io.rosbag.recording import imu_payloads, imu_topic
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.nodes.parameters import DRIVER_PARAMS, declare
@@ -102,13 +104,14 @@ class DriverNode(Node):
     def _publish(self, samples: ImuSamples) -> None:
         if not len(samples):
             return
-        per_imu = raw_imu_payloads(samples, self.desc, self.p.frame_prefix)
-        # sample-major order: the subscriber completes array samples one after another
-        rows = np.concatenate([r for r, _ in per_imu])
-        which = np.concatenate([np.full(len(r), k) for k, (r, _) in enumerate(per_imu)])
-        pos = np.concatenate([np.arange(len(r)) for r, _ in per_imu])
-        for i in np.lexsort((which, rows)):
-            self.pubs[which[i]].publish(per_imu[which[i]][1][pos[i]].tobytes())
+        # every message with its own stamp (a replay of IMUs with their own clocks keeps them)
+        per_imu = imu_payloads(samples, self.desc, self.p.frame_prefix)
+        # sample-major order: the subscriber completes array samples one after another (own stamps: in stamp order)
+        key = np.concatenate([r if samples.own_stamps is None else st for r, st, _ in per_imu])
+        which = np.concatenate([np.full(len(r), k) for k, (r, _, _) in enumerate(per_imu)])
+        pos = np.concatenate([np.arange(len(r)) for r, _, _ in per_imu])
+        for i in np.lexsort((which, key)):
+            self.pubs[which[i]].publish(per_imu[which[i]][2][pos[i]].tobytes())
         self.published += len(samples)
 
     def _diagnose(self) -> None:

@@ -19,8 +19,8 @@ from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth
 from imu_array_ros.simulation.motion import TwistTrajectory, gaussian_motion, random_motion
 
-__all__ = ["simulate_measurements", "simulate_twist", "simulate_random", "simulate_gaussian", "as_sensor_model",
-           "simulate_same_motion"]
+__all__ = ["simulate_measurements", "simulate_trajectory", "simulate_twist", "simulate_random", "simulate_gaussian",
+           "as_sensor_model", "simulate_same_motion"]
 
 
 def as_sensor_model(model: SensorModel | ArrayDescription) -> SensorModel:
@@ -29,11 +29,22 @@ def as_sensor_model(model: SensorModel | ArrayDescription) -> SensorModel:
 
 
 def simulate_measurements(model: SensorModel | ArrayDescription, truth: MotionTruth, rng: np.random.Generator,
-                          *, noise: bool = True, saturate: bool = True) -> ImuSamples:
-    """Measurements of every IMU for the given motion; (N, K, 3) in sensor frames."""
+                          *, noise: bool = True, saturate: bool = True, trajectory=None,
+                          own_stamps: np.ndarray | None = None) -> ImuSamples:
+    """Measurements of every IMU for the given motion; (N, K, 3) in sensor frames.
+
+    ``trajectory``: the motion as a function of int64 ns time (``MotionContext.trajectory``; ``truth``
+    must be its values at the stamps): used when the model is timed or ``own_stamps`` are given, then
+    every reading is the exact motion at its true sample time.  ``own_stamps`` (N, K) int64: the stamp
+    each IMU's message carried (IMUs that stamp their own messages); the readings are taken at them
+    (plus the model's timing delays) and the samples carry them.
+    """
     model = as_sensor_model(model)
+    delays = None if own_stamps is None else (np.asarray(own_stamps, dtype=np.int64)
+                                              - np.asarray(truth.stamps, dtype=np.int64)[:, None]) * 1e-9
+    exact = trajectory is not None and (model.timed or own_stamps is not None)
     ctx = motion_context(truth.stamps, truth.omega, truth.omega_dot, truth.specific_force, model.rotations,
-                         derivatives=True)
+                         derivatives=True, stamp_delays=delays, trajectory=trajectory if exact else None)
     acc, gyr = model.predict(ctx)
     if noise:
         acc = acc + rng.normal(size=acc.shape) * model.acc_std
@@ -41,19 +52,44 @@ def simulate_measurements(model: SensorModel | ArrayDescription, truth: MotionTr
     if saturate:
         acc = np.clip(acc, -model.acc_clip, model.acc_clip)
         gyr = np.clip(gyr, -model.gyro_clip, model.gyro_clip)
-    return ImuSamples(truth.stamps, acc, gyr, model.names)
+    return ImuSamples(truth.stamps, acc, gyr, model.names, own_stamps)
+
+
+def simulate_trajectory(model: SensorModel | ArrayDescription, trajectory: TwistTrajectory, stamps: np.ndarray,
+                        rng: np.random.Generator, *, own_stamps: np.ndarray | None = None, noise: bool = True,
+                        saturate: bool = True, exact_timing: bool = True) -> tuple[ImuSamples, MotionTruth]:
+    """A recording of ``trajectory`` at ``stamps`` (int64 ns, sorted; the motion's origin is the first).
+
+    Untimed model and no ``own_stamps``, or ``exact_timing`` False: the truth is
+    :meth:`TwistTrajectory.sample` at the stamps and the readings are shifted to their sample times to
+    first order (the readings the fitting engine's linearisation assumes; the simulator before sample
+    times were modelled, bit for bit).  Otherwise the truth and every reading, at its true sample time,
+    come from :meth:`TwistTrajectory.function` (knots every 1 ms from the first stamp).
+    """
+    model = as_sensor_model(model)
+    stamps = np.asarray(stamps, dtype=np.int64)
+    if not exact_timing or (not model.timed and own_stamps is None):
+        truth = trajectory.sample(stamps)
+        return simulate_measurements(model, truth, rng, noise=noise, saturate=saturate, own_stamps=own_stamps), truth
+    function = trajectory.function(int(stamps[0]))
+    truth = function.truth(stamps)
+    return simulate_measurements(model, truth, rng, noise=noise, saturate=saturate, trajectory=function,
+                                 own_stamps=own_stamps), truth
 
 
 def simulate_twist(model: SensorModel | ArrayDescription, duration: float, rate_hz: float, rng: np.random.Generator,
-                   *, rms_rate: float = np.deg2rad(600.0), start_ns: int = 0) -> tuple[ImuSamples, MotionTruth]:
-    """Hand-twisting recording of ``duration`` s at ``rate_hz``, stamps from ``start_ns`` (ns since the epoch).
+                   *, rms_rate: float = np.deg2rad(600.0), start_ns: int = 0,
+                   exact_timing: bool = True) -> tuple[ImuSamples, MotionTruth]:
+    """Hand-twisting recording of ``duration`` s at ``rate_hz``, stamps from ``start_ns`` (ns since the epoch)
+    (:func:`simulate_trajectory`: a timed model reads the motion at every reading's true sample time unless
+    ``exact_timing`` is False).
 
     The motion and the measurements do not depend on ``start_ns``; only the stamps move.
     """
     n = int(round(duration * rate_hz))
     stamps = int(start_ns) + np.round(np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
-    truth = TwistTrajectory.random(rng, rms_rate=rms_rate).sample(stamps)
-    return simulate_measurements(model, truth, rng), truth
+    return simulate_trajectory(model, TwistTrajectory.random(rng, rms_rate=rms_rate), stamps, rng,
+                               exact_timing=exact_timing)
 
 
 def simulate_random(model: SensorModel | ArrayDescription, n: int, omega_norm: float, omega_dot_norm: float,

@@ -14,19 +14,24 @@ from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 from imu_array_ros.simulation.simulator import simulate_same_motion
 from imu_array_ros.workflows.arrays import as_model
-from imu_array_ros.workflows.fusion import build_fusion
+from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.workflows.fusion import session_fusion
 
 __all__ = ["residuals", "discover", "DiscoveryOptions"]
 
 
 def residuals(samples: ImuSamples, desc: ArrayDescription, *, fused: FusedSamples | None = None,
-              compare_simulated: bool = False, seed: int = 0, still_threshold: float = 0.2,
+              fusion: ModelFusion | None = None, compare_simulated: bool = False, seed: int = 0,
+              still_threshold: float = 0.2,
               progress: Callable[[int, int], None] | None = None) -> dict[str, ResidualReport]:
     """Normalised residuals of ``samples`` under every term of ``desc`` at the fused motion (``fused``:
-    already fused with that description; default: fused here).  ``{"recording": report}``; with
+    already fused by ``fusion``, whose model then holds the recording's session states; default: both made
+    here, :func:`~imu_array_ros.workflows.fusion.session_fusion`).  ``{"recording": report}``; with
     ``compare_simulated`` also ``"simulated_same_motion"``: a simulated recording of the same fused motion
-    (seeded), with the same readings missing, analysed the same way -- what the model alone would give."""
-    fusion = build_fusion(desc, t0_ns=int(samples.stamps[0]) if len(samples) else None)  # drifts count from there
+    (seeded), with the same readings missing, analysed the same way -- what the model alone would give.
+    The NIS is always against the description's white-noise figures."""
+    if fusion is None:
+        fusion, _ = session_fusion(samples, desc)  # drifts and clocks count from the first stamp
     if fused is None:
         fused, _ = fuse_chunked(fusion, samples, progress)
     model = fusion.model

@@ -4,7 +4,8 @@ Topics (``prefix`` defaults to ``/imu_array``):
 
 ``<prefix>/<name>/data_raw``  sensor_msgs/msg/Imu, one per IMU
     measurements in the IMU's own sensor frame, ``header.frame_id = <name>``,
-    the same ``header.stamp`` on every IMU's message of one array sample;
+    the same ``header.stamp`` on every IMU's message of one array sample (or,
+    for IMUs with their own drivers, each IMU's own stamps: paired on reading);
     ``angular_velocity_covariance = diag(gyroscope_noise_std^2)``,
     ``linear_acceleration_covariance = diag(accelerometer_noise_std^2)``,
     orientation zero with ``orientation_covariance[0] = -1`` (REP-145).
@@ -44,6 +45,7 @@ from imu_array_ros.errors import RecordingError
 from imu_array_ros.io.messages import NO_ORIENTATION, fused_payloads, put_accel_block, raw_imu_payloads
 from imu_array_ros.io.rosbag.mcap_recording import McapRecording
 from imu_array_ros.io.rosbag.mcap_writer import ChannelData, write_recording
+from imu_array_ros.io.rosbag.own_stamps import pair_recording
 from imu_array_ros.io.rosbag.topic_columns import check_topic, list_topics, read_topics
 from imu_array_ros.model.samples import FusedSamples, ImuSamples, MotionTruth, ReadStats
 
@@ -51,6 +53,7 @@ __all__ = [
     "IMU_TYPE",
     "ACCEL_TYPE",
     "imu_topic",
+    "imu_payloads",
     "read_imu_recording",
     "write_imu_recording",
     "write_fused_recording",
@@ -94,6 +97,8 @@ def read_imu_recording(
     *,
     topic_prefix: str = "/imu_array",
     progress: Callable[[float], None] | None = None,
+    reference: str | int | None = None,
+    unused_rows: bool = False,
 ) -> tuple[ImuSamples, ReadStats]:
     """Read the IMU topics of ``description.names`` and align them by ``header.stamp``.
 
@@ -105,9 +110,18 @@ def read_imu_recording(
     one (file order) is kept.  ``stats.incomplete_samples`` counts samples in
     which at least one IMU has no usable data.
 
+    IMUs with their own stamps: when an IMU's stamps mostly (over
+    ``UNMATCHED_LIMIT``) coincide with no other IMU's, the messages are not
+    grouped by stamp but paired onto the stamps of the ``reference`` IMU (None:
+    the first with two messages or more) by :mod:`imu_array_ros.io.pairing`;
+    samples.own_stamps (N, K) then holds each message's own stamp and a note in
+    stats.notes the pairing statistics; ``unused_rows`` adds the messages the
+    pairing left unused as rows of their own (every message: for a replay).
+    Otherwise own_stamps is None.
+
     Raises :class:`RecordingError` for a missing/garbled recording, a missing
-    topic, a topic of the wrong type, or an IMU whose stamps mostly do not
-    coincide with the others'.
+    topic, a topic of the wrong type, or own stamps that cannot be paired (one
+    going backwards or jumping by over a second, another clock base).
     """
     names = tuple(description.names)
     topics = [imu_topic(n, topic_prefix) for n in names]
@@ -150,10 +164,12 @@ def read_imu_recording(
     gyro_m = cols.fields["angular_velocity"][keep]
     acc_m = cols.fields["linear_acceleration"][keep]
 
+    in_file_order = (topic, stamps, acc_m, gyro_m)
     uniq, inv = np.unique(stamps, return_inverse=True)
     n = len(uniq)
     key = inv.reshape(-1) * k_count + topic
     counts = np.bincount(key, minlength=n * k_count)
+    first = None
     if (counts > 1).any():
         _, first = np.unique(key, return_index=True)  # first occurrence in file order
         stats.duplicate_messages = int(len(key) - len(first))
@@ -169,7 +185,7 @@ def read_imu_recording(
         worst = int(np.argmax(per_topic))
         stats.notes.append(f"{n_nonfinite} messages with non-finite values (most on {topics[worst]}: {int(per_topic[worst])})")
 
-    # stamps that do not coincide with the other IMUs'
+    # stamps that do not coincide with the other IMUs': own stamps, paired
     per_imu = np.bincount(topic, minlength=k_count)
     if k_count > 1 and len(key):
         in_sample = np.bincount(inv, minlength=n)
@@ -177,11 +193,19 @@ def read_imu_recording(
         frac = np.divide(alone, per_imu, out=np.zeros(k_count), where=per_imu > 0)
         worst = int(np.argmax(frac))
         if frac[worst] > UNMATCHED_LIMIT:
-            raise RecordingError(
-                f"{rec.path}: stamps of {topics[worst]} do not match the other IMUs "
-                f"({100 * frac[worst]:.0f}% of its samples unmatched); every IMU's message of one array "
-                "sample must carry the same header.stamp"
-            )
+            use = np.zeros(len(in_file_order[0]), dtype=bool)  # first of each (IMU, stamp), finite
+            use[slice(None) if first is None else first] = finite
+            chosen = np.flatnonzero(use)
+            samples, pairing, note = pair_recording(rec.path, names, *(c[chosen] for c in in_file_order),
+                                                    reference=reference, unused_rows=unused_rows)
+            stats.notes += [f"IMU stamps differ ({topics[worst]}: {100 * frac[worst]:.0f}% of its messages "
+                            "at no other IMU's stamp): " + pairing.summary()] + ([note] if note else [])
+            for k in np.flatnonzero(per_imu == 0):
+                stats.notes.append(f"IMU {names[k]!r}: no messages on {topics[k]}")
+            stats.samples = pairing.grid
+            incomplete = int((~samples.present.all(axis=1)).sum())
+            stats.incomplete_samples = incomplete - int(pairing.unused.sum()) * unused_rows  # not the unused rows
+            return samples, stats
     for k in np.flatnonzero(per_imu == 0):
         stats.notes.append(f"IMU {names[k]!r}: no messages on {topics[k]}")
 
@@ -204,11 +228,28 @@ def _stamp_error(path, err: ValueError) -> RecordingError:
     return RecordingError(f"{path}: cannot write: {err}")
 
 
+def imu_payloads(samples: ImuSamples, description: ArrayDescription,
+                 frame_prefix: str = "") -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every IMU's raw Imu messages of ``samples``, stamped with its own stamps when ``samples``
+    has them (``own_stamps``), else with the samples' stamps (the writer's and the replay's).
+
+    Returns per IMU (names order) (rows (m_k,) of its present samples, stamps (m_k,) int64,
+    payloads (m_k, L_k) uint8).  ValueError for a stamp outside ``builtin_interfaces/Time``.
+    """
+    if samples.own_stamps is None:
+        return [(rows, samples.stamps[rows], payload) for rows, payload in raw_imu_payloads(samples, description,
+                                                                                            frame_prefix)]
+    out = []
+    for k, name in enumerate(samples.names):  # one IMU at a time: its own stamps
+        one = ImuSamples(samples.own_stamps[:, k], samples.accel[:, k:k + 1], samples.gyro[:, k:k + 1], (name,))
+        ((rows, payload),) = raw_imu_payloads(one, description, frame_prefix)
+        out.append((rows, one.stamps[rows], payload))
+    return out
+
+
 def _imu_channels(samples: ImuSamples, description: ArrayDescription, topic_prefix: str) -> list[ChannelData]:
-    channels = []
-    for name, (rows, payload) in zip(samples.names, raw_imu_payloads(samples, description)):
-        channels.append(ChannelData(imu_topic(name, topic_prefix), IMU_TYPE, samples.stamps[rows], payload))
-    return channels
+    return [ChannelData(imu_topic(name, topic_prefix), IMU_TYPE, stamps, payload)
+            for name, (_, stamps, payload) in zip(samples.names, imu_payloads(samples, description))]
 
 
 def _truth_channels(truth: MotionTruth, frame_id: str, prefix: str) -> list[ChannelData]:
@@ -248,6 +289,8 @@ def write_imu_recording(
 
     ``path`` ending in ``.mcap`` -> bare MCAP file, else a rosbag2 directory.
     IMUs absent in a sample (non-finite row) are not written for that stamp.
+    With ``samples.own_stamps`` every IMU's message carries its own stamp (IMUs
+    with their own clocks; read back, they are paired again).
     Message log time = header.stamp.
     """
     unknown = [n for n in samples.names if n not in description.names]

@@ -101,10 +101,12 @@ class MotionContext:
     stamp_delays (N, K) s: for IMUs that stamp their own messages, each IMU's own
     stamp minus the array sample's stamp (None: every IMU carries the array's stamp).
     trajectory: the motion as a function of time (``trajectory(t_ns) -> (omega,
-    omega_dot, specific_force)``, each (..., 3), at int64 ns stamps of any shape):
+    omega_dot, specific_force)``, each (N, ..., 3), at int64 ns times (N, ...), row n
+    near stamp n):
     when given, the timing terms evaluate every reading at its true sample time
     exactly (the simulator's dense truth, the fusion's interpolated estimate)
-    instead of to first order.
+    instead of to first order.  omega_rate (N, 3): d omega / dt of the angular-rate
+    estimates, the gyroscopes' rate of change for a first-order time shift (None: omega_dot).
     """
 
     stamps: np.ndarray
@@ -118,6 +120,7 @@ class MotionContext:
     positions: np.ndarray | None = field(default=None, repr=False)
     stamp_delays: np.ndarray | None = None
     trajectory: object | None = field(default=None, repr=False)
+    omega_rate: np.ndarray | None = None
 
     @property
     def n(self) -> int:

@@ -8,13 +8,22 @@ message's own stamp minus the array stamp, ``MotionContext.stamp_delays``) into
 one delay per reading, Delta, and evaluates the signal at ``stamp + Delta``, in
 one stage at the timing terms' place in the chain (:class:`TimingStage`):
 
-* with a ``MotionContext.trajectory`` (the simulator's dense truth, or the
-  fusion's interpolant of its own estimate): exactly, the motion evaluated at
-  the true time;
-* otherwise to first order, x + Delta dx/dt, with dx/dt = R^T omega_dot for a
-  gyroscope and R^T (ds/dt + dC/dt p) for an accelerometer (omega_ddot and
-  ds/dt from the motion context).  This is what the fitting engine linearises:
-  d y / d theta_j = dx/dt * d Delta_j / d theta_j.
+* to first order, x + Delta dx/dt, with dx/dt = R^T omega_dot for a gyroscope and
+  R^T (ds/dt + dC/dt p) for an accelerometer (the sample's own omega and omega_dot,
+  omega_ddot and ds/dt from the motion context).  The sample's own motion in the
+  first-order term is what ties the estimate to its stamp: a common shift of every
+  delay is then exactly absorbed by the motion, the gauge of time;
+* plus, with a ``MotionContext.trajectory`` (the simulator's dense truth, or the
+  local cubics through an estimated motion,
+  :class:`~imu_array_ros.model.trajectory.MotionTrajectory`), the *remainder* the
+  first order leaves out: the exact shift along the trajectory minus the
+  trajectory's own first-order shift (second and higher order in the delay;
+  held fixed, it depends on no sample's motion).  With the simulator's truth the
+  reading is then exactly the motion at its true time (its omega_dot is the
+  derivative of its omega); with an estimate it removes the truncation error.
+
+The Jacobians: d y / d theta_j = (dx/dt + the change of the trajectory's rate
+between the stamp and the reading's time) * d Delta_j / d theta_j.
 
 Time is relative: a delay common to every sensor of every IMU moves no reading
 relative to another and is absorbed by the motion (per sample).  The gauge:
@@ -66,7 +75,8 @@ class TimingTerm(Term):
 def signal_rate(ctx: MotionContext, sensor: str) -> np.ndarray:
     """(N, K, 3) dx/dt of the sensor's ideal signal in its (nominal) frame."""
     if sensor == "gyroscope":
-        v = np.broadcast_to(ctx.omega_dot[:, None, :], (ctx.n, ctx.k, 3))
+        rate = ctx.omega_dot if ctx.omega_rate is None else ctx.omega_rate
+        v = np.broadcast_to(rate[:, None, :], (ctx.n, ctx.k, 3))
     else:
         sd = ctx.specific_force_dot if ctx.specific_force_dot is not None else np.zeros_like(ctx.specific_force)
         v = sd[:, None, :] + np.einsum("nij,kj->nki", ctx.lever_dot, ctx.positions)
@@ -74,17 +84,51 @@ def signal_rate(ctx: MotionContext, sensor: str) -> np.ndarray:
 
 
 def exact_shift(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
-    """(N, K, 3) x(stamp + delta) - x(stamp) of the ideal signal, the motion read from ``ctx.trajectory``
-    at every reading's own time (delta (N, K) s) and from the context at the stamps."""
-    when = ctx.stamps[:, None] + np.round(delta * 1e9).astype(np.int64)
-    omega, omega_dot, s = ctx.trajectory(when)  # each (N, K, 3)
-    if sensor == "gyroscope":
-        v = omega - ctx.omega[:, None, :]
+    """(N, K, 3) x(stamp + delta) - x(stamp) of the ideal signal, both read from ``ctx.trajectory``
+    (delta (N, K) s): the motion at every reading's own time minus the motion at its stamp."""
+    traj = ctx.trajectory
+    if hasattr(traj, "shift"):  # a trajectory that evaluates differences directly (the fusion's local cubics)
+        if sensor == "gyroscope":
+            return _to_sensor(ctx, traj.shift(delta, "omega"))
+        ds, omega, omega_dot = traj.shift(delta, "specific_force"), *traj.at_delays(delta)
+        omega0, omega_dot0, _ = traj.at_stamps()
+        w0, wd0 = omega0[:, None], omega_dot0[:, None]
     else:
-        p = ctx.positions
-        w, wd = skew(omega), skew(omega_dot)  # (N, K, 3, 3)
-        lever = np.einsum("nkij,nkjl->nkil", w, w) + wd
-        v = s + np.einsum("nkij,kj->nki", lever, p) - ctx.force_at(p)
+        when = ctx.stamps[:, None] + np.round(delta * 1e9).astype(np.int64)
+        omega, omega_dot, s = traj(when)  # each (N, K, 3)
+        omega0, omega_dot0, s0 = (a[:, 0] for a in traj(ctx.stamps[:, None]))
+        if sensor == "gyroscope":
+            return _to_sensor(ctx, omega - omega0[:, None])
+        ds, w0, wd0 = s - s0[:, None], omega0[:, None], omega_dot0[:, None]
+    p = ctx.positions[None]
+    lever = _cross(omega, _cross(omega, p)) + _cross(omega_dot, p)
+    lever0 = _cross(w0, _cross(w0, p)) + _cross(wd0, p)
+    return _to_sensor(ctx, ds + lever - lever0)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (broadcast), written out (faster than np.cross on small trailing axes)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _to_sensor(ctx: MotionContext, v: np.ndarray) -> np.ndarray:
+    """(N, K, 3) R_k^T v_nk (v_nk^T R_k: one product per IMU)."""
+    return np.matmul(v.transpose(1, 0, 2), ctx.rotations).transpose(1, 0, 2)
+
+
+def _rate_along(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
+    """(N, K, 3) d/d delta of :func:`exact_shift`: the ideal signal's rate of change at stamp + delta."""
+    when = ctx.stamps[:, None] + np.round(delta * 1e9).astype(np.int64)
+    d_omega, d_omega_dot, d_s = ctx.trajectory.slope_at(when)
+    if sensor == "gyroscope":
+        v = d_omega
+    else:
+        omega, _, _ = ctx.trajectory(when)
+        w, dw = skew(omega), skew(d_omega)
+        lever_dot = np.einsum("nkij,nkjl->nkil", dw, w) + np.einsum("nkij,nkjl->nkil", w, dw) + skew(d_omega_dot)
+        v = d_s + np.einsum("nkij,kj->nki", lever_dot, ctx.positions)
     return np.einsum("kji,nkj->nki", ctx.rotations, v)
 
 
@@ -106,23 +150,40 @@ class TimingStage:
 
     def apply(self, x, ctx, sensor):
         delta = self.delay(ctx, sensor)
-        if ctx.trajectory is not None:
-            return x + exact_shift(ctx, sensor, delta)
-        return x + delta[..., None] * signal_rate(ctx, sensor)
+        first = delta[..., None] * signal_rate(ctx, sensor)
+        if ctx.trajectory is None:
+            return x + first
+        return x + first + self.remainder(ctx, sensor, delta)
+
+    @staticmethod
+    def remainder(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
+        """(N, K, 3) what the trajectory says the first-order shift leaves out: the exact shift along it minus
+        its own first-order shift (second and higher order in the delay; independent of the sample's motion)."""
+        if hasattr(ctx.trajectory, "slope_at"):
+            rate0 = _rate_along(ctx, sensor, np.zeros_like(delta))
+        else:  # a trajectory without slopes (the simulator's truth): the context's own rates
+            rate0 = signal_rate(ctx, sensor)
+        return exact_shift(ctx, sensor, delta) - delta[..., None] * rate0
 
     def d_input(self, x, ctx, sensor):
         return None
 
     def d_params_of(self, term: TimingTerm, x, ctx, sensor):
-        """(N, K, 3, P) d apply / d theta_k of one member term (first order)."""
-        return signal_rate(ctx, sensor)[..., None] * term.d_delay(ctx, sensor)[:, :, None, :]
+        """(N, K, 3, P) d apply / d theta_k of one member term: the first-order rate, plus, along a trajectory
+        that gives slopes, the change of its rate between the stamp and the reading's own time."""
+        rate = signal_rate(ctx, sensor)
+        if ctx.trajectory is not None and hasattr(ctx.trajectory, "slope_at"):
+            delta = self.delay(ctx, sensor)
+            rate = rate + _rate_along(ctx, sensor, delta) - _rate_along(ctx, sensor, np.zeros_like(delta))
+        return rate[..., None] * term.d_delay(ctx, sensor)[:, :, None, :]
 
     def d_motion(self, x, ctx, sensor):
+        out = np.zeros(x.shape + (9,))  # the remainder along a trajectory is held: only the first order moves
         d = self.delay(ctx, sensor)  # (N, K)
-        out = np.zeros(x.shape + (9,))
         rt = ctx.rot_t
         if sensor == "gyroscope":
-            out[..., 3:6] = d[..., None, None] * rt[None]
+            if ctx.omega_rate is None:  # the rate is the sample's own omega_dot
+                out[..., 3:6] = d[..., None, None] * rt[None]
             return out
         p = ctx.positions
         sw, swd, sp = skew(ctx.omega)[:, None], skew(ctx.omega_dot)[:, None], skew(p)[None]
