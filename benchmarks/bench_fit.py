@@ -50,7 +50,7 @@ FREE = ("position", "gyroscope_gain", "gyroscope_misalignment", "gyroscope_g_sen
 JOINT_SIZES = {"position": 1e-3, "gyroscope_gain": 0.01, "gyroscope_misalignment": 5e-3,
                "gyroscope_g_sensitivity": 5e-4, "time_offset": 1e-3}
 #: per-term Monte Carlo: the sizes of the Jacobian tests, and the recording length (s)
-MC_SIZES = {n: s for n, s in TERM_TEST_SIZES.items() if n != "sample_clock"}  # its phase is found by search
+MC_SIZES = {n: s for n, s in TERM_TEST_SIZES.items() if "sample_clock" not in n}  # phases are found by search
 MC_SECONDS = {"position": 1.5, "axis_offsets": 1.5, "time_offset": 1.5, "bias_drift": 1.5}
 SUBSET = (0, 3, 12, 15, 17, 18, 29, 30)
 

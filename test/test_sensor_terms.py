@@ -145,7 +145,8 @@ def test_linear_form_is_exact_with_per_axis_lever_arms(setup):
     np.testing.assert_allclose(np.einsum("kiz,nz->nki", lin.acc_design, z) + lin.acc_bias, acc, rtol=0, atol=1e-10)
     np.testing.assert_allclose(np.einsum("kij,nj->nki", lin.gyro_matrix, motion["omega"]) + lin.gyro_bias, gyr,
                                rtol=0, atol=1e-12)
-    assert set(model.nonlinear_terms) == {"time_offset", "sample_clock", "stamp_clock", "accelerometer_nonlinearity",
+    assert set(model.nonlinear_terms) == {"time_offset", "sample_clock", "gyroscope_sample_clock",
+                                          "accelerometer_sample_clock", "stamp_clock", "accelerometer_nonlinearity",
                                           "gyroscope_g_sensitivity", "bias_drift"}
     full = model.predict(ctx)
     assert np.abs(full[0] - acc).max() > 1e-3 and np.abs(full[1] - gyr).max() > 1e-4  # they do act

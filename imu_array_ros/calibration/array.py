@@ -161,8 +161,8 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
         used_total = (selection.n_used, len(samples))
         say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
         window = moving_samples.select(used)
-        if np.any(current.terms["sample_clock"].values[:, 0] > 0):  # this recording's clock phases first
-            from imu_array_ros.timing.session import estimate_session
+        from imu_array_ros.timing.session import active_clocks, estimate_session
+        if active_clocks(current):  # this recording's clock phases first
             current = estimate_session(samples, current).model
         moving = fit_terms(window, current, moving_terms, reference=reference, t0_ns=int(samples.stamps[0]),
                            motion0=selection.motion[used], max_iterations=max_iterations,
@@ -174,10 +174,11 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
         say(f"moving stage skipped: {err}")
     timing_notes: list[str] = []
     if timing and moving is not None:
-        moving, current, window, timing_notes = _timing_stage(samples, poses, current, moving, moving_terms, skipped,
-                                                              reference, clock_period, max_iterations, say)
-        if window is not None:
-            used_total = (len(window), len(samples))
+        moving, current, timed_window, timing_notes = _timing_stage(samples, poses, current, moving, moving_terms,
+                                                                    skipped, reference, clock_period, max_iterations,
+                                                                    say)
+        if timed_window is not None:
+            window, used_total = timed_window, (len(timed_window), len(samples))
     if static is None and not moving_terms:
         raise CalibrationError(skipped["static"])
     if static is None and moving is None:

@@ -41,6 +41,7 @@ from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.reference import reference_index
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.timing.session import estimate_session, needs_session
 
 __all__ = ["calibrate", "METHODS", "geometry", "static", "whole_array", "fit", "bayes"]
 
@@ -91,14 +92,16 @@ def static(samples: ImuSamples, model: SensorModel, *, method: str = "ml", refer
 def whole_array(samples: ImuSamples, model: SensorModel, *, reference=None, static_method: str = "ml",
                 static_terms: Sequence[str] = STATIC_TERMS, moving_terms: Sequence[str] = MOVING_TERMS,
                 gravity: float = STANDARD_GRAVITY, still_options: dict | None = None, max_iterations: int = 50,
-                progress: Callable[[str], None] | None = None, source: str | None = None) -> Calibration:
-    """Still poses -> static stage, then the motion -> ``moving_terms`` (``calibrate all``)."""
+                progress: Callable[[str], None] | None = None, source: str | None = None, timing: bool = True,
+                clock_period: float | None = 1e-3) -> Calibration:
+    """Still poses -> static stage, then the motion -> ``moving_terms``, then the timing stage (``timing``:
+    sample clocks of ``clock_period`` s searched, time offsets and clock rates fitted) (``calibrate all``)."""
     moving_terms = tuple(moving_terms)
     if moving_terms:
         check_terms(moving_terms)
     return _array(samples, model, "all", source, reference=reference, static_method=static_method,
                   static_terms=static_terms, moving_terms=moving_terms, gravity=gravity, still_options=still_options,
-                  max_iterations=max_iterations, progress=progress)
+                  max_iterations=max_iterations, progress=progress, timing=timing, clock_period=clock_period)
 
 
 def fit(samples: ImuSamples, model: SensorModel, terms: Sequence[str], *, imus=None, reference=None,
@@ -108,6 +111,8 @@ def fit(samples: ImuSamples, model: SensorModel, terms: Sequence[str], *, imus=N
     ``progress(iteration, cost)``.  The written ``_std`` are the Cramér-Rao bound; parameters held to fix a
     gauge are exact in that gauge (std 0); IMUs not fitted get none."""
     free = check_terms(terms)
+    if needs_session(samples, model):  # this recording's clock phases / stamp clocks first
+        model = estimate_session(samples, model).model
     result = fit_terms(samples, model, free, imus=imus, reference=reference, max_iterations=max_iterations,
                        progress=progress)
     record = {

@@ -8,10 +8,12 @@ without timing):
    free-running chip clocks of period ``clock_period`` (:func:`~imu_array_ros.timing.clocks.find_sample_clocks`):
    a chip whose reading delays show a sawtooth clearly above their noise gets a clock (rate, this
    session's phase); the others are named.  ``clock_period=None`` skips the search.
-2. The moving stage is then fitted again with the timing terms added: ``time_offset`` (each sensor's
-   constant delay) and, where clocks were found, their rates (``sample_clock``; the phase is a session
-   state, found by search, never written).  A common delay of every sensor is not observable: the
-   reference IMU's accelerometer offset is held (the engine's gauge), and so the reference's clock rate.
+2. The moving stage is then fitted again with ``time_offset`` (each sensor's constant delay) added.
+   The clocks' rates stay those of the search (the spectral peak places them to a fraction of a ppm;
+   the engine's Gauss-Newton cannot refine them, as a rate moves the sawtooth's wraps, which its
+   first-order Jacobian does not see, and it stalls); the phase is a session state, never written.
+   A common delay of every sensor is not observable: the reference IMU's accelerometer offset is held
+   (the engine's gauge).
 
 What the recording cannot identify (too little motion) is skipped with the reason, as every stage.
 """
@@ -26,7 +28,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.timing.clocks import find_sample_clocks
-from imu_array_ros.timing.session import MIN_MOVING_S, estimate_session
+from imu_array_ros.timing.session import MIN_MOVING_S, active_clocks, estimate_session
 
 __all__ = ["TimingSetup", "prepare_timing", "CLOCK_PERIOD"]
 
@@ -37,7 +39,7 @@ CLOCK_PERIOD = 1e-3
 @dataclass
 class TimingSetup:
     """model: the input with sample clocks (found, or the description's with this recording's phases);
-    terms: the timing terms the moving stage fits; notes: what was found and why."""
+    terms: the timing terms the moving stage fits (``time_offset``); notes: what was found and why."""
 
     model: SensorModel
     terms: tuple[str, ...]
@@ -49,25 +51,21 @@ def prepare_timing(samples: ImuSamples, model: SensorModel, *, clock_period: flo
                    t0_ns: int | None = None) -> TimingSetup:
     """The sample clocks of ``samples`` under ``model`` and the timing terms to fit (module docstring).
     Raises :class:`CalibrationError` when there is too little motion for any timing term."""
-    has = model.terms["sample_clock"].values[:, 0] > 0
-    if has.any():
+    clocks = active_clocks(model)
+    if clocks:
         session = estimate_session(samples, model, t0_ns=t0_ns)
         if not session.estimated:
             raise CalibrationError("; ".join(session.notes))
-        return TimingSetup(session.model, ("time_offset", "sample_clock"),
+        return TimingSetup(session.model, ("time_offset",),
                            [f"sample clocks of the description: phases of this recording found; {session.notes[-1]}"],
-                           int(has.sum()))
+                           sum(int(np.sum(model.terms[t].values[:, 0] > 0)) for t in clocks))
     if clock_period is None:
         return TimingSetup(model, ("time_offset",), ["no sample-clock search (clock period not given)"])
     try:
         search = find_sample_clocks(samples, model, period=clock_period, t0_ns=t0_ns)
     except ValueError as err:
         raise CalibrationError(f"timing not identifiable: {err}") from None
-    if not search.found.any():
-        return TimingSetup(model, ("time_offset",), [f"no sample clock of period {clock_period * 1e3:g} ms found "
-                                                     f"(largest sawtooth {np.max(search.snr):.1f}x the noise, "
-                                                     f"{8.0:g}x needed)"])
-    return TimingSetup(search.model, ("time_offset", "sample_clock"), search.notes, int(search.found.sum()))
+    return TimingSetup(search.model, ("time_offset",), search.notes, search.count)
 
 
 def minimum_motion_note() -> str:

@@ -101,7 +101,7 @@ class Gauge:
 
 #: terms kept at their values at the structural point: the geometry, and the sample clocks (at their identity
 #: value a clock has no period and its rate no effect)
-STRUCTURAL = ("position", "sample_clock")
+STRUCTURAL = ("position", "sample_clock", "gyroscope_sample_clock", "accelerometer_sample_clock")
 
 
 def _structural(model: SensorModel) -> SensorModel:

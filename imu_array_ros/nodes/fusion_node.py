@@ -7,6 +7,12 @@ publishes ``<topic_prefix>/fused/imu`` (Imu) and ``<topic_prefix>/fused/accel``
 ``/diagnostics``.  Parameters: :data:`imu_array_ros.nodes.parameters.FUSION_PARAMS`.
 All the work is :class:`imu_array_ros.fusion.live.LiveFusion`; the
 subscriptions take the serialized messages (``raw=True``) and only queue them.
+
+With sample clocks in the description or ``stamps:=own``, the session states
+(clock phases, common rate, stamp clocks) are tracked by a
+:class:`~imu_array_ros.workflows.live_session.SessionTracker`: estimated in a worker
+thread from the last ``session_window`` seconds, swapped in between two steps,
+reported in /diagnostics.  Without them the node does exactly what it did before.
 """
 
 from __future__ import annotations
@@ -18,12 +24,13 @@ from geometry_msgs.msg import AccelWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
-from imu_array_ros.errors import ImuArrayError
+from imu_array_ros.errors import ConfigError, ImuArrayError
 from imu_array_ros.fusion.live import LiveFusion
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
 from imu_array_ros.workflows import load_array
+from imu_array_ros.workflows.live_session import MIN_MOVING_S, SessionTracker, has_sample_clocks
 
 __all__ = ["FusionNode", "main", "NIS_WARN_RATIO"]
 
@@ -46,8 +53,17 @@ class FusionNode(Node):
         cal = p.calibration_file or None
         self._cal_id = _file_id(cal) if cal else None
         desc, source = load_array(Path(p.array_config), Path(cal) if self._cal_id else None)
-        self.core = LiveFusion(desc, frame_prefix=p.frame_prefix, sync_timeout_s=p.sync_timeout, max_batch=p.max_batch)
-        self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}")
+        own = p.stamps == "own"
+        if p.reference_imu and p.reference_imu not in desc.names:
+            raise ConfigError(f"parameter 'reference_imu': no IMU {p.reference_imu!r} in {source}")
+        reference = list(desc.names).index(p.reference_imu) if p.reference_imu else 0
+        self.core = LiveFusion(desc, frame_prefix=p.frame_prefix, sync_timeout_s=p.sync_timeout, max_batch=p.max_batch,
+                               own_stamps=own, reference=reference, timed_batch_s=p.timed_batch)
+        self.tracker: SessionTracker | None = None
+        self._logged_error: str | None = None
+        grid = f", own stamps paired onto the stamps of {desc.names[reference]!r}" if own else ""
+        self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}{grid}")
+        self._track_start(self.core.fusion.model)
         self.raw = RawQueue()
         q = qos(p.reliable)
         for k, name in enumerate(desc.names):  # reliable input: keep every message until taken
@@ -73,6 +89,8 @@ class FusionNode(Node):
         if payloads:
             self.core.add(payloads, index, now)
         self._publish(self.core.step(now))
+        if self.tracker is not None:
+            self._track(now)
 
     def _publish(self, batches) -> None:
         for batch in batches:
@@ -97,6 +115,10 @@ class FusionNode(Node):
         try:
             desc, _ = load_array(Path(self.p.array_config), Path(path))
             self.core.set_description(desc)
+            if self.tracker is not None:
+                self.core.set_model(self.tracker.rebase(self.core.fusion.model))
+            else:
+                self._track_start(self.core.fusion.model)
         except ImuArrayError as err:
             self.get_logger().error(f"calibration not reloaded, keeping the one in use: {err}")
             return
@@ -114,13 +136,53 @@ class FusionNode(Node):
         values = {"input_rate_msgs": s.input_rate, "fused_rate_hz": s.fused_rate, "nis_ratio": s.nis_ratio,
                   "nis_samples": s.nis_samples, "latency_p50_s": s.latency_p50, "latency_p99_s": s.latency_p99,
                   "unknown_imu_topics": len(self._foreign), **s.counts}
+        if self.tracker is not None:
+            values.update(self.tracker.values(self._now()))
         if s.nis_ratio > NIS_WARN_RATIO:
             level, msg = WARN, f"model does not fit: NIS ratio {s.nis_ratio:.3g} over the last second"
         elif s.fused_rate == 0:
             level, msg = WARN, "no fused samples in the last second"
         else:
             level, msg = OK, f"fusing at {s.fused_rate:.1f} Hz, NIS ratio {s.nis_ratio:.3g}"
+        if self.tracker is not None and self.tracker.states is None:
+            msg += "; session states not estimated yet (fallback)"
         self.diagnostics.publish(level, msg, values)
+
+    # ------------------------------------------------------------------ session states
+
+    def _track_start(self, model) -> None:
+        """Track the session states when the model has sample clocks or the stamps are own (else nothing)."""
+        p = self.p
+        tracker = SessionTracker(model, own_stamps=self.core.own_stamps, window_s=p.session_window,
+                                 interval_s=p.session_interval)
+        if not tracker.enabled:
+            return
+        self.tracker = tracker
+        self.core.sink = tracker.add
+        self.core.set_model(tracker.model)
+        parts = [(w, until) for w, until, on in (
+            ("sample-clock phases", "sample clocks at their mean age", has_sample_clocks(model)),
+            ("stamp clocks", "own stamps taken as sample times", tracker.own_stamps)) if on]
+        self.get_logger().info(f"tracking session states ({' and '.join(w for w, _ in parts)}) from the last "
+                               f"{p.session_window:g} s; until they are estimated (>= {MIN_MOVING_S:g} s of motion): "
+                               + ", ".join(u for _, u in parts))
+
+    def _track(self, now: int) -> None:
+        tracker = self.tracker
+        result = tracker.poll(now, self.core.fusion.t0_ns)
+        if tracker.error and tracker.error != self._logged_error:
+            self._logged_error = tracker.error
+            self.get_logger().error(f"session states not estimated, keeping those in use: {tracker.error}")
+        if result is None:
+            return
+        if result.estimated:
+            self.core.set_model(tracker.model)
+            if tracker.estimates == 1:
+                self.get_logger().info(tracker.line())
+            else:
+                self.get_logger().info(f"re-estimated: {tracker.line()}", throttle_duration_sec=60.0)
+        else:
+            self.get_logger().info(f"session states kept: {tracker.last_note}", throttle_duration_sec=60.0)
 
     def close(self) -> None:
         """Fuse and publish what is still buffered, if the context is still up."""

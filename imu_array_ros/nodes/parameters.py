@@ -69,6 +69,18 @@ FUSION_PARAMS = _COMMON + (
     Param("max_batch", 1000, "most samples per fusion call", 1, 1_000_000),
     Param("period", 0.005, "seconds between fusion steps", 0.0005, 1.0),
     Param("watch_period", 0.5, "seconds between checks of calibration_file", 0.05, 60.0),
+    Param("stamps", "common", "'common': every IMU's message of an array sample carries the same stamp; 'own': "
+          "the IMUs stamp their messages with their own clocks: paired onto the reference IMU's stamps, their "
+          "clocks estimated live", choices=("common", "own")),
+    Param("reference_imu", "", "stamps 'own': the IMU whose stamps are the grid the fused messages come on; '' = "
+          "the first IMU"),
+    Param("session_window", 20.0, "sample clocks or own stamps: seconds of the latest samples the session states "
+          "(clock phases, common clock rate, stamp-clock offsets and skews) are estimated from (needs 2 s of "
+          "motion in it)", 2.0, 600.0),
+    Param("session_interval", 30.0, "seconds (of stamps) between re-estimates of the session states while the array "
+          "moves", 1.0, 3600.0),
+    Param("timed_batch", 0.05, "time-aware fusion (timing terms or own stamps): least seconds of samples fused per "
+          "call (a call costs ~10 ms for 32 IMUs); adds up to this to the latency", 0.0, 1.0),
 )
 
 CALIBRATION_PARAMS = _COMMON + (

@@ -37,12 +37,13 @@ TERM_TEST_SIZES = {
     "accelerometer_gain": 0.02, "accelerometer_bias": 0.3, "bias_drift": 1e-3,
     "gyroscope_misalignment": 0.01, "gyroscope_nonorthogonality": 0.01, "gyroscope_gain": 0.02,
     "gyroscope_g_sensitivity": 1e-3, "gyroscope_bias": 0.01,
-    "stamp_clock": 1e-3, "sample_clock": 1e-5,
+    "stamp_clock": 1e-3, "sample_clock": 1e-5, "gyroscope_sample_clock": 1e-5, "accelerometer_sample_clock": 1e-5,
 }
 
 #: Terms whose identity value is not a valid place to perturb around: the values (per parameter) the
 #: test sizes are added to (a sample clock of period 1 ms, its phase inside the period).
-TERM_TEST_CENTRES = {"sample_clock": (1e-3, 1500.0, 4e-4), "stamp_clock": (0.0, 100.0)}
+TERM_TEST_CENTRES = {"sample_clock": (1e-3, 1500.0, 4e-4), "stamp_clock": (0.0, 100.0),
+                     "gyroscope_sample_clock": (1e-3, -800.0, 2e-4), "accelerometer_sample_clock": (1e-3, 300.0, 1e-4)}
 
 
 def perturb(model: SensorModel, rng: np.random.Generator, scales: dict[str, float] | None = None) -> SensorModel:

@@ -73,10 +73,12 @@ class ReadingDelays:
 
 
 def reading_delays(samples: ImuSamples, model: SensorModel, fused: FusedSamples | None = None, *,
-                   t0_ns: int | None = None, moving_rate: float = MOVING_RATE) -> ReadingDelays:
+                   t0_ns: int | None = None, moving_rate: float = MOVING_RATE,
+                   sensor: str | None = None) -> ReadingDelays:
     """The delays of every IMU's readings in ``samples`` under ``model`` (see module docstring);
     ``fused``: the fusion of ``samples`` with ``model`` (fused here when not given); t0_ns: the time
-    origin of the clocks (default the first stamp)."""
+    origin of the clocks (default the first stamp); ``sensor``: "gyroscope" or "accelerometer" for the
+    delays of that sensor's readings alone (None: one delay shared by both, a chip's clock)."""
     t0 = int(samples.stamps[0]) if t0_ns is None else int(t0_ns)
     if fused is None:
         fused, _ = ModelFusion(model, t0_ns=t0).fuse(samples)
@@ -94,9 +96,10 @@ def reading_delays(samples: ImuSamples, model: SensorModel, fused: FusedSamples 
     jac = model.jacobians(ctx, free=["time_offset"], motion=False)
     w = np.where(sel.valid(model), 1.0 / model.std[None], 0.0)
     r = np.where(w > 0, sel.readings - jac.predicted, 0.0) * w
-    j = jac.params["time_offset"].sum(axis=3) * w
+    col = {None: slice(None), "accelerometer": slice(0, 1), "gyroscope": slice(1, 2)}[sensor]
+    j = jac.params["time_offset"][..., col].sum(axis=3) * w
     info = np.sum(j * j, axis=2)
     correction = np.sum(j * r, axis=2) / np.where(info > 0, info, 1.0)
-    current = model.sample_delays(ctx)[..., 1]
+    current = model.sample_delays(ctx)[..., 0 if sensor == "accelerometer" else 1]
     moving = np.linalg.norm(tc["trajectory"].derivative()[:, 0:3], axis=1) > moving_rate  # the gyroscopes' rate
     return ReadingDelays(fused.stamps, ctx.t, current + correction, info, moving, t0, current)

@@ -1,14 +1,16 @@
-"""The session states of one recording: sample-clock phases and the board's common clock rate, the
+"""The session states of one recording: sample-clock phases and each clock family's common rate, the
 offsets and skews of IMUs that stamp their own messages.
 
 :func:`estimate_session` alternates fusion and estimation (``iterations`` rounds): fuse with the
 current states, read every IMU's relative reading delays off the residuals
-(:func:`~imu_array_ros.timing.delays.reading_delays`), then
+(:func:`~imu_array_ros.timing.delays.reading_delays`; per sensor for a clock that drives one sensor),
+then
 
-* sample clocks (IMUs whose description gives a clock ``period``): the chips' rates relative to each
-  other are device constants, but the whole board's clock drifts between sessions (tens to ~100 ppm):
-  one common rate shift is searched (+-``COMMON_SPAN_PPM``) on the sawtooths' spectra, then each chip's
-  phase is fitted (:func:`~imu_array_ros.timing.sawtooth.fit_phases`);
+* sample clocks (``sample_clock``, ``gyroscope_sample_clock``, ``accelerometer_sample_clock`` with a
+  ``period``): the chips' rates relative to each other are device constants, but the whole board's
+  clock drifts between sessions (tens to ~100 ppm): one common rate shift per clock term is searched
+  (+-``COMMON_SPAN_PPM``) on the sawtooths' spectra, then each chip's phase is fitted
+  (:func:`~imu_array_ros.timing.sawtooth.fit_phases`);
 * stamp clocks (samples with own stamps): each IMU's delay relative to the reference IMU is a straight
   line in time, offset + skew t, fitted by weighted least squares (the reference's held at 0: the
   array's time is the reference IMU's clock).
@@ -33,8 +35,8 @@ from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.timing.delays import ReadingDelays, reading_delays
 from imu_array_ros.timing.sawtooth import fit_phases, sawtooth_delay, spectrum
 
-__all__ = ["SessionStates", "estimate_session", "needs_session", "session_weights", "MIN_MOVING_S", "COMMON_SPAN_PPM",
-           "MAX_CORRECTION_S"]
+__all__ = ["SessionStates", "estimate_session", "needs_session", "session_weights", "active_clocks", "CLOCK_TERMS",
+           "MIN_MOVING_S", "COMMON_SPAN_PPM", "MAX_CORRECTION_S"]
 
 #: seconds of motion below which the session states are not estimated
 MIN_MOVING_S = 2.0
@@ -42,18 +44,23 @@ MIN_MOVING_S = 2.0
 COMMON_SPAN_PPM = 400.0
 #: a per-sample delay correction beyond this (s) is outside the first-order estimate: left out
 MAX_CORRECTION_S = 3e-3
+#: sample-clock terms -> the sensor whose readings they delay (None: both sensors of the chip)
+CLOCK_TERMS = {"sample_clock": None, "gyroscope_sample_clock": "gyroscope",
+               "accelerometer_sample_clock": "accelerometer"}
+_OFFSET_COLUMNS = {None: [0, 1], "accelerometer": [0], "gyroscope": [1]}
 
 
 @dataclass
 class SessionStates:
-    """model: the input model with this recording's session states; phases (K,) s (NaN: no clock);
-    common_rate_ppm: the shift of every chip's rate found for this session; stamp_offset (K,) s,
-    stamp_skew (K,) ppm and their stds (None without own stamps); moving_seconds; estimated: False
-    when there was too little motion; notes: what was done and why; delays: the last delays seen."""
+    """model: the input model with this recording's session states; phases: clock term -> (K,) s (NaN: no
+    clock); common_rate_ppm: clock term -> the shift of every chip's rate found for this session;
+    stamp_offset (K,) s, stamp_skew (K,) ppm and their stds (None without own stamps); moving_seconds;
+    estimated: False when there was too little motion; notes: what was done and why; delays: the last
+    delays seen."""
 
     model: SensorModel
-    phases: np.ndarray | None = None
-    common_rate_ppm: float | None = None
+    phases: dict = field(default_factory=dict)
+    common_rate_ppm: dict = field(default_factory=dict)
     stamp_offset: np.ndarray | None = None
     stamp_skew: np.ndarray | None = None
     stamp_offset_std: np.ndarray | None = None
@@ -68,18 +75,23 @@ class SessionStates:
         names = self.model.names
         out: dict = {"moving_seconds": round(self.moving_seconds, 1), "estimated": self.estimated,
                      "notes": list(self.notes)}
-        if self.phases is not None:
-            out["sample_clock_phase_s"] = {n: float(p) for n, p in zip(names, self.phases) if np.isfinite(p)}
-            out["common_rate_ppm"] = self.common_rate_ppm
+        for term, phases in self.phases.items():
+            out[f"{term}_phase_s"] = {n: float(p) for n, p in zip(names, phases) if np.isfinite(p)}
+            out[f"{term}_common_rate_ppm"] = self.common_rate_ppm.get(term)
         if self.stamp_offset is not None:
             out["stamp_clock_offset_s"] = dict(zip(names, map(float, self.stamp_offset)))
             out["stamp_clock_skew_ppm"] = dict(zip(names, map(float, self.stamp_skew)))
         return out
 
 
+def active_clocks(model: SensorModel) -> list[str]:
+    """The sample-clock terms of ``model`` with a period on some IMU."""
+    return [t for t in CLOCK_TERMS if np.any(model.terms[t].values[:, 0] > 0)]
+
+
 def needs_session(samples: ImuSamples, model: SensorModel) -> bool:
     """True when ``model`` has sample clocks or ``samples`` have own stamps (session states to estimate)."""
-    return bool(np.any(model.terms["sample_clock"].values[:, 0] > 0)) or samples.own_stamps is not None
+    return bool(active_clocks(model)) or samples.own_stamps is not None
 
 
 def estimate_session(samples: ImuSamples, model: SensorModel, *, iterations: int = 2, reference=None,
@@ -89,37 +101,39 @@ def estimate_session(samples: ImuSamples, model: SensorModel, *, iterations: int
     if not needs_session(samples, model):
         return SessionStates(model, notes=["no sample clocks or own stamps: nothing to estimate"])
     t0 = int(samples.stamps[0]) if t0_ns is None else int(t0_ns)
-    clock = model.terms["sample_clock"].values.copy()
-    has_clock = clock[:, 0] > 0
+    clocks = {t: model.terms[t].values.copy() for t in active_clocks(model)}
     ref = reference_index(model.names, reference)
     own = samples.own_stamps is not None
     out = SessionStates(model)
     stamp = model.terms["stamp_clock"].values.copy()
     current = model
-    common = 0.0
     for it in range(max(1, int(iterations))):
         fused, _ = ModelFusion(current, t0_ns=t0).fuse(samples)
-        delays = reading_delays(samples, current, fused, t0_ns=t0)
-        out.delays, out.moving_seconds = delays, delays.moving_seconds
-        if delays.moving_seconds < MIN_MOVING_S:
-            return _too_still(out, model, clock, has_clock, own, delays.moving_seconds)
-        w = session_weights(delays)
-        t = delays.t
-        if has_clock.any():
+        for term, clock in clocks.items():
+            delays = reading_delays(samples, current, fused, t0_ns=t0, sensor=CLOCK_TERMS[term])
+            out.delays, out.moving_seconds = delays, delays.moving_seconds
+            if delays.moving_seconds < MIN_MOVING_S:
+                return _too_still(out, model, clocks, own, delays.moving_seconds)
+            has = clock[:, 0] > 0
+            w, t = session_weights(delays), delays.t
             saw = sawtooth_delay(t, clock[:, 0], clock[:, 1], clock[:, 2])
             d = delays.correction + saw  # the sawtooth part, up to a constant per IMU and a common part
             d = d - _common(d, saw, w)
             if it == 0 and search_common:
-                common = _search_common(t, d, w, clock, has_clock)
-                clock[has_clock, 1] += common
+                shift = _search_common(t, d, w, clock, has)
+                clock[has, 1] += shift
+                out.common_rate_ppm[term] = shift
             phases, _ = fit_phases(t, d, w, clock[:, 0], clock[:, 1])
-            clock[:, 2] = np.where(has_clock, phases, 0.0)
-            out.phases = np.where(has_clock, phases, np.nan)
+            clock[:, 2] = np.where(has, phases, 0.0)
+            out.phases[term] = np.where(has, phases, np.nan)
         if own:
-            stamp, out.stamp_offset_std, out.stamp_skew_std = _stamp_clocks(delays, current, stamp, w, ref)
+            delays = reading_delays(samples, current, fused, t0_ns=t0)
+            out.delays, out.moving_seconds = delays, delays.moving_seconds
+            if delays.moving_seconds < MIN_MOVING_S:
+                return _too_still(out, model, clocks, own, delays.moving_seconds)
+            stamp, out.stamp_offset_std, out.stamp_skew_std = _stamp_clocks(delays, stamp, session_weights(delays), ref)
             out.stamp_offset, out.stamp_skew = stamp[:, 0].copy(), stamp[:, 1].copy()
-        current = model.with_terms(sample_clock=clock, stamp_clock=stamp)
-    out.common_rate_ppm = float(common) if has_clock.any() else None
+        current = model.with_terms(stamp_clock=stamp, **clocks)
     out.model = current
     out.notes.append(f"session states estimated from {out.moving_seconds:.0f} s of motion")
     return out
@@ -141,16 +155,16 @@ def _common(d: np.ndarray, saw: np.ndarray, w: np.ndarray) -> np.ndarray:
     return (np.sum(w * (d - saw), axis=1) / np.where(total > 0, total, 1.0))[:, None]
 
 
-def _search_common(t, d, w, clock, has_clock) -> float:
+def _search_common(t, d, w, clock, has) -> float:
     """The common rate shift (ppm) maximising the sawtooths' summed spectral power."""
     span = float(np.ptp(t[w.sum(axis=1) > 0]))
-    step = 0.25e6 * float(np.min(clock[has_clock, 0])) / max(min(span, 60.0), 1e-3)
+    step = 0.25e6 * float(np.min(clock[has, 0])) / max(min(span, 60.0), 1e-3)
     shifts = np.arange(-COMMON_SPAN_PPM, COMMON_SPAN_PPM + step, step)
 
     def power(cand):
         rates = clock[None, :, 1] + cand[:, None]
-        periods = np.where(has_clock, clock[:, 0], 1.0)[None] / (1.0 + rates * 1e-6)
-        return np.sum(np.abs(spectrum(t, d[:, has_clock], w[:, has_clock], periods[:, has_clock])) ** 2, axis=1)
+        periods = np.where(has, clock[:, 0], 1.0)[None] / (1.0 + rates * 1e-6)
+        return np.sum(np.abs(spectrum(t, d[:, has], w[:, has], periods[:, has])) ** 2, axis=1)
 
     best = shifts[np.argmax(power(shifts))]
     width = step
@@ -161,7 +175,7 @@ def _search_common(t, d, w, clock, has_clock) -> float:
     return float(best)
 
 
-def _stamp_clocks(delays: ReadingDelays, model: SensorModel, stamp: np.ndarray, w: np.ndarray, ref: int):
+def _stamp_clocks(delays: ReadingDelays, stamp: np.ndarray, w: np.ndarray, ref: int):
     """Offset and skew of every IMU's stamp clock relative to the reference's, weighted least squares on
     the moving samples; returns (values (K, 2), offset std (K,), skew std (K,))."""
     cur = stamp[:, 0][None] + stamp[:, 1][None] * 1e-6 * delays.t[:, None]
@@ -169,15 +183,17 @@ def _stamp_clocks(delays: ReadingDelays, model: SensorModel, stamp: np.ndarray, 
     y = y - y[:, ref:ref + 1]
     k = y.shape[1]
     new, s_off, s_skew = np.zeros((k, 2)), np.full(k, np.nan), np.full(k, np.nan)
-    info_ref = np.where(w[:, ref] > 0, w[:, ref], 0.0)
+    info_ref = w[:, ref]
+    a = np.stack([np.ones_like(delays.t), 1e-6 * delays.t], axis=1)
     for j in range(k):
         if j == ref:
             continue
-        wj = np.where((w[:, j] > 0) & (info_ref > 0), 1.0 / (1.0 / np.where(w[:, j] > 0, w[:, j], 1.0)
-                                                             + 1.0 / np.where(info_ref > 0, info_ref, 1.0)), 0.0)
-        a = np.stack([np.ones_like(delays.t), 1e-6 * delays.t], axis=1)
+        both = (w[:, j] > 0) & (info_ref > 0)
+        wj = np.where(both, 1.0 / (1.0 / np.where(both, w[:, j], 1.0) + 1.0 / np.where(both, info_ref, 1.0)), 0.0)
         m = a.T @ (wj[:, None] * a)
-        if np.linalg.cond(m) > 1e12:
+        scale = np.sqrt(np.clip(np.diag(m), 1e-300, None))
+        cond = np.linalg.cond(m / np.outer(scale, scale))  # Jacobi-scaled: the columns' units do not matter
+        if not np.isfinite(cond) or cond > 1e10:
             continue
         cov = np.linalg.inv(m)
         new[j] = cov @ (a.T @ (wj * y[:, j]))
@@ -185,17 +201,22 @@ def _stamp_clocks(delays: ReadingDelays, model: SensorModel, stamp: np.ndarray, 
     return new, s_off, s_skew
 
 
-def _too_still(out: SessionStates, model: SensorModel, clock, has_clock, own, moving) -> SessionStates:
+def _too_still(out: SessionStates, model: SensorModel, clocks: dict, own: bool, moving: float) -> SessionStates:
     out.estimated = False
     out.notes.append(f"only {moving:.1f} s of motion (at least {MIN_MOVING_S:.0f} s needed): session states "
                      "not estimated")
-    if has_clock.any():
+    if clocks:
         offsets = model.terms["time_offset"].values.copy()
-        half = np.where(has_clock, 0.5 * clock[:, 0] / (1.0 + clock[:, 1] * 1e-6), 0.0)
-        offsets -= half[:, None]
-        clock = clock.copy()
-        clock[:, 0] = 0.0
-        out.model = model.with_terms(sample_clock=clock, time_offset=offsets)
+        reset = {}
+        for term in clocks:
+            clock = model.terms[term].values.copy()
+            has = clock[:, 0] > 0
+            half = np.where(has, 0.5 * clock[:, 0] / (1.0 + clock[:, 1] * 1e-6), 0.0)
+            for c in _OFFSET_COLUMNS[CLOCK_TERMS[term]]:
+                offsets[:, c] -= half
+            clock[:, 0] = 0.0
+            reset[term] = clock
+        out.model = model.with_terms(time_offset=offsets, **reset)
         out.notes.append("sample clocks replaced by their mean age (half a period) for this recording")
     if own:
         out.notes.append("own stamps taken as the sample times")

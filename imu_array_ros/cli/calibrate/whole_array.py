@@ -1,7 +1,8 @@
 """``imu-array calibrate all``: the whole array from one recording.
 
 Still poses -> accelerometer intrinsics and gyroscope biases; the moving phase ->
-positions, gyroscope gain and misalignment (``workflows.calibrate("all", ...)``).
+positions, gyroscope gain and misalignment; then the timing (sample clocks, time offsets)
+(``workflows.calibrate("all", ...)``).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 from imu_array_ros.cli.calibrate.common import add_calibration_inputs, add_still_options, still_options
 from imu_array_ros.cli.calibrate.static import calibrate_stages
 from imu_array_ros.cli.options import add_force_quiet, parse_list
+from imu_array_ros.errors import ConfigError
 from imu_array_ros.fitting import check_terms
 
 __all__ = ["add_parser", "run"]
@@ -28,6 +30,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="comma-separated terms of the moving stage (default position,gyroscope_gain,"
                          "gyroscope_misalignment; empty: no moving stage)")
     add_still_options(sp)
+    sp.add_argument("--no-timing", dest="timing", action="store_false",
+                    help="leave out the timing stage (sample clocks, time offsets); by default it runs when the "
+                         "recording's motion identifies them and says why when not")
+    sp.add_argument("--clock-period", type=float, default=1e-3, metavar="S",
+                    help="internal sample period (s) of the chips' free-running clocks to search for when the "
+                         "description has none (default 0.001, ~1 kHz; 0: no search)")
     sp.add_argument("--out", required=True, type=Path, help="calibrated description YAML to write (old kept as OUT.bak)")
     sp.add_argument("--plot", type=Path, metavar="PNG", help="also write the static stage's plot")
     add_force_quiet(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak, unless it fits the "
@@ -39,9 +47,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, reference: str | None = None,
         static_method: str = "ml", moving_terms: str | None = None, gravity: float | None = None,
         still_gyro: float | None = None, still_accel: float | None = None, still_min_duration: float | None = None,
-        plot: Path | None = None, force: bool = False, quiet: bool = False) -> int:
-    """Whole-array calibration: still poses -> static stage -> moving stage, one description."""
+        plot: Path | None = None, force: bool = False, quiet: bool = False, timing: bool = True,
+        clock_period: float = 1e-3) -> int:
+    """Whole-array calibration: still poses -> static stage -> moving stage -> timing stage, one description."""
+    if not (clock_period >= 0 and clock_period < 1.0):
+        raise ConfigError(f"--clock-period must be in [0, 1) s, got {clock_period:g}")
     options = still_options(gravity, still_gyro, still_accel, still_min_duration)
+    options["timing"] = timing
+    options["clock_period"] = clock_period or None
     if moving_terms is not None:  # "" : no moving stage
         options["moving_terms"] = tuple(parse_list(moving_terms) or ())
         if options["moving_terms"]:
