@@ -211,6 +211,9 @@ def _timing_stage(samples, poses, current, moving, moving_terms, skipped, refere
                         t0_ns=int(samples.stamps[0]),
                         progress=lambda it, cost: say(f"timing stage: iteration {it}, cost {cost:.10g}"))
         say(f"timing stage: NIS {fit.nis_before:.4g} -> {fit.nis_after:.4g}")
+        if not fit.converged:  # an unconverged refit is not written over the moving stage's converged one
+            raise CalibrationError(f"the refit with {', '.join(setup.terms)} did not converge in {fit.iterations} "
+                                   "iterations; the moving stage's result is kept")
         return fit, fit.model, window, setup.notes
     except CalibrationError as err:
         skipped["timing"] = str(err)

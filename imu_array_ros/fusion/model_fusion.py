@@ -33,6 +33,14 @@ sample time along the fused estimates
 the delay times the noise of the estimate's local slope, far below the readings' noise.  The
 fused estimate refers to the instant the model calls delay 0: the array stamp (the gauge of time).
 
+The difference h - h_linear is computed as one difference, not two predictions
+(:meth:`SensorModel.predict_nonlinear <imu_array_ros.model.sensor_model.SensorModel.predict_nonlinear>`:
+linear terms cancel, the timing stage's shift is a polynomial in each reading's delay with per-sample
+coefficients), the local cubics' weights are solved once for all passes (they depend on the stamps only,
+:func:`~imu_array_ros.model.trajectory.shared_fits`), and so are the readings' delays; the readings are
+compensated chunk by chunk into two arrays reused by the passes.  Same numbers as two predictions to
+rounding (test/test_timed_fusion_fast.py); speed: benchmarks/results/time_aware_fusion.md.
+
 Bias drift counts from ``t0_ns``: the first stamp the object has seen unless
 given, so fusing a stream in chunks uses the recording's first stamp.
 """
@@ -43,7 +51,7 @@ import numpy as np
 
 from imu_array_ros.errors import FusionError
 from imu_array_ros.fusion.ml_fusion import FusionConfig, FusionStats, MLFusion
-from imu_array_ros.model.trajectory import fused_timing_context
+from imu_array_ros.model.trajectory import fused_timing_context, shared_fits
 from imu_array_ros.model.sensor_model import SensorModel, motion_context
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 from imu_array_ros.model.linear import LinearArrayModel
@@ -59,28 +67,32 @@ class ModelFusion:
         self.model = model
         self.linear = LinearArrayModel.from_sensor_model(model, acc_range, gyro_range)
         self.fusion = MLFusion(self.linear, config)
-        self._linear_part = model.linear_part()
         self.passes = int(passes)
         self._nonlinear = bool(model.nonlinear_terms)
+        self._timed = model.timed
         self.t0_ns = t0_ns
 
     @property
     def config(self) -> FusionConfig:
         return self.fusion.config
 
-    def correction(self, fused: FusedSamples, stamp_delays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def correction(self, fused: FusedSamples, stamp_delays: np.ndarray | None = None, *,
+                   subtract_from: tuple[np.ndarray, np.ndarray] | None = None,
+                   out: tuple[np.ndarray, np.ndarray] | None = None,
+                   delays: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """h(x_hat) - h_linear(x_hat) for accelerometers and gyroscopes, each (N, K, 3); the timing terms
-        (and ``stamp_delays`` (N, K) s of own stamps) evaluated along the fused trajectory."""
+        (and ``stamp_delays`` (N, K) s of own stamps) evaluated along the fused trajectory.  Computed as one
+        difference (:meth:`SensorModel.predict_nonlinear`), not as two predictions; ``subtract_from``:
+        readings (N, K, 3) each, to return minus the correction instead; ``out``: arrays to write into;
+        ``delays``: the model's :meth:`~SensorModel.timing_delays` at these stamps, when known."""
         ctx = dict(stamps=fused.stamps, omega=fused.omega, omega_dot=fused.omega_dot,
                    specific_force=fused.specific_force, rotations=self.model.rotations, t0_ns=self.t0_ns)
-        if self.model.timed or stamp_delays is not None:  # along the local cubics through the estimate
+        if self._timed or stamp_delays is not None:  # along the local cubics through the estimate
             motion = np.concatenate([fused.omega, fused.omega_dot, fused.specific_force], axis=1)
-            full = self.model.predict(motion_context(**ctx, stamp_delays=stamp_delays,
-                                                     **fused_timing_context(fused.stamps, motion)))
+            ctx = motion_context(**ctx, stamp_delays=stamp_delays, **fused_timing_context(fused.stamps, motion))
         else:
-            full = self.model.predict(motion_context(**ctx, derivatives=True))
-        lin = self._linear_part.predict(motion_context(**ctx))
-        return full[0] - lin[0], full[1] - lin[1]
+            ctx = motion_context(**ctx)  # no timing stage: nothing reads the motion's derivatives
+        return self.model.predict_nonlinear(ctx, delays=delays, out=out, subtract_from=subtract_from)
 
     def fuse(self, samples: ImuSamples) -> tuple[FusedSamples, FusionStats]:
         stamps, accel, gyro = samples.stamps, samples.accel, samples.gyro
@@ -90,16 +102,36 @@ class ModelFusion:
         delays = samples.stamp_delays
         if not self.passes or not len(fused) or not (self._nonlinear or delays is not None):
             return fused, stats
-        valid = samples.valid(self.model)
-        for _ in range(self.passes):
-            idx = np.searchsorted(stamps, fused.stamps)
-            da, dg = self.correction(fused, None if delays is None else delays[idx])
-            acc, gyr = accel.copy(), gyro.copy()
-            # only the readings that carry information are compensated; saturated ones stay as read, so
-            # the fusion still sees them as saturated and takes their sign (skog2016 Sec. III)
-            acc[idx] -= np.where(valid[idx, :, :3], da, 0.0)
-            gyr[idx] -= np.where(valid[idx, :, 3:], dg, 0.0)
-            fused, stats = self.fusion.fuse(ImuSamples(stamps, acc, gyr, samples.names, samples.own_stamps))
+        # only the readings that carry information are compensated; saturated ones stay as read, so
+        # the fusion still sees them as saturated and takes their sign (skog2016 Sec. III).  The linear
+        # fusion applies the model's saturation rule: when it found no saturated or missing reading, every
+        # reading is valid
+        keep_a = keep_g = None
+        if stats.saturated_accel_samples or stats.saturated_gyro_samples or stats.incomplete_samples:
+            valid_a, valid_g = self.model.acc_unsaturated(accel), self.model.gyro_unsaturated(gyro)
+            keep_a = None if valid_a.all() else ~valid_a
+            keep_g = None if valid_g.all() else ~valid_g
+        acc, gyr = np.empty_like(accel), np.empty_like(gyro)  # the compensated readings, rewritten by every pass
+        held = None  # the model's timing delays at every sample (they depend on the stamps only)
+        with shared_fits():  # the local cubics' weights, fitted once at these stamps
+            for _ in range(self.passes):
+                if len(fused) == len(stamps):  # every sample fused: compensated in place, chunk by chunk
+                    if held is None and (self._timed or delays is not None):
+                        held = self.model.timing_delays(motion_context(
+                            stamps, fused.omega, fused.omega_dot, fused.specific_force, self.model.rotations,
+                            t0_ns=self.t0_ns, stamp_delays=delays))
+                    self.correction(fused, delays, subtract_from=(accel, gyro), out=(acc, gyr), delays=held)
+                else:
+                    idx = np.searchsorted(stamps, fused.stamps)
+                    da, dg = self.correction(fused, None if delays is None else delays[idx])
+                    acc[...], gyr[...] = accel, gyro
+                    acc[idx] -= da
+                    gyr[idx] -= dg
+                if keep_a is not None:
+                    np.copyto(acc, accel, where=keep_a)
+                if keep_g is not None:
+                    np.copyto(gyr, gyro, where=keep_g)
+                fused, stats = self.fusion.fuse(ImuSamples(stamps, acc, gyr, samples.names, samples.own_stamps))
         return fused, stats
 
 

@@ -192,7 +192,7 @@ class SensorModel:
         terms come as one :class:`~imu_array_ros.model.terms.timing.TimingStage` (also when only ``ctx``
         has stamp delays)."""
         keep = set(keep)
-        out = [t for t in self.terms.values() if sensor in t.sensors and (t.name in keep or not t.is_identity)]
+        out = [t for t in self.terms.values() if sensor in t.sensors and (t.name in keep or not _is_identity(t))]
         timing = [t for t in out if isinstance(t, TimingTerm)]
         if timing or (ctx is not None and ctx.stamp_delays is not None):
             out = [t for t in out if not isinstance(t, TimingTerm)] + [TimingStage(timing)]
@@ -231,6 +231,120 @@ class SensorModel:
                 x = term.apply(x, ctx, sensor)
             out.append(x)
         return out[0], out[1]
+
+    def timing_delays(self, ctx: MotionContext) -> dict[str, np.ndarray]:
+        """Sensor -> (N, K) s, the delays of the timing stage of that sensor's chain (sensors without one are
+        left out); the delays common to both sensors (the clocks', the stamp delays) computed once.  As
+        :meth:`sample_delays`, for :meth:`predict_nonlinear`."""
+        return self._timing_delays(self._prepare(ctx), {s: self.chain(s, ctx=ctx) for s in SENSORS})
+
+    def _timing_delays(self, ctx: MotionContext, chains: dict[str, list]) -> dict[str, np.ndarray]:
+        stages = {s: next((t for t in chains[s] if isinstance(t, TimingStage)), None) for s in SENSORS}
+        stages = {s: t for s, t in stages.items() if t is not None}
+        if not stages:
+            return {}
+        # every stage's terms in the model's order, the order of each stage's sum (a term counts for the
+        # sensors it acts on)
+        members = {id(term) for t in stages.values() for term in t.terms}
+        union = [term for term in self.terms.values() if id(term) in members]
+        return TimingStage(union).delays(ctx, tuple(stages))
+
+    def predict_nonlinear(self, ctx: MotionContext, *, delays: dict[str, np.ndarray] | None = None,
+                          out: tuple[np.ndarray, np.ndarray] | None = None,
+                          subtract_from: tuple[np.ndarray, np.ndarray] | None = None,
+                          chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        """What the terms that are not linear add to the noise-free readings: :meth:`predict` minus the
+        :meth:`linear_part`'s prediction of the same motion with every reading at its stamp (accelerometers,
+        gyroscopes), each (N, K, 3); equal to that difference to rounding (without its cancellation).
+        ``delays``: :meth:`timing_delays` of ``ctx`` when already known; ``out``: two (N, K, 3) arrays to write
+        the result into; ``subtract_from``: readings (accelerometers, gyroscopes) to return minus the result
+        instead (the readings compensated for those terms).
+
+        Computed along each chain without evaluating it twice: the linear terms are affine in the signal, so
+        the difference d between the two chains only passes through their linear maps (``d_input``, composed
+        into one 3x3 map per IMU) and additive terms cancel; a term that is not linear adds ``apply(d) - d``
+        when it is additive (no ``d_input``), else ``apply(x + d) - x`` with x the linear chain's signal; the
+        timing stage adds its shift (:meth:`~imu_array_ros.model.terms.timing.TimingStage.shift`) mapped by
+        the linear maps that follow it.  In ``chunk`` samples at a time (a trajectory that gives ``rows``, or
+        none), so that no temporary grows with the batch."""
+        ctx = self._prepare(ctx)
+        n, k = ctx.n, self.n_imus
+        chains = {s: self.chain(s, ctx=ctx) for s in SENSORS}
+        plans = {s: self._difference_plan(chains[s], ctx, s) for s in SENSORS}
+        if out is None:
+            out = (np.empty((n, k, 3)), np.empty((n, k, 3)))
+        traj = ctx.trajectory
+        step = n if traj is not None and not hasattr(traj, "rows") else max(int(chunk), 1)
+        for lo in range(0, n, step):
+            sel = slice(lo, min(lo + step, n))
+            sub = ctx if step >= n else _context_rows(ctx, sel)
+            d_sub = self._timing_delays(sub, chains) if delays is None else \
+                {s: d if step >= n else d[sel] for s, d in delays.items()}
+            for s, sensor in enumerate(SENSORS):
+                into = out[s] if step >= n else out[s][sel]
+                d = self._difference(plans[sensor], sub, sensor, d_sub, into)
+                if subtract_from is not None:
+                    np.subtract(subtract_from[s][sel], d, out=into)
+                elif d is not into:
+                    into[...] = d
+        return out[0], out[1]
+
+    def _difference_plan(self, chain: list, ctx: MotionContext, sensor: str) -> tuple[bool, list]:
+        """(reads_x, steps) of :meth:`predict_nonlinear` along one chain: whether the linear chain's signal is
+        needed (a non-linear term reads its input), and the steps ("x", term): the linear chain's signal
+        through a linear term; ("map", a): the difference through a linear map (K, 3, 3); ("stage", stage,
+        maps, basis): plus a timing stage's shift mapped by the linear maps that follow it (composed, and
+        their feature basis);
+        ("add", term): plus an additive term; ("read", term): a term that reads its input."""
+        k = self.n_imus
+        reads_x = any(not _in_linear_part(t) and not _additive(t) for t in chain)
+        steps, pending = [], None  # pending: [timing stage, the linear maps after it]
+
+        def flush():
+            steps.append(("stage", pending[0], pending[1], pending[0].shift_basis(ctx, sensor, pending[1])))
+
+        for term in chain:
+            if _in_linear_part(term):
+                if reads_x:
+                    steps.append(("x", term))
+                if not _additive(term):  # a linear map: d_input is the same for every signal
+                    a = np.array(np.asarray(term.d_input(np.zeros((1, k, 3)), ctx, sensor))[0])
+                    steps.append(("map", a))
+                    if pending is not None:
+                        pending[1] = a if pending[1] is None else np.matmul(a, pending[1])
+                continue
+            if pending is not None:
+                flush()
+                pending = None
+            if isinstance(term, TimingStage):
+                pending = [term, None]
+            else:
+                steps.append(("add" if _additive(term) else "read", term))
+        if pending is not None:
+            flush()
+        return reads_x, steps
+
+    def _difference(self, plan, ctx: MotionContext, sensor: str, delays: dict, into: np.ndarray) -> np.ndarray:
+        """The difference of one sensor's chains for the samples of ``ctx`` (see :meth:`_difference_plan`)."""
+        reads_x, steps = plan
+        x = self._base(ctx, sensor) if reads_x else None
+        d = None
+        for step in steps:
+            kind, term = step[0], step[1]
+            if kind == "x":
+                x = term.apply(x, ctx, sensor)
+            elif kind == "map":
+                if d is not None:  # a_k d_nk, one product per IMU
+                    d = np.matmul(d.transpose(1, 0, 2), term.transpose(0, 2, 1)).transpose(1, 0, 2)
+            elif kind == "stage":
+                shift = term.shift(ctx, sensor, maps=step[2], basis=step[3], delta=delays.get(sensor),
+                                   out=into if d is None else None)
+                d = shift if d is None else d + shift
+            elif kind == "add":
+                d = term.apply(np.zeros((ctx.n, ctx.k, 3)) if d is None else d, ctx, sensor)
+            else:
+                d = term.apply(x if d is None else x + d, ctx, sensor) - x
+        return np.zeros((ctx.n, ctx.k, 3)) if d is None else d
 
     def jacobians(self, ctx: MotionContext, free: Sequence[str] = (), *, motion: bool = True) -> ModelJacobians:
         """Predictions and analytic Jacobians (motion, and the ``free`` terms' parameters);
@@ -278,6 +392,45 @@ class SensorModel:
                 motion[:, :, rows, base:base + 3] += times(ctx.rot_t[None])
         return ModelJacobians(predicted=predicted, motion=motion, params=params)
 
+
+
+_DEFAULT_ROWS: dict[type, np.ndarray] = {}
+
+
+def _is_identity(term) -> bool:
+    """``term.is_identity`` without building the (K, P) identity values (the term class's default row, once)."""
+    cls = type(term)
+    if cls.is_identity is not Term.is_identity:
+        return term.is_identity
+    row = _DEFAULT_ROWS.get(cls)
+    if row is None:
+        row = _DEFAULT_ROWS[cls] = cls.default_values(1)[0]
+    values = term.values
+    return values.shape[1:] == row.shape and bool((values == row).all())
+
+
+def _context_rows(ctx: MotionContext, sel: slice) -> MotionContext:
+    """The context of the samples ``sel`` only (its drift reference, the first stamp of the whole, kept)."""
+    cut = lambda a: None if a is None else a[sel]  # noqa: E731
+    t0 = ctx.t0_ns if ctx.t0_ns is not None or not ctx.n else int(ctx.stamps[0])
+    out = MotionContext(stamps=ctx.stamps[sel], omega=ctx.omega[sel], omega_dot=ctx.omega_dot[sel],
+                        specific_force=ctx.specific_force[sel], rotations=ctx.rotations, t0_ns=t0,
+                        omega_ddot=cut(ctx.omega_ddot), specific_force_dot=cut(ctx.specific_force_dot),
+                        stamp_delays=cut(ctx.stamp_delays),
+                        trajectory=None if ctx.trajectory is None else ctx.trajectory.rows(sel),
+                        omega_rate=cut(ctx.omega_rate))
+    out.positions = ctx.positions
+    return out
+
+
+def _in_linear_part(term) -> bool:
+    """True for a term the :meth:`SensorModel.linear_part` keeps (linear, hence affine in the signal)."""
+    return bool(getattr(term, "linear", False))
+
+
+def _additive(term) -> bool:
+    """True for a term that adds to the signal what does not depend on it (no ``d_input``: x + f(motion))."""
+    return isinstance(term, TimingStage) or type(term).d_input is Term.d_input
 
 
 def _split(term_class, values: np.ndarray) -> dict[str, np.ndarray]:

@@ -23,11 +23,16 @@ simulated from the exact motion; NEES of the fused [omega, omega_dot, s], 9 expe
 
 from __future__ import annotations
 
+import threading
+from contextlib import contextmanager
+
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from imu_array_ros.model.samples import FusedSamples
 
-__all__ = ["MotionTrajectory", "timing_context", "fused_timing_context", "WINDOW_S", "MIN_HALF", "DEGREE"]
+__all__ = ["MotionTrajectory", "timing_context", "fused_timing_context", "shared_fits", "LocalFits", "fit_weights",
+           "solve_spd", "WINDOW_S", "MIN_HALF", "DEGREE"]
 
 #: window of the local polynomials, seconds (widened to 2 MIN_HALF + 1 samples at low rates)
 WINDOW_S = 0.025
@@ -41,30 +46,168 @@ GAP = 2.5
 RIDGE = 1e-9
 
 
+def _windows(stamps: np.ndarray):
+    """The samples each local polynomial is fitted to: (idx (N, W) their indexes, inside (N, W) False where a
+    window reaches past its segment's end, dt (N, W) s relative to each centre, scale (s) of the scaled time,
+    degree)."""
+    n = len(stamps)
+    steps = np.diff(stamps)
+    spacing = float(np.median(steps)) * 1e-9
+    half = max(MIN_HALF, int(round(0.5 * WINDOW_S / spacing)))
+    width = min(2 * half + 1, n)
+    degree = min(DEGREE, width - 1)
+    # a window never reaches across a gap (more than GAP spacings): segments of consecutive samples
+    seg = np.concatenate([[0], np.cumsum(steps > GAP * np.median(steps))])
+    first = np.searchsorted(seg, seg, side="left")
+    last = np.searchsorted(seg, seg, side="right")  # one past the segment's last sample
+    lo = np.clip(np.arange(n) - half, first, np.maximum(last - width, first))  # shifted inside the segment
+    idx = np.minimum(lo[:, None] + np.arange(width)[None], n - 1)  # (N, W)
+    inside = (lo[:, None] + np.arange(width)[None]) < last[:, None]
+    dt = (stamps[idx] - stamps[:, None]) * 1e-9  # (N, W) s, relative to each centre
+    scale = max(float(np.abs(np.where(inside, dt, 0.0)).max()), 1e-9)
+    return idx, inside, dt, scale, degree
+
+
+def solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x with a x = b for every row: a (N, d, d) symmetric positive definite (d small), b (N, d, c); a Cholesky
+    factorisation and two substitutions written out over all N rows at once (no per-row LAPACK call)."""
+    n, d = a.shape[:2]
+    a = np.ascontiguousarray(a.transpose(1, 2, 0))  # (d, d, N): every entry a contiguous row
+    x = np.ascontiguousarray(b.transpose(1, 2, 0))  # (d, c, N), solved in place
+    low = np.empty((d, d, n))  # L[i, j] over the rows (lower triangle used)
+    inv = np.empty((d, n))  # 1 / L[j, j]
+    for j in range(d):
+        s = a[j, j].copy()
+        for m in range(j):
+            s -= low[j, m] * low[j, m]
+        np.sqrt(s, out=s)
+        np.divide(1.0, s, out=inv[j])
+        low[j, j] = s
+        for i in range(j + 1, d):
+            t = low[i, j]
+            t[...] = a[i, j]
+            for m in range(j):
+                t -= low[i, m] * low[j, m]
+            t *= inv[j]
+    for i in range(d):  # L z = b
+        for m in range(i):
+            x[i] -= low[i, m] * x[m]
+        x[i] *= inv[i]
+    for i in range(d - 1, -1, -1):  # L^T x = z
+        for m in range(i + 1, d):
+            x[i] -= low[m, i] * x[m]
+        x[i] *= inv[i]
+    return np.ascontiguousarray(x.transpose(2, 0, 1))
+
+
+class LocalFits:
+    """The local polynomials' least-squares fits at given stamps, solved for every sample at once
+    (:func:`solve_spd`): :meth:`coefficients` of any motion at those stamps.  They depend on the stamps only.
+
+    On a regular grid most windows have the same offsets: those share one set of weights, solved once, and
+    their coefficients are one matrix product over the windows of the motion (no gathered copy)."""
+
+    def __init__(self, stamps: np.ndarray) -> None:
+        idx, inside, dt, scale, degree = _windows(stamps)
+        n, width = idx.shape
+        rel = stamps[idx] - stamps[:, None]
+        same = inside.all(axis=1) & (rel == rel[n // 2]).all(axis=1)
+        # runs of consecutive samples with the shared weights whose windows start at consecutive samples
+        start = idx[:, 0]
+        cut = np.flatnonzero(~same[1:] | ~same[:-1] | (np.diff(start) != 1)) + 1
+        self.runs = [(int(a), int(b)) for a, b in zip(np.r_[0, cut], np.r_[cut, n]) if same[a] and b - a > 1]
+        shared = np.zeros(n, dtype=bool)
+        for a, b in self.runs:
+            shared[a:b] = True
+        self.rest = np.flatnonzero(~shared)
+        rows = self.rest if not self.runs else np.r_[self.runs[0][0], self.rest]
+        tau = np.where(inside[rows], dt[rows] / scale, 0.0)
+        pt = np.empty((len(rows), degree + 1, width))  # the scaled powers, transposed
+        pt[:, 0] = inside[rows]
+        pt[:, 1] = tau
+        for d in range(2, degree + 1):
+            np.multiply(pt[:, d - 1], tau, out=pt[:, d])
+        gram = np.matmul(pt, pt.transpose(0, 2, 1))
+        gram += RIDGE * np.diag((np.arange(degree + 1) > 0).astype(float))[None]
+        solved = solve_spd(gram, pt)
+        solved /= (scale ** np.arange(degree + 1))[None, :, None]  # per second^d
+        self.shared_t = np.ascontiguousarray(solved[0].T) if self.runs else None  # (W, D+1)
+        self.weights = solved[1:] if self.runs else solved  # (R, D+1, W) of the other samples
+        self.idx, self.start, self.n, self.shape = idx[self.rest], start, n, (degree + 1, width)
+
+    def coefficients(self, motion: np.ndarray) -> np.ndarray:
+        """(N, D+1, C) per second^d: the local polynomials through ``motion`` (N, C) at these stamps."""
+        motion = np.asarray(motion, dtype=float)
+        out = np.empty((self.n, self.shape[0], motion.shape[1]))
+        if self.runs:
+            windows = sliding_window_view(motion, self.shape[1], axis=0)  # (N - W + 1, C, W), no copy
+            for a, b in self.runs:
+                s = int(self.start[a])
+                out[a:b] = np.matmul(windows[s:s + b - a], self.shared_t).transpose(0, 2, 1)
+        if len(self.rest):
+            out[self.rest] = np.matmul(self.weights, motion[self.idx])
+        return out
+
+
+def fit_weights(stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(idx (N, W), weights (N, D+1, W)): the local polynomials' coefficients (per second^d) are
+    ``weights @ motion[idx]`` (:class:`LocalFits`, every sample's weights written out)."""
+    fits = LocalFits(np.asarray(stamps, dtype=np.int64))
+    idx, _, _, _, _ = _windows(np.asarray(stamps, dtype=np.int64))
+    weights = np.empty((fits.n,) + fits.shape)
+    for a, b in fits.runs:
+        weights[a:b] = fits.shared_t.T
+    weights[fits.rest] = fits.weights
+    return idx, weights
+
+
+_SHARED = threading.local()
+
+
+@contextmanager
+def shared_fits():
+    """Within the context (in this thread), local cubics fitted with ``solver="cholesky"`` to the same stamps
+    share their :class:`LocalFits`: the fusion's compensation passes fit new estimates at the same stamps.
+    They are dropped on leaving."""
+    outer = getattr(_SHARED, "slot", None)
+    _SHARED.slot = {}
+    try:
+        yield
+    finally:
+        _SHARED.slot = outer
+
+
+def _fits_of(stamps: np.ndarray) -> LocalFits:
+    slot = getattr(_SHARED, "slot", None)
+    if slot is None:
+        return LocalFits(stamps)
+    held = slot.get("stamps")
+    if held is None or len(held) != len(stamps) or not np.array_equal(held, stamps):
+        slot["fits"] = LocalFits(stamps)
+        slot["stamps"] = stamps.copy()
+    return slot["fits"]
+
+
 class MotionTrajectory:
     """Local cubic fits of an estimated motion around each sample (see module docstring)."""
 
-    def __init__(self, stamps: np.ndarray, motion: np.ndarray) -> None:
+    def __init__(self, stamps: np.ndarray, motion: np.ndarray, *, solver: str = "lapack") -> None:
+        """``solver``: how each sample's normal equations are solved -- "lapack" (one LAPACK solve per sample, the
+        fitting engine's numbers) or "cholesky" (:class:`LocalFits`: every sample's at once, the same fit to
+        rounding, many times faster, and shared by fits at the same stamps inside :func:`shared_fits`; what
+        the fusion uses)."""
         stamps = np.asarray(stamps, dtype=np.int64)
         motion = np.asarray(motion, dtype=float)
         n = len(stamps)
         if n < 2 or np.any(np.diff(stamps) <= 0):
             raise ValueError("a fused trajectory needs at least two samples with strictly increasing stamps")
+        if solver not in ("lapack", "cholesky"):
+            raise ValueError(f"solver must be 'lapack' or 'cholesky', got {solver!r}")
         self.stamps = stamps
-        steps = np.diff(stamps)
-        spacing = float(np.median(steps)) * 1e-9
-        half = max(MIN_HALF, int(round(0.5 * WINDOW_S / spacing)))
-        width = min(2 * half + 1, n)
-        degree = min(DEGREE, width - 1)
-        # a window never reaches across a gap (more than GAP spacings): segments of consecutive samples
-        seg = np.concatenate([[0], np.cumsum(steps > GAP * np.median(steps))])
-        first = np.searchsorted(seg, seg, side="left")
-        last = np.searchsorted(seg, seg, side="right")  # one past the segment's last sample
-        lo = np.clip(np.arange(n) - half, first, np.maximum(last - width, first))  # shifted inside the segment
-        idx = np.minimum(lo[:, None] + np.arange(width)[None], n - 1)  # (N, W)
-        inside = (lo[:, None] + np.arange(width)[None]) < last[:, None]
-        dt = (stamps[idx] - stamps[:, None]) * 1e-9  # (N, W) s, relative to each centre
-        scale = max(float(np.abs(np.where(inside, dt, 0.0)).max()), 1e-9)
+        if solver == "cholesky":
+            self.coef = _fits_of(stamps).coefficients(motion)  # (N, D+1, 9) per second^d
+            return
+        idx, inside, dt, scale, degree = _windows(stamps)
         powers = (dt / scale)[..., None] ** np.arange(degree + 1) * inside[..., None]  # (N, W, D+1), scaled
         gram = np.einsum("nwi,nwj->nij", powers, powers)
         # short segments: a small ridge on the higher coefficients gives the lower-degree fit (a lone sample:
@@ -143,15 +286,16 @@ class MotionTrajectory:
         return x[..., 0:3], x[..., 3:6], x[..., 6:9]
 
 
-def timing_context(stamps: np.ndarray, motion: np.ndarray) -> dict:
+def timing_context(stamps: np.ndarray, motion: np.ndarray, *, solver: str = "lapack") -> dict:
     """The motion-context arguments the timing terms read, from an estimated motion (N, 9)
     [omega, omega_dot, s] at ``stamps``: the trajectory and the slopes of the local cubics, ``omega_ddot`` and
-    ``specific_force_dot``.  Fewer than two samples: no trajectory, zero slopes."""
+    ``specific_force_dot``.  Fewer than two samples: no trajectory, zero slopes.  ``solver``: see
+    :class:`MotionTrajectory` (the fitting engine's default, "lapack")."""
     motion = np.asarray(motion, dtype=float)
     if len(stamps) < 2:
         z = np.zeros((len(stamps), 3))
         return dict(trajectory=None, omega_ddot=z, specific_force_dot=z)
-    traj = MotionTrajectory(stamps, motion)
+    traj = MotionTrajectory(stamps, motion, solver=solver)
     slope = traj.derivative()
     return dict(trajectory=traj, omega_ddot=slope[:, 3:6], specific_force_dot=slope[:, 6:9])
 
@@ -161,8 +305,9 @@ def fused_timing_context(stamps: np.ndarray, motion: np.ndarray) -> dict:
     from the slope of the fused angular rate (the gyroscopes' own, far less noisy than the accelerometers'
     omega_dot estimate) plus the constant by which omega_dot differs from it (a rotational
     accelerometer-bias field shifts omega_dot; the fitting engine reads the omega_dot state, so fitted time
-    offsets and gyroscope biases are consistent with that constant)."""
-    tc = timing_context(stamps, motion)
+    offsets and gyroscope biases are consistent with that constant).  The local cubics are solved all at once
+    (``solver="cholesky"``): the fusion fits them in every pass."""
+    tc = timing_context(stamps, motion, solver="cholesky")
     if tc["trajectory"] is not None:
         slope = tc["trajectory"].derivative()[:, 0:3]
         tc["omega_rate"] = slope + np.median(np.asarray(motion, dtype=float)[:, 3:6] - slope, axis=0)

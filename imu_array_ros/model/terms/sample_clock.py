@@ -48,6 +48,7 @@ def clock_ticks(t: np.ndarray, period: np.ndarray, rate: np.ndarray, phase: np.n
 @register
 class SampleClock(TimingTerm):
     name = "sample_clock"
+    same_for_sensors = True  # the chip's clock: one age for its accelerometer and gyroscope
     hint = "twist the array for a minute or more, with fast changes of angular rate"
     fields = (Field(("sample_clock", "period"), (), "s", positive=True, fitted=False),
               Field(("sample_clock", "rate"), (), "ppm"),
@@ -63,7 +64,17 @@ class SampleClock(TimingTerm):
         return clock_ticks(ctx.t[:, None], v[None, :, 0], v[None, :, 1], v[None, :, 2])
 
     def delay(self, ctx: MotionContext, sensor: str) -> np.ndarray:
-        return -self._ticks(ctx)[1]
+        # -age of clock_ticks, its arithmetic in place (one (N, K) array and the whole periods)
+        v = self.values
+        on = v[:, 0] > 0
+        big_t = np.where(on, v[:, 0], 1.0) / (1.0 + v[:, 1] * 1e-6)
+        u = ctx.t[:, None] - v[None, :, 2]
+        u /= big_t
+        u -= np.floor(u)
+        u *= big_t
+        if not on.all():
+            u[:, ~on] = 0.0
+        return np.negative(u, out=u)
 
     def d_delay(self, ctx: MotionContext, sensor: str) -> np.ndarray:
         m, _, _ = self._ticks(ctx)

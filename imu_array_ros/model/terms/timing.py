@@ -38,7 +38,7 @@ import numpy as np
 from imu_array_ros.model.kinematics import skew
 from imu_array_ros.model.terms.base import MotionContext, Term
 
-__all__ = ["TimingTerm", "TimingStage", "signal_rate", "exact_shift"]
+__all__ = ["TimingTerm", "TimingStage", "signal_rate", "exact_shift", "shift_features"]
 
 
 class TimingTerm(Term):
@@ -49,6 +49,9 @@ class TimingTerm(Term):
     order = 2
     candidate = False  # the dedicated estimators of :mod:`imu_array_ros.timing` set them up
     linear = False  # the accelerometer's shift needs ds/dt, which is not in the motion
+    #: True when :meth:`delay` is the same for both sensors of an IMU (a clock, not a sensor's filter delay):
+    #: the stage then computes it once for both
+    same_for_sensors = False
 
     def delay(self, ctx: MotionContext, sensor: str) -> np.ndarray:
         """(N, K) s: true sample time minus stamp of ``sensor``'s readings."""
@@ -132,6 +135,129 @@ def _rate_along(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarra
     return np.einsum("kji,nkj->nki", ctx.rotations, v)
 
 
+def shift_features(ctx: MotionContext, sensor: str) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """The timing stage's shift of ``sensor``'s readings (first order plus the remainder along the context's
+    trajectory) as a polynomial in each reading's delay, sum_j delta^j (Lambda_j p_k + e_j) in the array
+    frame, j = 1..M, its coefficients per sample shared by every IMU: (low (L, F, N), high (M - L, 6, N) or
+    None).  low: orders 1..L, F = 3 (e_j) for a gyroscope, F = 12 for an accelerometer: the symmetric part of
+    Lambda_j (its entries 00, 11, 22, 01, 02, 12), w_j with [w_j]x its antisymmetric part, e_j; high: the
+    accelerometer's orders above the local polynomials' degree, where Lambda_j is symmetric and e_j = 0 (its
+    six entries).  None when the trajectory is not local polynomials (then :meth:`TimingStage.apply`
+    evaluates it).
+
+    With the local polynomials' coefficients a_i (omega), b_i (omega_dot), s_i (specific force), i = 0..D,
+    the remainder is p(t + delta) - p(t) - delta p'(t) and the first order is delta times the context's
+    rates, so: e_1 = the context's rate (omega_rate, else omega_dot; ds/dt) and e_j = a_j or s_j for
+    2 <= j <= D; for an accelerometer, C(omega, omega_dot) = [omega]x^2 + [omega_dot]x = omega omega^T -
+    |omega|^2 I + [omega_dot]x is quadratic in the coefficients: Lambda_1 = dC/dt of the context, omega
+    omega_dot^T + omega_dot omega^T - 2 (omega . omega_dot) I + [omega_ddot]x (the trajectory's own first order
+    cancels with the remainder's), Lambda_j = sum_{i+l=j} (a_i a_l^T - (a_i . a_l) I) + [b_j]x for j >= 2
+    ([b_j]x for j <= D only)."""
+    traj = ctx.trajectory
+    if traj is None:
+        degree = 1
+    elif isinstance(getattr(traj, "coef", None), np.ndarray) and hasattr(traj, "shift"):
+        coef = traj.coef  # (N, D+1, 9)
+        degree = coef.shape[1] - 1
+    else:
+        return None
+    n = ctx.n
+    if sensor == "gyroscope":
+        low = np.empty((max(degree, 1), 3, n))
+        low[0] = (ctx.omega_dot if ctx.omega_rate is None else ctx.omega_rate).T
+        if traj is not None:
+            low[1:] = coef[:, 2:, 0:3].transpose(1, 2, 0)
+        return low, None
+    top = 2 * degree if traj is not None else 1
+    low = np.zeros((degree if traj is not None else 1, 12, n))
+    high = np.empty((top - len(low), 6, n)) if top > len(low) else None
+    w, wd = np.ascontiguousarray(ctx.omega.T), np.ascontiguousarray(ctx.omega_dot.T)
+    _symmetric(w, wd, out=low[0, :6])
+    if ctx.omega_ddot is not None:
+        low[0, 6:9] = ctx.omega_ddot.T
+    if ctx.specific_force_dot is not None:
+        low[0, 9:] = ctx.specific_force_dot.T
+    if traj is None:
+        return low, high
+    a = np.ascontiguousarray(coef[:, :, 0:3].transpose(1, 2, 0))  # (D+1, 3, N)
+    a_r, a_c = a[:, _ROWS], a[:, _COLS]  # (D+1, 6, N): the components each symmetric entry multiplies
+    for j in range(2, top + 1):
+        q = low[j - 1, :6] if j <= degree else high[j - 1 - len(low)]
+        first = True
+        for i in range(max(0, j - degree), (j + 1) // 2):  # i < l = j - i: a_i a_l^T + a_l a_i^T
+            for x, y in ((a_r[i], a_c[j - i]), (a_r[j - i], a_c[i])):
+                if first:
+                    np.multiply(x, y, out=q)
+                    first = False
+                else:
+                    q += x * y
+        if j % 2 == 0:
+            h = j // 2
+            if first:
+                np.multiply(a_r[h], a_c[h], out=q)
+            else:
+                q += a_r[h] * a_c[h]
+        q[:3] -= q[0] + q[1] + q[2]  # - sum_{i+l=j} (a_i . a_l) I
+        if j <= degree:
+            low[j - 1, 6:9] = coef[:, j, 3:6].T
+            low[j - 1, 9:] = coef[:, j, 6:9].T
+    return low, high
+
+
+#: the entries of a symmetric 3x3 matrix the features hold: (row, column) of 00, 11, 22, 01, 02, 12
+_ROWS = np.array([0, 1, 2, 0, 0, 1])
+_COLS = np.array([0, 1, 2, 1, 2, 2])
+
+
+def _symmetric(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """The six entries of x y^T + y x^T - 2 (x . y) I, x and y (3, N), into ``out`` (6, N)."""
+    np.multiply(x[_ROWS], y[_COLS], out=out)
+    out += y[_ROWS] * x[_COLS]
+    out[:3] -= out[0] + out[1] + out[2]
+    return out
+
+
+def _gemm(a: np.ndarray, b: np.ndarray, out: np.ndarray, accumulate: bool) -> None:
+    """out (C-contiguous) = a @ b, or += a @ b: BLAS dgemm accumulating in place (no temporary for the
+    product), as out^T = b^T a^T on the Fortran-ordered transposes; numpy's matmul without BLAS access."""
+    if _DGEMM is None or not (a.flags.c_contiguous and b.flags.c_contiguous and out.flags.c_contiguous):
+        if accumulate:
+            out += a @ b
+        else:
+            np.matmul(a, b, out=out)
+        return
+    r = _DGEMM(1.0, b.T, a.T, 1.0 if accumulate else 0.0, out.T, overwrite_c=1)
+    if not np.shares_memory(r, out):  # BLAS wrote into a copy
+        out[...] = r.T
+
+
+try:  # the BLAS numpy's linear algebra uses (scipy is a dependency); without it, numpy's matmul
+    from scipy.linalg.blas import dgemm as _DGEMM
+except ImportError:  # pragma: no cover
+    _DGEMM = None
+
+
+def _copied(value: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+    if out is None:
+        return value
+    out[...] = value
+    return out
+
+
+def _feature_basis(sensor: str, rot: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(low (F, 3K), high (6, 3K) or None): the features of :func:`shift_features` -> every IMU's output (rot_k
+    (K, 3, 3) from the array frame): rot_k e for a gyroscope; rot_k (Lambda p_k + e) for an accelerometer."""
+    k = len(rot)
+    r = rot.transpose(2, 0, 1)  # [i, k, o] = rot[k, o, i]
+    if sensor == "gyroscope":
+        return r.reshape(3, 3 * k), None
+    lam = r[:, None, :, :] * positions.T[None, :, :, None]  # [i, j, k, o] = rot[k, o, i] p[k, j]
+    sym = np.stack([lam[i, j] + lam[j, i] if i != j else lam[i, i] for i, j in zip(_ROWS, _COLS)])
+    cross = np.stack([lam[2, 1] - lam[1, 2], lam[0, 2] - lam[2, 0], lam[1, 0] - lam[0, 1]])  # rot_k (w x p_k)
+    low = np.concatenate([sym, cross, r], axis=0).reshape(12, 3 * k)
+    return low, sym.reshape(6, 3 * k)
+
+
 class TimingStage:
     """The timing terms of one chain applied as one stage: the signal at stamp + the sum of their delays
     (+ the context's stamp delays).  Quacks like a :class:`Term` in the model's chain."""
@@ -146,6 +272,72 @@ class TimingStage:
         out = np.zeros((ctx.n, ctx.k)) if ctx.stamp_delays is None else np.array(ctx.stamp_delays, dtype=float)
         for t in self.terms:
             out = out + t.delay(ctx, sensor)
+        return out
+
+    def delays(self, ctx: MotionContext, sensors=("accelerometer", "gyroscope")) -> dict[str, np.ndarray]:
+        """:meth:`delay` of several sensors (each term counted for the sensors it acts on), the delays that are
+        the same for both (the clocks', the stamp delays) computed once; the sums in the order of
+        :meth:`delay`."""
+        base = None if ctx.stamp_delays is None else np.array(ctx.stamp_delays, dtype=float)
+        out = {sensor: base for sensor in sensors}
+        for t in self.terms:
+            on = [sensor for sensor in sensors if sensor in t.sensors]
+            shared = t.delay(ctx, on[0]) if on and t.same_for_sensors else None
+            for sensor in on:
+                v = shared if shared is not None else t.delay(ctx, sensor)
+                out[sensor] = v if out[sensor] is None else out[sensor] + v
+        return {sensor: np.zeros((ctx.n, ctx.k)) if d is None else np.broadcast_to(d, (ctx.n, ctx.k))
+                for sensor, d in out.items()}
+
+    @staticmethod
+    def shift_basis(ctx: MotionContext, sensor: str, maps: np.ndarray | None = None):
+        """What :meth:`shift` maps the features of :func:`shift_features` with: every IMU's rotation to its
+        sensor frame, then ``maps`` (K, 3, 3) (None: none), times its position; per array, not per sample."""
+        rot = ctx.rot_t if maps is None else np.matmul(maps, ctx.rot_t)  # (K, 3, 3): array frame -> output
+        return _feature_basis(sensor, rot, ctx.positions)
+
+    def shift(self, ctx: MotionContext, sensor: str, maps: np.ndarray | None = None,
+              delta: np.ndarray | None = None, *, basis=None, out: np.ndarray | None = None,
+              chunk: int = 512) -> np.ndarray:
+        """(N, K, 3) what the stage adds to the signal, ``apply(x) - x`` (it does not depend on x), mapped by
+        ``maps`` (K, 3, 3), the linear maps that follow the stage in the chain (None: none; ``basis``: their
+        :meth:`shift_basis`, when already known).  ``delta``: the stage's delays of ``sensor`` (None:
+        computed); ``out``: an (N, K, 3) array to write it into.
+
+        Along the fusion's local cubics (a :class:`~imu_array_ros.model.trajectory.MotionTrajectory`) or without
+        a trajectory (first order), the shift is a polynomial in each reading's delay whose coefficients are
+        shared by all IMUs (:func:`shift_features`): one matrix product gives every IMU's coefficients in its
+        sensor frame, and Horner's rule in the (N, K) delays the shift, in chunks of samples that stay in
+        cache.  Equal to :meth:`apply` to rounding.  Along another trajectory (the simulator's truth):
+        :meth:`apply`."""
+        if delta is None:
+            delta = self.delay(ctx, sensor)
+        n, k = ctx.n, ctx.k
+        if out is None or not out.flags.c_contiguous:
+            return _copied(self.shift(ctx, sensor, maps, delta, basis=basis, out=np.empty((n, k, 3)), chunk=chunk),
+                           out)
+        feats = shift_features(ctx, sensor)
+        if feats is None:
+            y = self.apply(np.zeros((n, k, 3)), ctx, sensor)
+            out[...] = y if maps is None else np.einsum("kij,nkj->nki", maps, y)
+            return out
+        low, high = feats
+        low_basis, high_basis = self.shift_basis(ctx, sensor, maps) if basis is None else basis
+        # order j's coefficients of every reading: features (c, F) @ basis (F, 3K), accumulated by Horner's rule
+        orders = [(f, low_basis) for f in low] + ([] if high is None else [(f, high_basis) for f in high])
+        flat = out.reshape(n, 3 * k)
+        step = max(min(chunk, n), 1)
+        de = np.empty((step, 3 * k))  # the delays, one per output
+        delta = np.asarray(delta, dtype=float)
+        for lo in range(0, n, step):
+            hi = min(lo + step, n)
+            d, y = de[:hi - lo], flat[lo:hi]
+            for o in range(3):
+                d[:, o::3] = delta[lo:hi]
+            for j in range(len(orders) - 1, -1, -1):  # y = (..(u_M d + u_M-1) d + ..) d
+                f, b = orders[j]
+                _gemm(np.ascontiguousarray(f[:, lo:hi].T), b, y, accumulate=j < len(orders) - 1)
+                y *= d
         return out
 
     def apply(self, x, ctx, sensor):
