@@ -69,7 +69,8 @@ def test_all_calibrates_positions_and_gyros_after_the_poses(session, capsys):
                        "--out", out, "--plot", session / "all.png")
     assert code == 0, err
     record = yaml.safe_load(out.read_text())["calibration"]
-    assert [s["stage"] for s in record["stages"]] == ["still poses", "static", "moving"]
+    assert [s["stage"] for s in record["stages"]] == ["still poses", "static", "moving", "timing"]
+    assert any("no sample clock" in n for n in record["stages"][3]["notes"])  # simulated synchronously
     assert record["skipped"] == {}
     cal = SensorModel.from_description(load_description(out))
     truth = SensorModel.from_description(load_description(session / "truth.yaml"))
@@ -122,7 +123,8 @@ def test_all_installs_through_the_one_install_path(session, capsys):
     assert f"previous {out} kept as {bak}" in err and f"wrote {out}" in err
     assert bak.read_bytes() == NILSSON14.read_bytes()
     record = yaml.safe_load(out.read_text())["calibration"]
-    assert [s["stage"] for s in record["stages"]] == ["still poses", "static", "moving"]
+    assert [s["stage"] for s in record["stages"]] == ["still poses", "static", "moving", "timing"]
+    assert any("no sample clock" in n for n in record["stages"][3]["notes"])  # simulated synchronously
     better = session / "truth_copy.yaml"
     better.write_bytes((session / "truth.yaml").read_bytes())
     assert_user_error(cli(capsys, "calibrate", "all", session / "rec", "--array", NILSSON14, "--moving-terms",
