@@ -117,7 +117,7 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                     static_terms: Sequence[str] | None = None, moving_terms: Sequence[str] = MOVING_TERMS,
                     gravity: float = STANDARD_GRAVITY, still_options: dict | None = None,
                     max_iterations: int = 50, progress: Callable[[str], None] | None = None,
-                    timing: bool = True, clock_period: float | None = 1e-3) -> ArrayCalibration:
+                    timing: bool = False, clock_period: float | None = 1e-3) -> ArrayCalibration:
     """Calibrate what the recording can: static stage from its still poses, moving stage from the rest,
     then (``timing``) the timing stage (:mod:`~imu_array_ros.calibration.timing`: sample clocks of period
     ``clock_period`` searched, time offsets and clock rates fitted with the moving terms).

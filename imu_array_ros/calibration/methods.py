@@ -92,7 +92,7 @@ def static(samples: ImuSamples, model: SensorModel, *, method: str = "ml", refer
 def whole_array(samples: ImuSamples, model: SensorModel, *, reference=None, static_method: str = "ml",
                 static_terms: Sequence[str] = STATIC_TERMS, moving_terms: Sequence[str] = MOVING_TERMS,
                 gravity: float = STANDARD_GRAVITY, still_options: dict | None = None, max_iterations: int = 50,
-                progress: Callable[[str], None] | None = None, source: str | None = None, timing: bool = True,
+                progress: Callable[[str], None] | None = None, source: str | None = None, timing: bool = False,
                 clock_period: float | None = 1e-3) -> Calibration:
     """Still poses -> static stage, then the motion -> ``moving_terms``, then the timing stage (``timing``:
     sample clocks of ``clock_period`` s searched, time offsets and clock rates fitted) (``calibrate all``)."""

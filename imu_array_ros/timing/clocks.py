@@ -104,7 +104,7 @@ def find_sample_clocks(samples: ImuSamples, model: SensorModel, *, period: float
             continue
         clock[:, 1] = rates
         clock[~found, 0] = 0.0
-        clock[:, 2], _ = fit_phases(delays.t, d, w, clock[:, 0], clock[:, 1])
+        clock[:, 2] = np.where(clock[:, 0] > 0, fit_phases(delays.t, d, w, clock[:, 0], clock[:, 1])[0], 0.0)
         for _ in range(max(0, iterations - 1)):
             trial = current.with_terms(**{term: clock})
             delays = reading_delays(samples, trial, ModelFusion(trial, t0_ns=t0).fuse(samples)[0], t0_ns=t0,
@@ -116,7 +116,7 @@ def find_sample_clocks(samples: ImuSamples, model: SensorModel, *, period: float
             d = d - (np.sum(w * (d - saw), axis=1) / np.where(total > 0, total, 1.0))[:, None]
             step = 0.25e6 * period / max(float(np.ptp(delays.t[w.sum(axis=1) > 0])), 1e-3)
             clock[found, 1] = refine_rates(delays.t, d[:, found], w[:, found], clock[found, 0], clock[found, 1], step)
-            clock[:, 2], _ = fit_phases(delays.t, d, w, clock[:, 0], clock[:, 1])
+            clock[:, 2] = np.where(clock[:, 0] > 0, fit_phases(delays.t, d, w, clock[:, 0], clock[:, 1])[0], 0.0)
         _, _, const = fit_phases(delays.t, d, w, clock[:, 0], clock[:, 1], constants=True)
         offsets = current.terms["time_offset"].values.copy()
         offsets[:, 0 if sensor == "accelerometer" else 1] += np.where(found, const - const[0], 0.0)

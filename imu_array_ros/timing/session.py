@@ -124,7 +124,7 @@ def estimate_session(samples: ImuSamples, model: SensorModel, *, iterations: int
                 clock[has, 1] += shift
                 out.common_rate_ppm[term] = shift
             phases, _ = fit_phases(t, d, w, clock[:, 0], clock[:, 1])
-            clock[:, 2] = np.where(has, phases, 0.0)
+            clock[:, 2] = np.where(has, np.nan_to_num(phases), 0.0)
             out.phases[term] = np.where(has, phases, np.nan)
         if own:
             delays = reading_delays(samples, current, fused, t0_ns=t0)

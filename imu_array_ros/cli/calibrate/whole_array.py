@@ -30,9 +30,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="comma-separated terms of the moving stage (default position,gyroscope_gain,"
                          "gyroscope_misalignment; empty: no moving stage)")
     add_still_options(sp)
-    sp.add_argument("--no-timing", dest="timing", action="store_false",
-                    help="leave out the timing stage (sample clocks, time offsets); by default it runs when the "
-                         "recording's motion identifies them and says why when not")
+    sp.add_argument("--timing", action="store_true",
+                    help="add the timing stage (sample clocks searched, time offsets refitted with the moving terms); "
+                         "experimental: off by default, as on simulated arrays its refit can trade the time base "
+                         "against the positions and the gyroscopes' common scale (docs/timing.md)")
     sp.add_argument("--clock-period", type=float, default=1e-3, metavar="S",
                     help="internal sample period (s) of the chips' free-running clocks to search for when the "
                          "description has none (default 0.001, ~1 kHz; 0: no search)")
@@ -47,7 +48,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, reference: str | None = None,
         static_method: str = "ml", moving_terms: str | None = None, gravity: float | None = None,
         still_gyro: float | None = None, still_accel: float | None = None, still_min_duration: float | None = None,
-        plot: Path | None = None, force: bool = False, quiet: bool = False, timing: bool = True,
+        plot: Path | None = None, force: bool = False, quiet: bool = False, timing: bool = False,
         clock_period: float = 1e-3) -> int:
     """Whole-array calibration: still poses -> static stage -> moving stage -> timing stage, one description."""
     if not (clock_period >= 0 and clock_period < 1.0):
