@@ -14,8 +14,11 @@ model uses):
    terms): (a) time-unaware fusion with the nominal description; (b) ``calibrate all`` without timing, then
    fusion; (c) ``calibrate all`` with timing (``clock_period`` 1 ms), its description written and read back
    (session states dropped), then :func:`imu_array_ros.workflows.fuse` (which estimates the session phases);
-   and, to locate a failure, (d) the true device constants with the session estimated by ``fuse`` and (e) the
-   true device constants and true session states.  Target: (c) <= 1.5.
+   and, to locate a failure, (b') and (c') = (b) and (c) with the truth's gyroscope gains and misalignments,
+   (c'') = (c) moved along its gauge freedoms to the reference IMU's nominal values (:func:`in_gauge`), (d) the
+   true device constants with the session estimated by ``fuse`` and (e) the true device constants and true
+   session states; each also *aligned* (after the one time shift of the truth that fits best: a delay common
+   to every sensor is not observable).  Target: (c) <= 1.5.
 2. **Monte Carlo** of the time-aware fusion with the true description and true session states (new chips,
    phases, motion and noise every run): RMSE / sqrt(mean CRB) per fused component (the CRB: the covariance the
    fusion publishes) and the NEES; the same for the synchronous array beside it.  Target 1.0-1.2.
