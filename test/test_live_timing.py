@@ -271,7 +271,7 @@ def test_stamp_clocks_are_estimated_live(own):
     desc, samples = own
     live, tracker, fused, swaps = run_tracked(desc, samples, own_stamps=True, window_s=6.0, step_ns=5_000_000)
     assert tracker.estimates >= 1 and tracker.states.stamp_offset is not None
-    assert tracker.attempts >= tracker.estimates
+    assert tracker.attempts > tracker.estimates  # the first windows were too short for the skews: not used
     _, offline = session_fusion(samples, desc)
     # a window of the recording against the whole: the same clocks within a few of their stds
     assert np.nanmax(np.abs(tracker.states.stamp_offset - offline.stamp_offset)) < 50e-6

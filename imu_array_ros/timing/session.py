@@ -191,9 +191,8 @@ def _stamp_clocks(delays: ReadingDelays, stamp: np.ndarray, w: np.ndarray, ref: 
         both = (w[:, j] > 0) & (info_ref > 0)
         wj = np.where(both, 1.0 / (1.0 / np.where(both, w[:, j], 1.0) + 1.0 / np.where(both, info_ref, 1.0)), 0.0)
         m = a.T @ (wj[:, None] * a)
-        scale = np.sqrt(np.clip(np.diag(m), 1e-300, None))
-        cond = np.linalg.cond(m / np.outer(scale, scale))  # Jacobi-scaled: the columns' units do not matter
-        if not np.isfinite(cond) or cond > 1e10:
+        cond = np.linalg.cond(m)  # unscaled: a window too short to tell an offset from a skew is left out
+        if not np.isfinite(cond) or cond > 1e12:
             continue
         cov = np.linalg.inv(m)
         new[j] = cov @ (a.T @ (wj * y[:, j]))
