@@ -28,7 +28,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.timing.clocks import find_sample_clocks
-from imu_array_ros.timing.session import MIN_MOVING_S, active_clocks, estimate_session
+from imu_array_ros.timing.session import active_clocks, estimate_session
 
 __all__ = ["TimingSetup", "prepare_timing", "CLOCK_PERIOD"]
 
@@ -67,6 +67,3 @@ def prepare_timing(samples: ImuSamples, model: SensorModel, *, clock_period: flo
         raise CalibrationError(f"timing not identifiable: {err}") from None
     return TimingSetup(search.model, ("time_offset",), search.notes, search.count)
 
-
-def minimum_motion_note() -> str:
-    return f"at least {MIN_MOVING_S:.0f} s of twisting are needed for the timing terms"
