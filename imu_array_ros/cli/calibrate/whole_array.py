@@ -1,7 +1,7 @@
 """``imu-array calibrate all``: the whole array from one recording.
 
 Still poses -> accelerometer intrinsics and gyroscope biases; the moving phase ->
-positions, gyroscope gain and misalignment; then the timing (sample clocks, time offsets)
+positions, gyroscope gain, misalignment and non-orthogonality; then the timing (sample clocks, time offsets)
 (``workflows.calibrate("all", ...)``).
 """
 
@@ -22,13 +22,13 @@ __all__ = ["add_parser", "run"]
 def add_parser(subparsers) -> argparse.ArgumentParser:
     sp = subparsers.add_parser("all", help="the whole array from one recording: still poses -> accelerometer "
                                            "intrinsics and gyroscope biases; moving phase -> positions, gyroscope "
-                                           "gain and misalignment")
+                                           "gain, misalignment and non-orthogonality")
     add_calibration_inputs(sp)
     sp.add_argument("--reference", help="IMU that defines the array frame and holds the gauge (default: the first)")
     sp.add_argument("--static-method", choices=("ml", "pca"), default="ml", help="static stage method (default ml)")
     sp.add_argument("--moving-terms",
                     help="comma-separated terms of the moving stage (default position,gyroscope_gain,"
-                         "gyroscope_misalignment; empty: no moving stage)")
+                         "gyroscope_misalignment,gyroscope_nonorthogonality; empty: no moving stage)")
     add_still_options(sp)
     sp.add_argument("--timing", action="store_true",
                     help="add the timing stage (sample clocks searched, time offsets refitted with the moving terms); "
@@ -39,8 +39,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                          "description has none (default 0.001, ~1 kHz; 0: no search)")
     sp.add_argument("--out", required=True, type=Path, help="calibrated description YAML to write (old kept as OUT.bak)")
     sp.add_argument("--plot", type=Path, metavar="PNG", help="also write the static stage's plot")
+    sp.add_argument("--report", type=Path, metavar="DIR",
+                    help="also write a calibration report into DIR (index.md, calibration.json, PNG plots): values "
+                         "± std, the stages, residuals before/after per IMU and axis; DIR must be new or empty "
+                         "(--force: or hold a previous report of ours, which is replaced)")
     add_force_quiet(sp, force="replace an existing --out (a YAML mapping), keeping it as OUT.bak, unless it fits the "
-                              "poses and the moving samples better than the new calibration; and an existing --plot")
+                              "poses and the moving samples better than the new calibration; an existing --plot; and a "
+                              "previous report of ours in --report")
     sp.set_defaults(handler=run)
     return sp
 
@@ -49,7 +54,7 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
         static_method: str = "ml", moving_terms: str | None = None, gravity: float | None = None,
         still_gyro: float | None = None, still_accel: float | None = None, still_min_duration: float | None = None,
         plot: Path | None = None, force: bool = False, quiet: bool = False, timing: bool = False,
-        clock_period: float = 1e-3) -> int:
+        clock_period: float = 1e-3, report: Path | None = None) -> int:
     """Whole-array calibration: still poses -> static stage -> moving stage -> timing stage, one description."""
     if not (clock_period >= 0 and clock_period < 1.0):
         raise ConfigError(f"--clock-period must be in [0, 1) s, got {clock_period:g}")
@@ -61,4 +66,5 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
         if options["moving_terms"]:
             check_terms(options["moving_terms"])  # before reading anything
     return calibrate_stages("all", recording, array=array, out=out, calibration=calibration, plot=plot,
-                            force=force, quiet=quiet, reference=reference, static_method=static_method, **options)
+                            force=force, quiet=quiet, reference=reference, static_method=static_method,
+                            report=report, **options)
