@@ -20,16 +20,20 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     add_recording_inputs(sp, array="array description YAML",
                          calibration="calibrated description (same schema) to use instead of --array's values")
     sp.add_argument("--out", required=True, type=Path, help="output: directory (rosbag2) or file ending in .mcap")
+    sp.add_argument("--no-bias-tracking", dest="bias_tracking", action="store_false",
+                    help="fuse with the description's gyroscope biases throughout (default: re-measured on every "
+                         "still interval of 1 s or more, the description's before the first)")
     add_force_quiet(sp, force=FORCE_RECORDING_HELP)
     sp.set_defaults(handler=run)
     return sp
 
 
-def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, force: bool = False,
-        quiet: bool = False) -> int:
-    """ML fusion of ``recording`` (skog2016) into ``out`` with Cramér-Rao covariances."""
+def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, bias_tracking: bool = True,
+        force: bool = False, quiet: bool = False) -> int:
+    """ML fusion of ``recording`` (skog2016) into ``out`` with Cramér-Rao covariances; the gyroscope biases
+    tracked on the still intervals unless ``bias_tracking`` is False."""
     out = check_output(out, [recording, array, calibration], "recording", force)
-    desc, f = read_and_fuse(recording, array, calibration, quiet)
+    desc, f = read_and_fuse(recording, array, calibration, quiet, bias_tracking=bias_tracking)
     r, s = f.read_stats, f.stats
     info(quiet, f"read {r.samples} array samples ({r.messages} messages); bad messages {r.bad_messages}, "
                 f"duplicates {r.duplicate_messages}, incomplete samples {r.incomplete_samples}")

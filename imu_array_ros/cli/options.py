@@ -212,16 +212,16 @@ def read_array_recording(recording: Path, array: Path, calibration: Path | None,
     return desc, samples
 
 
-def read_and_fuse(recording: Path, array: Path, calibration: Path | None,
-                  quiet: bool) -> tuple[ArrayDescription, workflows.FusedRecording]:
+def read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet: bool, *,
+                  bias_tracking: bool = True) -> tuple[ArrayDescription, workflows.FusedRecording]:
     """The description (``calibration``'s values if given) and ``recording`` read for it and fused in chunks
-    with every term (checked fusable first, naming the file), with progress lines."""
+    with every term (checked fusable first, naming the file), the gyroscope biases tracked unless
+    ``bias_tracking`` is False, with progress lines and the session states' notes."""
     desc, _ = workflows.load_array(array, calibration)
     fused = workflows.fuse_recording(recording, desc, read_progress=Progress("reading", quiet),
-                                     fuse_progress=Progress("fusing", quiet))
+                                     fuse_progress=Progress("fusing", quiet), bias_tracking=bias_tracking)
     for note in fused.read_stats.notes:
         info(quiet, note)
-    if fused.session is not None:
-        for note in fused.session.notes:
-            info(quiet, f"session states: {note}")
+    for note in fused.notes():
+        info(quiet, note)
     return desc, fused

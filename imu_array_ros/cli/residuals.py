@@ -35,6 +35,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     sp.add_argument("--json", dest="json_out", metavar="FILE",
                     help="write the summary as JSON to FILE ('-' for stdout); a ratio without samples is null")
     sp.add_argument("--tables", action="store_true", help="print the ratio table by IMU and axis on stdout")
+    sp.add_argument("--no-bias-tracking", dest="bias_tracking", action="store_false",
+                    help="the description's gyroscope biases throughout (default: re-measured on every still interval, "
+                         "as imu-array fuse)")
     add_force_quiet(sp, force="replace an existing --json FILE, only if it is itself a JSON file",
                     quiet="no progress or summary lines on stderr (errors still appear); the result asked for on "
                           "stdout (--tables, --json -) is still printed")
@@ -48,13 +51,13 @@ def _g(value: float | None) -> str:
 
 def run(recording: Path, *, array: Path, calibration: Path | None = None, compare_simulated: bool = False,
         still_threshold: float = 0.2, seed: int = 0, json_out: str | None = None, tables: bool = False,
-        force: bool = False, quiet: bool = False) -> int:
+        bias_tracking: bool = True, force: bool = False, quiet: bool = False) -> int:
     """How well the model explains ``recording``: normalised residuals by IMU, axis and regime."""
     to_stdout = json_out is not None and str(json_out) == "-"
     json_path = None
     if json_out is not None and not to_stdout:
         json_path = check_output(Path(json_out), [recording, array, calibration], "json", force, option="--json")
-    desc, f = read_and_fuse(recording, array, calibration, quiet)
+    desc, f = read_and_fuse(recording, array, calibration, quiet, bias_tracking=bias_tracking)
     if f.stats.fused == 0:
         raise FusionError(f"{recording}: no sample could be fused")
     reports = workflows.residuals(f.samples, desc, fused=f.fused, fusion=f.fusion, compare_simulated=compare_simulated,
@@ -63,6 +66,8 @@ def run(recording: Path, *, array: Path, calibration: Path | None = None, compar
     result = json_safe({name: rep.summary() for name, rep in reports.items()})
     if f.session is not None:
         result["session_states"] = json_safe(f.session.summary())
+    if f.biases is not None:
+        result["gyroscope_biases"] = json_safe(f.biases.summary())
 
     for name in reports:
         for regime in ("still", "moving"):

@@ -13,6 +13,12 @@ With sample clocks in the description or ``stamps:=own``, the session states
 :class:`~imu_array_ros.workflows.live_session.SessionTracker`: estimated in a worker
 thread from the last ``session_window`` seconds, swapped in between two steps,
 reported in /diagnostics.  Without them the node does exactly what it did before.
+
+With ``bias_tracking`` (default true) the gyroscope biases are re-measured on every
+still interval by a :class:`~imu_array_ros.workflows.live_session.BiasSessionTracker`
+(in a worker thread, the numbers ``imu-array fuse`` finds), applied from then on,
+published per IMU and axis in /diagnostics, and an update that moves a bias by more
+than 3 sigma is logged.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
 from imu_array_ros.workflows import load_array
-from imu_array_ros.workflows.live_session import MIN_MOVING_S, SessionTracker, has_sample_clocks
+from imu_array_ros.workflows.live_session import MIN_MOVING_S, BiasSessionTracker, SessionTracker, has_sample_clocks
 
 __all__ = ["FusionNode", "main", "NIS_WARN_RATIO"]
 
@@ -61,6 +67,10 @@ class FusionNode(Node):
                                own_stamps=own, reference=reference, timed_batch_s=p.timed_batch)
         self.tracker: SessionTracker | None = None
         self._logged_error: str | None = None
+        self._base = self.core.fusion.model  # the description's model (no session states)
+        self.biases = BiasSessionTracker(self._base) if p.bias_tracking else None
+        self._sinks = [] if self.biases is None else [self.biases.add]
+        self.core.sink = self._sink
         grid = f", own stamps paired onto the stamps of {desc.names[reference]!r}" if own else ""
         self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}{grid}")
         self._track_start(self.core.fusion.model)
@@ -91,6 +101,8 @@ class FusionNode(Node):
         self._publish(self.core.step(now))
         if self.tracker is not None:
             self._track(now)
+        if self.biases is not None:
+            self._track_biases()
 
     def _publish(self, batches) -> None:
         for batch in batches:
@@ -115,10 +127,14 @@ class FusionNode(Node):
         try:
             desc, _ = load_array(Path(self.p.array_config), Path(path))
             self.core.set_description(desc)
+            self._base = self.core.fusion.model
+            if self.biases is not None:
+                self.biases.rebase(self._base)
             if self.tracker is not None:
-                self.core.set_model(self.tracker.rebase(self.core.fusion.model))
+                self.tracker.rebase(self._base)
             else:
-                self._track_start(self.core.fusion.model)
+                self._track_start(self._base)
+            self.core.set_model(self._model())
         except ImuArrayError as err:
             self.get_logger().error(f"calibration not reloaded, keeping the one in use: {err}")
             return
@@ -138,6 +154,8 @@ class FusionNode(Node):
                   "unknown_imu_topics": len(self._foreign), **s.counts}
         if self.tracker is not None:
             values.update(self.tracker.values(self._now()))
+        if self.biases is not None:
+            values.update(self.biases.values())
         if s.nis_ratio > NIS_WARN_RATIO:
             level, msg = WARN, f"model does not fit: NIS ratio {s.nis_ratio:.3g} over the last second"
         elif s.fused_rate == 0:
@@ -158,8 +176,8 @@ class FusionNode(Node):
         if not tracker.enabled:
             return
         self.tracker = tracker
-        self.core.sink = tracker.add
-        self.core.set_model(tracker.model)
+        self._sinks.append(tracker.add)
+        self.core.set_model(self._model())
         parts = [(w, until) for w, until, on in (
             ("sample-clock phases", "sample clocks at their mean age", has_sample_clocks(model)),
             ("stamp clocks", "own stamps taken as sample times", tracker.own_stamps)) if on]
@@ -176,13 +194,39 @@ class FusionNode(Node):
         if result is None:
             return
         if result.estimated:
-            self.core.set_model(tracker.model)
+            self.core.set_model(self._model())
             if tracker.estimates == 1:
                 self.get_logger().info(tracker.line())
             else:
                 self.get_logger().info(f"re-estimated: {tracker.line()}", throttle_duration_sec=60.0)
         else:
             self.get_logger().info(f"session states kept: {tracker.last_note}", throttle_duration_sec=60.0)
+
+    # ------------------------------------------------------------------ gyroscope biases
+
+    def _sink(self, samples, fused) -> None:
+        for sink in self._sinks:
+            sink(samples, fused)
+
+    def _model(self):
+        """The model to fuse with: the description's, with the timing states and the gyroscope biases in use."""
+        model = self.tracker.model if self.tracker is not None else self._base
+        return model if self.biases is None else self.biases.apply(model)
+
+    def _track_biases(self) -> None:
+        biases = self.biases
+        updates = biases.poll(self.core.fusion.t0_ns)
+        if biases.error and biases.error != self._logged_error:
+            self._logged_error = biases.error
+            self.get_logger().error(f"gyroscope biases not updated, keeping those in use: {biases.error}")
+        if not updates:
+            return
+        self.core.set_model(self._model())
+        for u in updates:
+            if u.jumps(biases.names) or len(biases.updates) == len(updates):
+                self.get_logger().info(biases.line(u))
+            else:
+                self.get_logger().info(biases.line(u), throttle_duration_sec=60.0)
 
     def close(self) -> None:
         """Fuse and publish what is still buffered, if the context is still up."""

@@ -79,6 +79,8 @@ FUSION_PARAMS = _COMMON + (
           "motion in it)", 2.0, 600.0),
     Param("session_interval", 30.0, "seconds (of stamps) between re-estimates of the session states while the array "
           "moves", 1.0, 3600.0),
+    Param("bias_tracking", True, "re-measure the gyroscope biases on every still interval of 1 s or more and fuse "
+          "with them from then on (published in /diagnostics); false: the description's biases throughout"),
     Param("timed_batch", 0.05, "time-aware fusion (timing terms or own stamps): least seconds of samples fused per "
           "call (a call costs ~10 ms for 32 IMUs); adds up to this to the latency", 0.0, 1.0),
 )

@@ -15,23 +15,26 @@ from imu_array_ros.model.samples import FusedSamples, ImuSamples
 from imu_array_ros.simulation.simulator import simulate_same_motion
 from imu_array_ros.workflows.arrays import as_model
 from imu_array_ros.fusion.model_fusion import ModelFusion
-from imu_array_ros.workflows.fusion import session_fusion
+from imu_array_ros.workflows.fusion import prepare_fusion
 
 __all__ = ["residuals", "discover", "DiscoveryOptions"]
 
 
 def residuals(samples: ImuSamples, desc: ArrayDescription, *, fused: FusedSamples | None = None,
               fusion: ModelFusion | None = None, compare_simulated: bool = False, seed: int = 0,
-              still_threshold: float = 0.2,
+              still_threshold: float = 0.2, bias_tracking: bool = True,
               progress: Callable[[int, int], None] | None = None) -> dict[str, ResidualReport]:
     """Normalised residuals of ``samples`` under every term of ``desc`` at the fused motion (``fused``:
     already fused by ``fusion``, whose model then holds the recording's session states; default: both made
     here, :func:`~imu_array_ros.workflows.fusion.session_fusion`).  ``{"recording": report}``; with
     ``compare_simulated`` also ``"simulated_same_motion"``: a simulated recording of the same fused motion
     (seeded), with the same readings missing, analysed the same way -- what the model alone would give.
-    The NIS is always against the description's white-noise figures."""
-    if fusion is None:
-        fusion, _ = session_fusion(samples, desc)  # drifts and clocks count from the first stamp
+    The NIS is always against the description's white-noise figures.  Without ``fusion``, the gyroscope biases
+    are tracked on the still intervals (``bias_tracking``, as ``imu-array fuse``); a ``fusion`` given comes with
+    ``samples`` as it fused them (:attr:`FusedRecording.samples`)."""
+    if fusion is None:  # drifts and clocks count from the first stamp
+        prepared = prepare_fusion(samples, desc, bias_tracking=bias_tracking)
+        fusion, samples = prepared.fusion, prepared.samples
     if fused is None:
         fused, _ = fuse_chunked(fusion, samples, progress)
     model = fusion.model

@@ -25,6 +25,9 @@ messages, has *session states* that no description holds (:mod:`imu_array_ros.ti
 Until the first estimate the fusion uses :func:`fallback_model`: what ``estimate_session`` gives a
 recording with too little motion (each sample clock replaced by its mean age, half a period; own
 stamps taken as the sample times).
+
+The gyroscopes' biases are tracked by :class:`BiasSessionTracker`: on every still interval, in a worker
+thread, with the numbers ``imu-array fuse`` finds offline.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.timing.delays import MOVING_RATE
 from imu_array_ros.timing.session import CLOCK_TERMS, MIN_MOVING_S, SessionStates, active_clocks, estimate_session
 
-__all__ = ["SessionTracker", "fallback_model", "with_states", "usable", "has_sample_clocks", "RETRY_S", "MIN_MOVING_S"]
+__all__ = ["SessionTracker", "BiasSessionTracker", "fallback_model", "with_states", "usable", "has_sample_clocks", "RETRY_S", "MIN_MOVING_S"]
 
 #: seconds (of stamps) between attempts while no estimate has succeeded yet (at most ``interval_s``)
 RETRY_S = 5.0
@@ -289,4 +292,119 @@ class SessionTracker:
             for name, o, k in zip(names, s.stamp_offset, s.stamp_skew):
                 out[f"stamp_clock_offset_s/{name}"] = float(o)
                 out[f"stamp_clock_skew_ppm/{name}"] = float(k)
+        return out
+
+
+class BiasSessionTracker:
+    """Live tracking of the gyroscope biases (:mod:`imu_array_ros.calibration.bias_tracking`), the same
+    :class:`~imu_array_ros.calibration.bias_tracking.BiasTracker` ``imu-array fuse`` feeds the whole recording.
+
+    :meth:`add` (a sink of :class:`~imu_array_ros.fusion.live.LiveFusion`: the raw samples as fused) only
+    queues the samples; :meth:`poll`, between two fusion steps, hands back the updates a worker thread made
+    and gives the worker the queued samples once they span ``batch_s`` (the still detection and the estimates
+    are vectorised over them, off the hot path).  An update applies from the moment it is handed back
+    (:meth:`apply`: the model with the tracked biases); a still interval counts once it ends or every
+    ``max_piece_s`` while it lasts.  The updates equal the offline ones on the same samples, but for the
+    last still interval of a recording (offline ends it at the end).
+    """
+
+    def __init__(self, model: SensorModel, *, batch_s: float = 0.5, **settings) -> None:
+        from imu_array_ros.calibration.bias_tracking import BiasTracker
+
+        self.tracker = BiasTracker(model, **settings)
+        self.batch_ns = int(round(batch_s * 1e9))
+        self.updates: list = []  # handed back so far
+        self.error: str | None = None
+        self._pending: list[ImuSamples] = []
+        self._worker: threading.Thread | None = None
+        self._result: tuple | None = None
+
+    @property
+    def names(self) -> tuple:
+        return tuple(self.tracker.model.names)
+
+    @property
+    def busy(self) -> bool:
+        return self._worker is not None
+
+    def add(self, samples: ImuSamples, fused: FusedSamples | None = None) -> None:
+        """The fusion's sink: queue the samples (nothing else on the hot path)."""
+        if len(samples):
+            self._pending.append(samples)
+
+    def poll(self, t0_ns: int | None = None) -> list:
+        """Updates (:class:`~imu_array_ros.calibration.bias_tracking.BiasUpdate`) made since the last call; starts
+        the worker on the queued samples when they span ``batch_s``.  ``t0_ns``: the fusion's time origin (drifts
+        count from it), taken once."""
+        out = []
+        if self._worker is not None and not self._worker.is_alive():
+            self._worker = None
+            kind, value = self._result
+            self._result = None
+            if kind == "error":
+                self.error = value
+            else:
+                out = value
+                self.updates += value
+        if self.tracker.t0_ns is None and t0_ns is not None:
+            self.tracker.t0_ns = int(t0_ns)
+        if (self._worker is None and self._pending and self.tracker.t0_ns is not None
+                and int(self._pending[-1].stamps[-1]) - int(self._pending[0].stamps[0]) >= self.batch_ns):
+            chunks, self._pending = self._pending, []
+            self._worker = threading.Thread(target=self._run, args=(chunks,), daemon=True, name="gyro-biases")
+            self._worker.start()
+        return out
+
+    def _run(self, chunks: list) -> None:
+        try:
+            self._result = ("ok", self.tracker.add(concatenate_samples(chunks)))
+        except Exception as err:  # noqa: BLE001 - reported as one line, the fusion goes on
+            self._result = ("error", f"{type(err).__name__}: {err}".splitlines()[0])
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Wait for a running worker (tests, shutdown)."""
+        worker = self._worker
+        if worker is not None:
+            worker.join(timeout)
+
+    @property
+    def bias(self) -> np.ndarray:
+        """(K, 3) rad/s, the biases in use (the description's before the first update)."""
+        return self.updates[-1].bias if self.updates else self.tracker.initial
+
+    def apply(self, model: SensorModel) -> SensorModel:
+        """``model`` with the biases in use (unchanged before the first update)."""
+        return model.with_terms(gyroscope_bias=self.bias) if self.updates else model
+
+    def rebase(self, model: SensorModel) -> None:
+        """A new description (a calibration reload): its intrinsics map the next measurements; the biases in use
+        are kept (they are this session's)."""
+        self.tracker.model = self.tracker.detector.model = model
+        self.tracker.initial = model.terms["gyroscope_bias"].values.copy()
+
+    def line(self, update) -> str:
+        """One console line on an update."""
+        change = np.abs(update.bias - update.before).max(axis=1)
+        k = int(np.argmax(change))
+        text = (f"gyroscope biases updated from {update.piece.seconds:.1f} s still (update {len(self.updates)}): "
+                f"largest change {change[k]:.3g} rad/s ({self.names[k]})")
+        jumps = update.jumps(self.names)
+        return text + ("; moved by more than 3 sigma: " + ", ".join(jumps) if jumps else "")
+
+    def values(self) -> dict:
+        """The /diagnostics values: the biases in use per IMU and axis (rad/s) and their stds."""
+        out = {"gyro_bias_updates": len(self.updates), "gyro_bias_busy": self.busy,
+               "gyro_bias_source": "still intervals" if self.updates else "description"}
+        if self.error:
+            out["gyro_bias_error"] = self.error
+        std = self.updates[-1].bias_std if self.updates else np.full_like(self.bias, np.nan)
+        for name, b, s in zip(self.names, self.bias, std):
+            for axis, v, sv in zip("xyz", b, s):
+                out[f"gyro_bias_{axis}_rad_s/{name}"] = float(v)
+                if np.isfinite(sv):
+                    out[f"gyro_bias_{axis}_std_rad_s/{name}"] = float(sv)
+        if self.updates:
+            u = self.updates[-1]
+            out["gyro_bias_last_still_s"] = round(u.piece.seconds, 2)
+            out["gyro_bias_last_stamp_ns"] = u.piece.stop_ns
         return out
