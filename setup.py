@@ -7,14 +7,17 @@ from setuptools import find_packages, setup
 package_name = "imu_array_ros"
 
 # What some commands need beyond the core (imu_array_ros/util/extras.py: a command whose extra is missing
-# says which to install): plots for --plot and report figures, bayes for `imu-array calibrate bayes`.
+# says which to install): plots for --plot and report figures, bayes for `imu-array calibrate bayes`,
+# noise for `imu-array calibrate noise`.
 PLOTS = ["matplotlib>=3.7"]
 BAYES = ["arviz>=0.20,<1", "h5netcdf>=1.0", "dask[distributed]>=2024.1"]
+NOISE = ["allantools>=2019.9"]
 EXTRAS = {
     "plots": PLOTS,
     "bayes": BAYES,
-    "all": PLOTS + BAYES,
-    "test": ["pytest>=7.4", "hypothesis>=6.0"] + PLOTS + BAYES,  # the suite also tests the plots and the sampler
+    "noise": NOISE,
+    "all": PLOTS + BAYES + NOISE,
+    "test": ["pytest>=7.4", "hypothesis>=6.0"] + PLOTS + BAYES + NOISE,  # the suite also tests the plots, the sampler, the noise
 }
 
 setup(

@@ -27,7 +27,7 @@ def test_every_subcommand_is_found():
     assert LEAVES == ["imu-array simulate", "imu-array fuse", "imu-array import-openshoe", "imu-array fake-device",
                       "imu-array residuals", "imu-array calibrate fit", "imu-array calibrate geometry",
                       "imu-array calibrate bayes", "imu-array calibrate static", "imu-array calibrate all",
-                      "imu-array discover", "imu-array recover"]
+                      "imu-array calibrate noise", "imu-array discover", "imu-array recover"]
 
 
 @pytest.mark.parametrize("prog", LEAVES)

@@ -31,6 +31,7 @@ import numpy as np
 
 from imu_array_ros.calibration.array import MOVING_TERMS, calibrate_array
 from imu_array_ros.calibration.geometry import DEFAULT_METHOD, calibrate_geometry
+from imu_array_ros.calibration.noise import noise_calibration
 from imu_array_ros.calibration.result import Calibration, SumScorer, fit_statistics, provenance
 from imu_array_ros.calibration.scoring import WindowScorer
 from imu_array_ros.calibration.selection import MIN_EXCITATION
@@ -174,7 +175,7 @@ def bayes(samples: ImuSamples, model: SensorModel, *, n_samples: int = 50, setti
 
 #: method name -> the function that runs it
 METHODS: dict[str, Callable[..., Calibration]] = {"geometry": geometry, "static": static, "all": whole_array,
-                                                   "fit": fit, "bayes": bayes}
+                                                   "fit": fit, "bayes": bayes, "noise": noise_calibration}
 
 
 def calibrate(method: str, samples: ImuSamples, model: SensorModel, /, **options) -> Calibration:

@@ -13,6 +13,12 @@ plus a top-level ``calibration:`` block, so a calibrated file is again a
 description; fields a file gives are written back as given (``save(load(x))``
 keeps every value), fields it omits take the term's identity value.
 
+Per-IMU noise figures (optional, written by ``imu-array calibrate noise``; docs/noise.md): in an
+IMU's ``accelerometer`` and ``gyroscope`` mappings, ``noise_std`` (3 numbers > 0: the white-noise
+standard deviation per sample, per axis, m/s^2 or rad/s; it replaces the pooled
+``imu_array.*_noise_std`` for that IMU), ``bias_random_walk`` (3, >= 0: K, unit/sqrt(s)) and
+``bias_instability`` (3, >= 0: B, unit); in the last two an axis may be ``null`` (not determined).
+
 Parsing is strict: unknown keys, wrong shapes, non-finite numbers and
 non-orthonormal orientations are :class:`~imu_array_ros.errors.ConfigError`
 with a one-line message naming the file and the field.
@@ -39,6 +45,7 @@ __all__ = [
     "save_description",
     "description_from_dict",
     "description_to_dict",
+    "NOISE_FIELDS",
 ]
 
 _TOP_KEYS = {"imu_array", "calibration"}
@@ -55,6 +62,10 @@ _ARRAY_KEYS = {
 #: |y| >= clip - lsb/2 (no lsb: clip * (1 - 1e-9)) counts as saturated.
 _OPTIONAL_ARRAY_KEYS = ("accelerometer_clip", "gyroscope_clip", "accelerometer_lsb", "gyroscope_lsb")
 STD_SUFFIX = "_std"
+#: per-IMU noise figures in the ``accelerometer`` / ``gyroscope`` mappings (module docstring); the
+#: ones that may hold ``null`` (not determined) per axis are the last two
+NOISE_FIELDS = ("noise_std", "bias_random_walk", "bias_instability")
+_NOISE_SENSORS = ("accelerometer", "gyroscope")
 
 
 def term_fields() -> dict[str, Field]:
@@ -76,6 +87,9 @@ class ImuSpec:
     file gave it (fields not given take the term's identity value, see
     :meth:`value`); ``position`` lives in its own attribute.
     stds: field key (``"position"`` included) -> standard deviation, same shape.
+    noise: ``"<sensor>.<figure>"`` (sensor accelerometer/gyroscope, figure one of
+    :data:`NOISE_FIELDS`) -> (3,) per axis; NaN: not determined.  Absent ``noise_std``: the
+    array's pooled figure holds.
     """
 
     name: str
@@ -83,6 +97,7 @@ class ImuSpec:
     orientation: np.ndarray
     values: dict[str, np.ndarray] = field(default_factory=dict)
     stds: dict[str, np.ndarray] = field(default_factory=dict)
+    noise: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def position_std(self) -> np.ndarray | None:
@@ -102,6 +117,10 @@ class ImuSpec:
         position = vals.pop("position", self.position)
         return replace(self, position=np.asarray(position, dtype=float), values=vals,
                        stds={**self.stds, **(stds or {})})
+
+    def with_noise(self, noise: dict) -> "ImuSpec":
+        """A copy with some noise figures (``"<sensor>.<figure>"`` -> (3,), NaN: not determined) set."""
+        return replace(self, noise={**self.noise, **{k: np.asarray(v, dtype=float).reshape(3) for k, v in noise.items()}})
 
 
 @dataclass(frozen=True)
@@ -226,7 +245,30 @@ def _imu_schema() -> tuple[set[str], dict[str, set[str]]]:
     for f in term_fields().values():
         keys = top if len(f.path) == 1 else sections.setdefault(f.path[0], set())
         keys |= {f.path[-1], f.path[-1] + STD_SUFFIX}
+    for sensor in _NOISE_SENSORS:
+        sections.setdefault(sensor, set()).update(NOISE_FIELDS)
     return top | set(sections), sections
+
+
+def _imu_noise(source: str, where: str, m: dict) -> dict[str, np.ndarray]:
+    """The noise figures of one IMU's mapping ``m`` (module docstring); ``null`` axes -> NaN."""
+    out: dict[str, np.ndarray] = {}
+    for sensor in _NOISE_SENSORS:
+        section = m.get(sensor) or {}
+        for leaf in NOISE_FIELDS:
+            if leaf not in section:
+                continue
+            at, value = f"{where}.{sensor}.{leaf}", section[leaf]
+            if leaf == "noise_std":
+                out[f"{sensor}.{leaf}"] = _vector(source, at, value, 3, positive=True)
+                continue
+            if not isinstance(value, (list, tuple)) or len(value) != 3:
+                raise _fail(source, at, f"expected a list of 3 numbers (or null), got {value!r}")
+            x = np.array([np.nan if v is None else _number(source, f"{at}[{i}]", v) for i, v in enumerate(value)])
+            if np.any(x < 0):
+                raise _fail(source, at, f"must be >= 0 (null: not determined), got {value!r}")
+            out[f"{sensor}.{leaf}"] = x
+    return out
 
 
 def _rotation(source: str, where: str, value: Any) -> np.ndarray:
@@ -274,6 +316,7 @@ def description_from_dict(data: Any, source: str = "<memory>") -> ArrayDescripti
                 orientation=_rotation(source, f"{where}.orientation", m["orientation"]),
                 values=values,
                 stds=stds,
+                noise=_imu_noise(source, where, m),
             )
         )
     calibration = top.get("calibration")
@@ -329,6 +372,11 @@ def _imu_dict(imu: ImuSpec) -> dict:
                 v = np.asarray(src[key], dtype=float)
                 section[leaf] = float(v) if f.shape == () else (
                     [_floats(row) for row in v.reshape(f.shape)] if len(f.shape) == 2 else _floats(v))
+    for sensor in _NOISE_SENSORS:
+        for leaf in NOISE_FIELDS:
+            v = imu.noise.get(f"{sensor}.{leaf}")
+            if v is not None:
+                d.setdefault(sensor, {})[leaf] = [float(x) if np.isfinite(x) else None for x in np.ravel(v)]
     return d
 
 
@@ -356,7 +404,7 @@ class _FlowListDumper(yaml.SafeDumper):
 
 
 def _represent_list(dumper, data):
-    flow = all(isinstance(x, (int, float)) for x in data) or all(
+    flow = all(x is None or isinstance(x, (int, float)) for x in data) or all(
         isinstance(r, list) and all(isinstance(x, (int, float)) for x in r) for r in data)
     return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 

@@ -4,7 +4,8 @@ The core needs numpy, scipy, pyyaml and the recording libraries only.  What
 some commands need beyond that is an *extra* (``setup.py`` ``extras_require``):
 
 * ``plots``: matplotlib (``--plot``, report figures);
-* ``bayes``: arviz, h5netcdf and dask (``imu-array calibrate bayes``).
+* ``bayes``: arviz, h5netcdf and dask (``imu-array calibrate bayes``);
+* ``noise``: allantools (``imu-array calibrate noise``).
 
 :func:`require` imports such a module or raises
 :class:`~imu_array_ros.errors.MissingDependencyError` naming the extra to install.
@@ -23,6 +24,7 @@ __all__ = ["require", "EXTRAS"]
 EXTRAS = {
     "plots": ("matplotlib",),
     "bayes": ("arviz", "h5netcdf", "dask", "distributed"),
+    "noise": ("allantools",),
 }
 
 
