@@ -14,10 +14,13 @@ import numpy as np
 
 from imu_array_ros import workflows
 from imu_array_ros.calibration.plots import plot_static
+from imu_array_ros.calibration.report import check_report_dir, write_calibration_report
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, add_still_options, check_outputs, \
     install, still_options
 from imu_array_ros.cli.options import add_force_quiet, parse_list, read_array_recording
 from imu_array_ros.cli.progress import info
+from imu_array_ros.errors import OutputError
+from imu_array_ros.util.extras import require
 
 __all__ = ["add_parser", "run", "calibrate_stages", "print_static_table"]
 
@@ -73,10 +76,16 @@ def print_static_table(result, quiet: bool) -> None:
 
 
 def calibrate_stages(kind: str, recording: Path, *, array: Path, out: Path, calibration: Path | None,
-                     plot: Path | None, force: bool, quiet: bool, reference: str | None, **options) -> int:
+                     plot: Path | None, force: bool, quiet: bool, reference: str | None,
+                     report: Path | None = None, **options) -> int:
     """``calibrate static`` (``kind`` "static") and ``calibrate all`` ("all"): outputs checked, the
-    recording read, the stages run (progress lines), the static table, the install, the static plot."""
+    recording read, the stages run (progress lines), the static table, the install, the static plot, the
+    report (``report``: a directory, :mod:`imu_array_ros.calibration.report`)."""
     out, plot = check_outputs(out, plot, [recording, array, calibration], force)
+    if report is not None:
+        report = check_report_dir(report, [recording, array, calibration], force,
+                                  other_outputs=[("--out", out), ("--plot", plot)])
+        require("matplotlib", "plots", f"--report {report}")
     desc, samples = read_array_recording(recording, array, calibration, quiet, imus=[reference])
     with about(recording):
         cal = workflows.calibrate(kind, samples, desc, reference=reference, progress=lambda text: info(quiet, text),
@@ -86,6 +95,12 @@ def calibrate_stages(kind: str, recording: Path, *, array: Path, out: Path, cali
     if plot is not None and cal.details.static is not None:
         plot_static(cal.details, plot)
         info(quiet, f"wrote {plot}")
+    if report is not None:
+        try:
+            write_calibration_report(report, [cal], start=desc, sources=[str(recording)])
+        except OSError as err:
+            raise OutputError(f"{report}: cannot write the report: {err.strerror or err}") from None
+        info(quiet, f"wrote the report {report / 'index.md'}")
     return 0
 
 
