@@ -271,13 +271,36 @@ def test_still_window_fails_and_leaves_the_file_alone(ros, caller, tmp_path):
     assert code == 0 and "Traceback" not in log and "[FATAL]" not in log and "calibration failed" in log, log
 
 
+def test_unconverged_calibration_is_refused_and_leaves_the_file_alone(ros, caller, tmp_path):
+    """One iteration cannot converge: the guards (calibration.guards) refuse it -- success false, the
+    reason in one line, the calibration on file untouched (bytes, mtime, no backup)."""
+    from imu_array_ros.model.description import load_description, save_description
+
+    bag = _simulate(tmp_path, "twist", "--true-array", _true_array(tmp_path), "--rms-rate", 900, "--seed", 4)
+    out = tmp_path / "calibrated.yaml"
+    save_description(load_description(ARRAY32), out)
+    before = (out.read_bytes(), out.stat().st_mtime_ns)
+    cal = _calibration_node(ros, out, "window:=1.0", "max_iterations:=1")
+    _driver(ros, bag, subscribers=1)
+    caller.window_full()
+    response = caller.call()
+    assert not response.success
+    assert "refused: not converged (1 iterations); nothing written" in response.message, response.message
+    assert "\n" not in response.message
+    assert (out.read_bytes(), out.stat().st_mtime_ns) == before
+    assert not (tmp_path / "calibrated.yaml.bak").exists()
+    code, log = _stop(cal)
+    assert code == 0 and "Traceback" not in log and "calibration failed" in log, log
+
+
 def test_second_call_refused_while_the_window_keeps_filling(ros, caller, tmp_path):
     """A call while a calibration runs is refused at once; meanwhile the node goes on buffering
     (its 1 Hz diagnostics keep coming during the calibration, with samples received since it started)."""
     bag = _simulate(tmp_path, "twist", "--rms-rate", 900, "--seed", 3, "--duration", 5)
     out = tmp_path / "calibrated.yaml"
     # the BCD solver on 4 s at 500 Hz: a few seconds of calibration (3 s on the CI machine), so that
-    # the Ctrl-C below, sent when the 1 Hz diagnostics first say busy, arrives before the file is written
+    # the Ctrl-C below, sent when the 1 Hz diagnostics first say busy, arrives before the file is written.
+    # 30 iterations do not converge (~130 would): the first call ends refused (calibration.guards)
     cal = _calibration_node(ros, out, "window:=4.0", "method:=bcd", "max_iterations:=30")
     _driver(ros, bag, subscribers=1)
     caller.window_full()
@@ -289,18 +312,19 @@ def test_second_call_refused_while_the_window_keeps_filling(ros, caller, tmp_pat
     assert not second.success and "already running" in second.message and refused_in < 1.0, \
         (refused_in, second.message)
     assert caller.spin_until(first.done, 60), "the first call never returned"
-    assert first.result().success, first.result().message
+    assert not first.result().success and "refused: not converged (30 iterations)" in first.result().message, \
+        first.result().message
+    assert not out.exists()
     busy = [d for _, d in caller.diags if d["busy"] == "True"]
     received = [int(d["samples_received_while_calibrating"]) for d in busy]
     print(f"\nrefused in {refused_in * 1e3:.1f} ms; samples received while calibrating (after s): " + ", ".join(
         f"{r} ({float(d['calibrating_for_s']):.1f})" for r, d in zip(received, busy)))
     assert busy and received[-1] > 0 and all(np.diff(received) > 0), (received, first.result().message)
     assert caller.spin_until(lambda: caller.diags[-1][1]["busy"] == "False" and
-                             caller.diags[-1][1]["calibrations_ok"] == "1", 5)
+                             caller.diags[-1][1]["calibrations_failed"] == "1", 5)
     assert caller.diags[-1][1]["calls_refused_busy"] == "1"
     # Ctrl-C during a calibration (from the nominal positions again, as long as the first): it is
     # abandoned at its next iteration, nothing written, clean exit
-    out.unlink()
     caller.call_async()
     assert caller.spin_until(lambda: caller.diags[-1][1]["busy"] == "True", 5), "third call never started"
     t0 = time.monotonic()

@@ -183,10 +183,10 @@ def test_geometry_refuses_a_still_recording_and_a_worse_result_leaving_out_untou
     assert_user_error(cli(capsys, "calibrate", "geometry", d / "still", "--array", ARRAY32, "--out", out,
                           "--force", "-q"),
                       str(d / "still"), "too few samples with rotation: 0 of 600", "twist the array")
-    # one BCD iteration from the nominal positions fits the window worse than the file: refused
+    # one BCD iteration from the nominal positions: not converged, refused (calibration.guards)
     assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", out,
                           "--method", "bcd", "--max-iterations", "1", "--force", "-q"),
-                      "not replaced: the calibration on file fits this window better")
+                      str(d / "twist"), "refused: not converged (1 iterations)", "nothing written")
     assert out.read_bytes() == before and not (d / "geo2.yaml.bak").exists()
     assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", d / "x.yaml",
                           "--reference", "imu_99", "-q"), "imu_99")

@@ -36,7 +36,11 @@ Samples: a sample with a missing or saturated reading is dropped (the BCD's
 shared 3x3 system assumes every axis), and so is one with too little rotation
 to carry information about the positions (||C_n||_F from the fused motion
 below ``min_excitation`` rad/s^2 or below ``NOISE_FACTOR`` times what the fused
-motion's own noise gives it -- at rest the fused omega_dot is noise).  What is left must determine the positions:
+motion's own noise gives it -- at rest the fused omega_dot is noise -- and the
+same test with the gyroscopes alone, ``select_rotating(..., gyroscopes=True)``:
+with uncalibrated accelerometer biases a still array's fused omega_dot reads
+~14 rad/s^2 on the MIMU4444BT captures, so still poses would pass as rotation
+and pull the positions by centimetres).  What is left must determine the positions:
 at least ``MIN_SAMPLES`` samples (with N = 2 the paper's RMSE does not fall
 with iterations, Fig. 4), and sum_n C_n^T C_n well conditioned -- it is
 singular when every sample turns about one fixed axis (omega parallel to
@@ -191,7 +195,7 @@ def calibrate_geometry(samples: ImuSamples, model: SensorModel, *, reference=Non
         raise CalibrationError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     samples = check_samples(samples, model)
     ref = reference_index(model.names, reference)
-    selection = select_rotating(samples, model, min_excitation)
+    selection = select_rotating(samples, model, min_excitation, gyroscopes=True)
     require_rotation(selection)
     used = selection.used
     window, motion = samples.select(used), selection.motion[used]

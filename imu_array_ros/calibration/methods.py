@@ -31,6 +31,7 @@ import numpy as np
 
 from imu_array_ros.calibration.array import MOVING_TERMS, calibrate_array
 from imu_array_ros.calibration.geometry import DEFAULT_METHOD, calibrate_geometry
+from imu_array_ros.calibration.guards import POSITION_BOUND, check_calibration
 from imu_array_ros.calibration.noise import noise_calibration
 from imu_array_ros.calibration.result import Calibration, SumScorer, fit_statistics, provenance
 from imu_array_ros.calibration.scoring import WindowScorer
@@ -178,10 +179,17 @@ METHODS: dict[str, Callable[..., Calibration]] = {"geometry": geometry, "static"
                                                    "fit": fit, "bayes": bayes, "noise": noise_calibration}
 
 
-def calibrate(method: str, samples: ImuSamples, model: SensorModel, /, **options) -> Calibration:
-    """Run calibration ``method`` (:data:`METHODS`) on ``samples`` starting from ``model``."""
+def calibrate(method: str, samples: ImuSamples, model: SensorModel, /, *, checks: bool = True,
+              position_bound: float = POSITION_BOUND, **options) -> Calibration:
+    """Run calibration ``method`` (:data:`METHODS`) on ``samples`` starting from ``model``; the result must
+    pass :func:`~imu_array_ros.calibration.guards.check_calibration` (converged, plausible -- positions within
+    ``position_bound`` m of ``model``'s -- and fitting its data at least as well as ``model``), else
+    CalibrationError names why and nothing is returned to write.  ``checks=False`` (experts only) skips them."""
     try:
         run = METHODS[method]
     except KeyError:
         raise CalibrationError(f"unknown calibration method {method!r} (known: {', '.join(METHODS)})") from None
-    return run(samples, model, **options)
+    cal = run(samples, model, **options)
+    if checks:
+        check_calibration(cal, model, position_bound=position_bound)
+    return cal

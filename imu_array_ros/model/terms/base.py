@@ -54,7 +54,10 @@ class Field:
     power-up or recording, e.g. a clock phase), estimated from each recording and
     never written into a description as a device constant; fitted: the fitting
     engine estimates it (False: held, set by the user or by a dedicated estimator,
-    e.g. a nominal clock period or a phase found by search).
+    e.g. a nominal clock period or a phase found by search); plausible: the largest
+    |value - default| of an element a real sensor plausibly has, in ``unit`` (None: no bound),
+    what :mod:`imu_array_ros.calibration.guards` refuses a calibration beyond; plausible_of_range:
+    ``plausible`` is a fraction of the sensor's full-scale range instead (biases).
     """
 
     path: tuple[str, ...]
@@ -64,6 +67,8 @@ class Field:
     positive: bool = False
     session: bool = False
     fitted: bool = True
+    plausible: float | None = None
+    plausible_of_range: bool = False
 
     @property
     def size(self) -> int:

@@ -30,7 +30,11 @@ import numpy as np
 from imu_array_ros.model.terms.base import Field, MotionContext, register
 from imu_array_ros.model.terms.timing import TimingTerm
 
-__all__ = ["SampleClock", "clock_ticks"]
+#: largest plausible |clock rate error|, ppm (``Field.plausible``): crystals are tens of ppm, a chip's internal
+#: RC oscillator up to a few percent
+CLOCK_RATE_PLAUSIBLE = 5e4
+
+__all__ = ["SampleClock", "clock_ticks", "CLOCK_RATE_PLAUSIBLE"]
 
 
 def clock_ticks(t: np.ndarray, period: np.ndarray, rate: np.ndarray, phase: np.ndarray):
@@ -51,7 +55,7 @@ class SampleClock(TimingTerm):
     same_for_sensors = True  # the chip's clock: one age for its accelerometer and gyroscope
     hint = "twist the array for a minute or more, with fast changes of angular rate"
     fields = (Field(("sample_clock", "period"), (), "s", positive=True, fitted=False),
-              Field(("sample_clock", "rate"), (), "ppm"),
+              Field(("sample_clock", "rate"), (), "ppm", plausible=CLOCK_RATE_PLAUSIBLE),
               Field(("sample_clock", "phase"), (), "s", session=True, fitted=False))
 
     def __init__(self, values: np.ndarray) -> None:

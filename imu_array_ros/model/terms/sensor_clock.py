@@ -12,14 +12,14 @@ section: ``clock_period`` (s; 0: none), ``clock_rate`` (ppm) -- device constants
 from __future__ import annotations
 
 from imu_array_ros.model.terms.base import Field, register
-from imu_array_ros.model.terms.sample_clock import SampleClock
+from imu_array_ros.model.terms.sample_clock import CLOCK_RATE_PLAUSIBLE, SampleClock
 
 __all__ = ["GyroscopeSampleClock", "AccelerometerSampleClock"]
 
 
 def _fields(sensor: str) -> tuple[Field, ...]:
     return (Field((sensor, "clock_period"), (), "s", positive=True, fitted=False),
-            Field((sensor, "clock_rate"), (), "ppm"),
+            Field((sensor, "clock_rate"), (), "ppm", plausible=CLOCK_RATE_PLAUSIBLE),
             Field((sensor, "clock_phase"), (), "s", session=True, fitted=False))
 
 

@@ -14,13 +14,18 @@ import numpy as np
 from imu_array_ros.model.terms.base import Field, MotionContext, register
 from imu_array_ros.model.terms.timing import TimingTerm
 
+#: largest plausible |time offset|, s (``Field.plausible``): filter delays and read orders are ms; 0.1 s is
+#: six samples at 62.5 Hz
+TIME_OFFSET_PLAUSIBLE = 0.1
+
 
 @register
 class TimeOffset(TimingTerm):
     name = "time_offset"
     candidate = True
     hint = "twist the array with quickly changing angular rate and specific force"
-    fields = (Field(("accelerometer", "time_offset"), (), "s"), Field(("gyroscope", "time_offset"), (), "s"))
+    fields = (Field(("accelerometer", "time_offset"), (), "s", plausible=TIME_OFFSET_PLAUSIBLE),
+              Field(("gyroscope", "time_offset"), (), "s", plausible=TIME_OFFSET_PLAUSIBLE))
 
     @staticmethod
     def _column(sensor: str) -> int:

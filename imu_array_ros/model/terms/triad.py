@@ -13,7 +13,18 @@ from imu_array_ros.model.kinematics import skew
 from imu_array_ros.model.terms.base import MotionContext, Term
 
 __all__ = ["Gain", "Nonorthogonality", "Misalignment", "Bias", "nonorthogonality_matrix", "triad_matrix",
-           "decompose_triad", "triads_in_reference_frame"]
+           "decompose_triad", "triads_in_reference_frame", "GAIN_PLAUSIBLE", "ANGLE_PLAUSIBLE", "BIAS_PLAUSIBLE"]
+
+# What a real triad plausibly has (``Field.plausible``; a calibration beyond is refused,
+# :mod:`imu_array_ros.calibration.guards`).  Loose on purpose: a datasheet's worst case is a few
+# times inside each, so only a fit that absorbed something else gets there.
+#: largest |gain - 1| (MEMS scale-factor errors are a few percent)
+GAIN_PLAUSIBLE = 0.2
+#: largest misalignment / non-orthogonality angle, rad (5.7 deg; package and die errors are < 1 deg)
+ANGLE_PLAUSIBLE = 0.1
+#: largest |bias| as a fraction of the full-scale range (consumer parts: +-80 mg at +-2 g, +-20 deg/s at
+#: +-250 deg/s, both under 10 % of their smallest range)
+BIAS_PLAUSIBLE = 0.1
 
 
 def nonorthogonality_matrix(l: np.ndarray) -> np.ndarray:
