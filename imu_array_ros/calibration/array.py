@@ -64,15 +64,15 @@ class ArrayCalibration:
     timing_notes: list[str] = field(default_factory=list)
 
     def stds(self) -> dict[str, np.ndarray]:
-        """term -> (K, P) standard deviations of every calibrated field (the moving stage's CRB x
-        sqrt(max(1, NIS)) as for the static stage)."""
+        """term -> (K, P) standard deviations of every calibrated field: the static stage's
+        (``written_std``), the moving stage's sandwich std (:mod:`imu_array_ros.fitting.robust`: holds when the
+        model does not fit to the noise level; its Cramer-Rao bound where the sandwich was not computed)."""
         out = {}
         if self.static is not None:
             out.update(self.static.written_std())
         if self.moving is not None:
-            factor = np.sqrt(max(1.0, self.moving.nis_after))
             for t in self.moving.free:
-                out[t] = self.moving.std[t] * factor
+                out[t] = self.moving.std_robust.get(t, self.moving.std[t])
         return out
 
     def summary(self) -> str:
@@ -101,7 +101,10 @@ class ArrayCalibration:
         if self.moving is not None:
             m = self.moving
             stages.append({"stage": "moving", "method": "maximum likelihood of the terms jointly with every sample's "
-                           "motion (Schur-complement Gauss-Newton); _std = Cramer-Rao bound x sqrt(max(1, NIS))",
+                           "motion (Schur-complement Gauss-Newton); _std = sandwich std (misfit-robust; "
+                           "crb_median: the Cramer-Rao bound's median per term)",
+                           "std_kind": m.sandwich.describe() if m.sandwich is not None else "Cramer-Rao bound",
+                           "crb_median": {t: f(np.nanmedian(m.std[t])) for t in m.free if np.isfinite(m.std[t]).any()},
                            "terms": list(m.free), "samples_used": int(self.moving_samples[0]),
                            "samples_total": int(self.moving_samples[1]), "iterations": int(m.iterations),
                            "converged": bool(m.converged), "held": list(m.held),

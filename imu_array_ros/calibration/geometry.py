@@ -28,9 +28,12 @@ Both end at the same stationary point of the likelihood; BCD converges
 linearly (its rate is set by the coupling of motion and positions), the joint
 solver quadratically, so ``"joint"`` is the default (``benchmarks/bench_geometry.py``
 compares iterations, time and likelihood).  Whichever solves it, the
-uncertainty is the Cramér-Rao bound of the joint problem (positions and every
-sample's motion unknown; carlsson2017 leaves it open) from the engine's Fisher
-information at the estimate.
+uncertainty written is the engine's sandwich covariance at the estimate
+(:mod:`imu_array_ros.fitting.robust`: the Fisher information of the joint
+problem, positions and every sample's motion unknown, with the scores' spread
+measured over time blocks of the window), which holds when the model does not
+fit to the noise level; the Cramér-Rao bound (carlsson2017 leaves it open) is
+kept beside it (``position_crb``).
 
 Samples: a sample with a missing or saturated reading is dropped (the BCD's
 shared 3x3 system assumes every axis), and so is one with too little rotation
@@ -88,8 +91,11 @@ class GeometryCalibration:
     """The result of :func:`calibrate_geometry` (SI units).
 
     model: the input model with the calibrated positions; initial_positions
-    (K, 3); position_std (K, 3): Cramér-Rao bound of the joint problem, 0 for
-    the reference IMU (held: exact in the chosen gauge); covariance (3K, 3K);
+    (K, 3); position_std (K, 3): the sandwich (misfit-robust) standard
+    deviation, 0 for the reference IMU (held: exact in the chosen gauge);
+    position_crb (K, 3): the Cramér-Rao bound of the joint problem (what
+    position_std would be if the model fitted to the noise level); std_kind:
+    how position_std was estimated (block length); covariance (3K, 3K): the sandwich;
     loglik_before/after: log-likelihood of the window with the motion fitted
     (profiled out) at the initial and the calibrated positions; nis_before/after:
     sum of squared normalised residuals per degree of freedom (~1 for a model
@@ -105,6 +111,8 @@ class GeometryCalibration:
     initial_positions: np.ndarray
     position_std: np.ndarray
     covariance: np.ndarray = field(repr=False)
+    position_crb: np.ndarray = field(default=None, repr=False)
+    std_kind: str = "Cramer-Rao bound"
     loglik_before: float = float("nan")
     loglik_after: float = float("nan")
     nis_before: float = float("nan")
@@ -152,8 +160,9 @@ class GeometryCalibration:
         return {
             "method": f"geometry ({self.method}): maximum likelihood of the accelerometer positions jointly with the "
                       f"motion (carlsson2017; {'block coordinate descent, Alg. 1' if self.method == 'bcd' else 'Schur-complement Gauss-Newton'}); "
-                      "position_std = Cramer-Rao bound of the joint problem",
+                      f"position_std = {self.std_kind} (position_crb: the Cramer-Rao bound of the joint problem)",
             **provenance(),
+            "position_crb": {n: [f(v) for v in row] for n, row in zip(self.names, self.position_crb)},
             "reference": self.reference,
             "window": {"first_stamp_ns": int(self.window_ns[0]), "last_stamp_ns": int(self.window_ns[1]),
                        "seconds": (int(self.window_ns[1]) - int(self.window_ns[0])) / 1e9},
@@ -212,11 +221,16 @@ def calibrate_geometry(samples: ImuSamples, model: SensorModel, *, reference=Non
         # the Cramér-Rao bound at the BCD estimate: the engine's Fisher information, no iteration
         fit = fit_terms(window, calibrated, ["position"], reference=ref, max_iterations=0)
     after = profile_window(window, calibrated)
-    std = np.where(np.isfinite(fit.std["position"]), fit.std["position"], 0.0)
+    robust = fit.std_robust.get("position", fit.std["position"])  # the CRB when too few samples for the sandwich
+    std = np.where(np.isfinite(robust), robust, 0.0)
+    crb = np.where(np.isfinite(fit.std["position"]), fit.std["position"], 0.0)
     dof = fit.dof
     return GeometryCalibration(
         model=calibrated, method=method, reference=model.names[ref], initial_positions=model.positions.copy(),
-        position_std=std, covariance=fit.covariance, loglik_before=before.loglik, loglik_after=after.loglik,
+        position_std=std, position_crb=crb,
+        covariance=fit.covariance if fit.sandwich is None else fit.covariance_robust,
+        std_kind=fit.sandwich.describe() if fit.sandwich else "Cramer-Rao bound (too few samples for the sandwich)",
+        loglik_before=before.loglik, loglik_after=after.loglik,
         nis_before=2 * before.cost / dof, nis_after=2 * after.cost / dof, rms_before=before.rms,
         rms_after=after.rms, iterations=iterations, converged=converged, history=history,
         samples_total=len(samples), samples_used=selection.n_used, dropped=selection.dropped,

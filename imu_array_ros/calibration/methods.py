@@ -110,8 +110,9 @@ def fit(samples: ImuSamples, model: SensorModel, terms: Sequence[str], *, imus=N
         max_iterations: int = 50, progress: Callable[[int, float], None] | None = None,
         source: str | None = None) -> Calibration:
     """Maximum likelihood of any ``terms`` jointly with the motion (:func:`~imu_array_ros.fitting.engine.fit_terms`);
-    ``progress(iteration, cost)``.  The written ``_std`` are the Cramér-Rao bound; parameters held to fix a
-    gauge are exact in that gauge (std 0); IMUs not fitted get none."""
+    ``progress(iteration, cost)``.  The written ``_std`` are the sandwich std (misfit-robust,
+    :mod:`imu_array_ros.fitting.robust`), the record keeps the Cramér-Rao bound's median per term; parameters
+    held to fix a gauge are exact in that gauge (std 0); IMUs not fitted get none."""
     free = check_terms(terms)
     if needs_session(samples, model):  # this recording's clock phases / stamp clocks first
         model = estimate_session(samples, model).model
@@ -119,7 +120,10 @@ def fit(samples: ImuSamples, model: SensorModel, terms: Sequence[str], *, imus=N
                        progress=progress)
     record = {
         "method": "fit_terms: joint maximum likelihood of the terms and the motion (Schur-complement "
-                  "Gauss-Newton/Levenberg-Marquardt); *_std = Cramer-Rao bound of the joint problem",
+                  "Gauss-Newton/Levenberg-Marquardt); *_std = sandwich std (misfit-robust; crb_median: the "
+                  "Cramer-Rao bound of the joint problem, median per term)",
+        "std_kind": result.sandwich.describe() if result.sandwich is not None else "Cramer-Rao bound",
+        "crb_median": {t: float(np.nanmedian(result.std[t])) for t in result.free if np.isfinite(result.std[t]).any()},
         **provenance(),
         **({} if source is None else {"recording": str(source)}),
         "terms": list(result.free),
@@ -130,7 +134,8 @@ def fit(samples: ImuSamples, model: SensorModel, terms: Sequence[str], *, imus=N
         **fit_statistics(result),
     }
     fitted = np.isin(np.array(model.names), np.array(result.imus))
-    std = {n: np.where(fitted[:, None] & ~np.isfinite(result.std[n]), 0.0, result.std[n]) for n in result.free}
+    robust = result.std_robust or result.std
+    std = {n: np.where(fitted[:, None] & ~np.isfinite(robust[n]), 0.0, robust[n]) for n in result.free}
     line = (f"fitted {len(result.theta)} parameters of {', '.join(result.free)} on {result.samples_used} samples in "
             f"{result.iterations} iterations{'' if result.converged else ' (NOT converged)'}; NIS per degree of "
             f"freedom {result.nis_before:.4g} -> {result.nis_after:.4g}")

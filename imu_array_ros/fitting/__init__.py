@@ -42,6 +42,17 @@ information about theta with the motion unknown is its Schur complement, S.
 The covariance returned is S^-1 at the estimate (in the gauge chosen below):
 the Cramér-Rao bound of the joint problem that carlsson2017 Sec. VI leaves open.
 
+Misfit-robust covariance
+------------------------
+The CRB holds only when the model is exact and the noise white.  Beside it the
+engine returns the sandwich S^-1 B S^-1 (``covariance_robust``, ``std_robust``),
+B the long-run covariance of the per-sample profiled scores
+u_n = J_t,n^T r_n - G_n^T h_n (sum_n u_n = g_red), estimated from sums over
+time blocks whose length is chosen from the data (:mod:`.robust`).  It equals
+the CRB to within its sampling noise when the model is exact, and is the
+estimate's spread over recordings when the residuals are time-correlated misfit;
+the calibrations write it as ``_std``.
+
 Gauge
 -----
 Some parameter combinations change no reading when the motion changes with
@@ -96,7 +107,7 @@ Modules
 the Schur-complemented linearisation; :mod:`.schur` the batched algebra of the
 Schur step; :mod:`.gauge` null space and gauge fixing; :mod:`.identifiability`
 the noise-share check and the one-line messages; :mod:`.optimiser`
-Levenberg-Marquardt; :mod:`.score` discovery's score test
+Levenberg-Marquardt; :mod:`.robust` the sandwich covariance and Huber reweighting; :mod:`.score` discovery's score test
 (:func:`score_blocks`); :mod:`.motion_models` how each sample's motion is
 parametrised (any rigid motion, static poses on gravity).
 """

@@ -18,6 +18,8 @@ from imu_array_ros.fitting.gauge import GAUGE_ORDER, Gauge
 from imu_array_ros.fitting.identifiability import NOISE_SHARE
 from imu_array_ros.fitting.optimiser import inverse, levenberg_marquardt
 from imu_array_ros.fitting.problem import Linearization, Problem, check_terms
+from imu_array_ros.fitting.robust import (HUBER_ROUNDS, RobustCovariance, blocked_covariance, huber_sigma,
+                                          sample_influence)
 from imu_array_ros.fitting.score import ScoreBlocks, score_blocks
 from imu_array_ros.model.reference import imu_indexes, reference_index
 from imu_array_ros.model.samples import ImuSamples
@@ -51,7 +53,13 @@ class FitResult:
     9 samples_used - estimated parameters), ~1 for a correct model;
     iterations, converged; samples_used (samples_dropped: no motion information);
     motion (N, 9) [omega, omega_dot, s] in the array frame (NaN where dropped);
-    residuals (N, K, 6) normalised (y - h) / sigma, NaN on masked axes and dropped samples.
+    residuals (N, K, 6) normalised (y - h) / sigma, NaN on masked axes and dropped samples;
+    covariance_robust (M, M), std_robust (term -> (K, P), NaN as for std): the sandwich covariance
+    S^-1 B S^-1 with B the long-run covariance of the per-sample scores from time blocks, which holds when the
+    model is not exact or the noise not white (:mod:`imu_array_ros.fitting.robust`; equal to the CRB to
+    within its sampling noise when the model is exact); sandwich: how its blocks were chosen
+    (:class:`~imu_array_ros.fitting.robust.RobustCovariance`: block_seconds, blocks, plateau; None when not
+    computed); huber_rounds: reweighting rounds done (``robust="huber"``).
     """
 
     model: SensorModel
@@ -75,12 +83,17 @@ class FitResult:
     dof: int
     motion: np.ndarray = field(repr=False)
     residuals: np.ndarray = field(repr=False)
+    covariance_robust: np.ndarray | None = field(default=None, repr=False)
+    std_robust: dict[str, np.ndarray] = field(default_factory=dict)
+    sandwich: RobustCovariance | None = None
+    huber_rounds: int = 0
 
 
 def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, imus=None, reference=None,
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
               progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None,
-              only: dict | None = None, t0_ns: int | None = None) -> FitResult:
+              only: dict | None = None, t0_ns: int | None = None, robust: str | None = None,
+              sandwich: bool = True) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
     samples: the readings (:class:`~imu_array_ros.model.samples.ImuSamples`: stamps (N,) int64 ns,
@@ -112,10 +125,19 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     IMU; with ``only``, a gauge freedom left is fixed by holding parameters as
     with gauge="reference", whatever ``gauge`` says); t0_ns: the time origin of
     drifts and sample clocks (default the first stamp; give the recording's when
-    ``samples`` are a part of it: a sample clock's phase counts from it).  Raises
+    ``samples`` are a part of it: a sample clock's phase counts from it); robust: None or "huber": refit
+    ``HUBER_ROUNDS`` times with the readings reweighted by Huber's weights on the residuals of the fit before
+    (:func:`~imu_array_ros.fitting.robust.huber_sigma`, each axis' scale from its median absolute residual):
+    readings far out count linearly instead of quadratically; nis/loglik "after" are then those of the
+    reweighted problem; sandwich: compute ``covariance_robust`` (one more pass over the samples).  Raises
     :class:`CalibrationError` (one line) when the problem cannot be solved or
     identified.
     """
+    if robust is not None:
+        return _huber(samples, model, free, robust, dict(imus=imus, reference=reference, gauge=gauge,
+                      max_iterations=max_iterations, tolerance=tolerance, progress=progress,
+                      motion_model=motion_model, only=only, t0_ns=t0_ns, sandwich=sandwich),
+                      motion0, sigma)
     free = check_terms(free)
     if gauge not in ("reference", "mean"):
         raise CalibrationError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
@@ -146,7 +168,23 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
         moved = np.abs(prob.values(model).reshape(-1) - theta)
         if np.all(moved[std > 0] < tolerance * 10 * std[std > 0]):
             break
-    return _result(prob, model, motion, lin, gauge_fix, before, dof, iterations, converged)
+    return _result(prob, model, motion, lin, gauge_fix, before, dof, iterations, converged, sandwich)
+
+
+def _huber(samples, model, free, robust, options, motion0, sigma) -> FitResult:
+    """fit_terms with Huber IRLS (:func:`~imu_array_ros.fitting.robust.huber_sigma`): a plain fit, then
+    ``HUBER_ROUNDS`` refits from the last estimate with the readings reweighted on its residuals."""
+    if robust != "huber":
+        raise CalibrationError(f"robust must be None or 'huber', got {robust!r}")
+    base = np.broadcast_to(model.std[None] if sigma is None else np.asarray(sigma, dtype=float),
+                           (len(samples), model.n_imus, 6))
+    res = fit_terms(samples, model, free, motion0=motion0, sigma=sigma, **options)
+    first, current = res, base
+    for _ in range(HUBER_ROUNDS):  # residuals normalised by the unweighted sigma, then reweighted
+        current = huber_sigma(res.residuals * current / base, base)
+        res = fit_terms(samples, res.model, free, motion0=np.nan_to_num(res.motion), sigma=current, **options)
+    res.loglik_before, res.nis_before, res.huber_rounds = first.loglik_before, first.nis_before, HUBER_ROUNDS
+    return res
 
 
 def _fit_motion_frozen(prob: Problem, model: SensorModel, motion: np.ndarray):
@@ -214,10 +252,36 @@ def _reference(model: SensorModel, fit: np.ndarray, reference) -> int:
 
 
 def _result(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Linearization, gauge: Gauge,
-            before: float, dof: int, iterations: int, converged: bool) -> FitResult:
-    """The FitResult at the estimate: the Cramér-Rao bound in the gauge, NaN where held or not fitted."""
+            before: float, dof: int, iterations: int, converged: bool, sandwich: bool = True) -> FitResult:
+    """The FitResult at the estimate: the Cramér-Rao bound and the sandwich covariance in the gauge, NaN
+    where held or not fitted."""
     s_z, _ = gauge.reduce(lin.S, lin.g)
-    cov = gauge.expand_covariance(inverse(s_z))
+    cov_z = inverse(s_z)
+    cov = gauge.expand_covariance(cov_z)
+    robust = None
+    if sandwich and cov_z.size:
+        z = gauge.basis if gauge.basis is not None else np.eye(prob.m)[:, gauge.keep]
+        a = sample_influence(prob, model, motion, lin, z @ cov_z)
+        robust = blocked_covariance(a[prob.used], prob.stamps[prob.used])
+    cov_robust = None if robust is None else gauge.expand_covariance(robust.covariance)
+    names = prob.parameter_names()
+    mask = ~(prob.valid & prob.used[:, None, None])
+    residuals = np.where(mask, np.nan, lin.r)
+    motion = np.where(prob.used[:, None], prob.expand(motion), np.nan)
+    return FitResult(model=model, free=prob.free, imus=tuple(model.names[k] for k in prob.fit),
+                     parameter_names=names, theta=prob.values(model).reshape(-1), covariance=cov,
+                     std=_stds(prob, model, gauge, cov),
+                     held=[names[i] for i in gauge.held], gauge=gauge.lines, gauge_directions=gauge.directions,
+                     loglik_before=prob.loglik(before), loglik_after=prob.loglik(lin.cost),
+                     nis_before=2 * before / dof, nis_after=2 * lin.cost / dof, iterations=iterations,
+                     converged=converged, samples_used=prob.n_used(), samples_dropped=prob.n - prob.n_used(),
+                     dof=dof, motion=motion, residuals=residuals, covariance_robust=cov_robust,
+                     std_robust={} if cov_robust is None else _stds(prob, model, gauge, cov_robust),
+                     sandwich=robust)
+
+
+def _stds(prob: Problem, model: SensorModel, gauge: Gauge, cov: np.ndarray) -> dict[str, np.ndarray]:
+    """term -> (K, P) standard deviations from an (M, M) covariance, NaN where held or not fitted."""
     std_flat = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(len(prob.fit), prob.p)
     std_flat[np.unravel_index(np.array(gauge.held, dtype=int), std_flat.shape)] = np.nan
     if gauge.fixed is not None:
@@ -228,14 +292,4 @@ def _result(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Lineariz
         full[prob.fit] = std_flat[:, col:col + size]
         std[t] = full
         col += size
-    names = prob.parameter_names()
-    mask = ~(prob.valid & prob.used[:, None, None])
-    residuals = np.where(mask, np.nan, lin.r)
-    motion = np.where(prob.used[:, None], prob.expand(motion), np.nan)
-    return FitResult(model=model, free=prob.free, imus=tuple(model.names[k] for k in prob.fit),
-                     parameter_names=names, theta=prob.values(model).reshape(-1), covariance=cov, std=std,
-                     held=[names[i] for i in gauge.held], gauge=gauge.lines, gauge_directions=gauge.directions,
-                     loglik_before=prob.loglik(before), loglik_after=prob.loglik(lin.cost),
-                     nis_before=2 * before / dof, nis_after=2 * lin.cost / dof, iterations=iterations,
-                     converged=converged, samples_used=prob.n_used(), samples_dropped=prob.n - prob.n_used(),
-                     dof=dof, motion=motion, residuals=residuals)
+    return std
