@@ -90,7 +90,7 @@ def test_every_method_returns_one_contract(method, data, options, fitted, reques
 def test_unknown_method_is_one_line(twist):
     desc, samples = twist
     with pytest.raises(CalibrationError, match="unknown calibration method 'magic' "
-                                               r"\(known: geometry, static, all, fit, bayes\)"):
+                                               r"\(known: geometry, static, all, fit, bayes, noise\)"):
         calibrate("magic", samples, desc)
 
 

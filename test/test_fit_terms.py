@@ -295,3 +295,21 @@ def test_too_few_or_no_valid_samples_are_refused(positions_recording):
     empty.accel[:] = np.nan
     with pytest.raises(CalibrationError, match="no valid samples"):
         fit(empty, nominal, ["position"])
+
+
+def test_named_parameters_are_held_outside_the_gauge_search(positions_recording):
+    """``hold``: the parameters named keep their initial values (std NaN) and the gauge search works on the
+    rest -- holding the reference position by name is the reference gauge itself (same estimate)."""
+    nominal, truth, samples, _ = positions_recording
+    ref = fit(samples, nominal, ["position", "gyroscope_gain"])
+    names = ["imu_00 position[0]", "imu_00 position[1]", "imu_00 position[2]", "imu_00 gyroscope.gain[0]"]
+    held = fit(samples, nominal, ["position", "gyroscope_gain"], hold=names)
+    assert held.held == []  # nothing left for the gauge search to hold
+    np.testing.assert_allclose(held.theta, ref.theta, rtol=0, atol=1e-3 * np.nanmin(ref.std["position"]))
+    assert np.isnan(held.std["position"][0]).all() and np.isnan(held.std["gyroscope_gain"][0, 0])
+    # holding another IMU's gain as well: it stays at its initial value
+    more = fit(samples, nominal, ["position", "gyroscope_gain"],
+               hold=names + [f"{nominal.names[1]} gyroscope.gain[2]"])
+    assert more.model.terms["gyroscope_gain"].values[1, 2] == nominal.terms["gyroscope_gain"].values[1, 2]
+    with pytest.raises(CalibrationError, match="hold: 'imu_00 gyroscope.bias\\[0\\]' is not a parameter"):
+        fit(samples, nominal, ["position"], hold=["imu_00 gyroscope.bias[0]"])

@@ -36,6 +36,7 @@ from imu_array_ros.calibration.noise import noise_calibration
 from imu_array_ros.calibration.result import Calibration, SumScorer, fit_statistics, provenance
 from imu_array_ros.calibration.scoring import WindowScorer
 from imu_array_ros.calibration.selection import MIN_EXCITATION
+from imu_array_ros.calibration.sessions import combine_calibrations, session_record
 from imu_array_ros.calibration.static import STATIC_TERMS, PoseScorer
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import check_terms, fit_terms
@@ -91,19 +92,48 @@ def static(samples: ImuSamples, model: SensorModel, *, method: str = "ml", refer
                   progress=progress)
 
 
-def whole_array(samples: ImuSamples, model: SensorModel, *, reference=None, static_method: str = "ml",
-                static_terms: Sequence[str] = STATIC_TERMS, moving_terms: Sequence[str] = MOVING_TERMS,
-                gravity: float = STANDARD_GRAVITY, still_options: dict | None = None, max_iterations: int = 50,
-                progress: Callable[[str], None] | None = None, source: str | None = None, timing: bool = False,
+def whole_array(samples: ImuSamples | Sequence[ImuSamples], model: SensorModel, *, reference=None,
+                static_method: str = "ml", static_terms: Sequence[str] = STATIC_TERMS,
+                moving_terms: Sequence[str] = MOVING_TERMS, gravity: float = STANDARD_GRAVITY,
+                still_options: dict | None = None, max_iterations: int = 50,
+                progress: Callable[[str], None] | None = None, source=None, timing: bool = False,
                 clock_period: float | None = 1e-3) -> Calibration:
     """Still poses -> static stage, then the motion -> ``moving_terms``, then the timing stage (``timing``:
-    sample clocks of ``clock_period`` s searched, time offsets and clock rates fitted) (``calibrate all``)."""
+    sample clocks of ``clock_period`` s searched, time offsets and clock rates fitted) (``calibrate all``).
+
+    ``samples`` a list of recordings of the same array (``source`` then a list of their names): each calibrated
+    on its own, then device constants combined and session states (biases) written with their turn-on
+    repeatability (:func:`~imu_array_ros.calibration.sessions.combine_calibrations`)."""
     moving_terms = tuple(moving_terms)
     if moving_terms:
         check_terms(moving_terms)
-    return _array(samples, model, "all", source, reference=reference, static_method=static_method,
-                  static_terms=static_terms, moving_terms=moving_terms, gravity=gravity, still_options=still_options,
-                  max_iterations=max_iterations, progress=progress, timing=timing, clock_period=clock_period)
+    options = dict(reference=reference, static_method=static_method, static_terms=static_terms,
+                   moving_terms=moving_terms, gravity=gravity, still_options=still_options,
+                   max_iterations=max_iterations, timing=timing, clock_period=clock_period)
+    if isinstance(samples, ImuSamples):
+        cal = _array(samples, model, "all", source, progress=progress, **options)
+        cal.record.update(session_record(cal))
+        return cal
+    # several recordings (calibrate all REC1 REC2 ...): each on its own, then combined
+    recordings = list(samples)
+    sources = list(source) if isinstance(source, (list, tuple)) else [source] * len(recordings)
+    if len(sources) != len(recordings):
+        raise CalibrationError(f"{len(recordings)} recordings but {len(sources)} sources")
+    if timing and len(recordings) > 1:
+        raise CalibrationError("the timing stage runs on one recording at a time (its clocks' phases and the "
+                               "searched clocks differ per recording): calibrate the timing on one recording")
+    say = progress or (lambda text: None)
+    cals = []
+    for i, (rec, src) in enumerate(zip(recordings, sources)):
+        say(f"recording {i + 1} of {len(recordings)}{'' if src is None else f' ({src})'}")
+        try:
+            cals.append(_array(rec, model, "all", None if src is None else str(src), progress=progress, **options))
+        except CalibrationError as err:
+            raise CalibrationError(f"recording {i + 1}{'' if src is None else f' ({src})'}: {err}") from None
+    if len(cals) == 1:
+        cals[0].record.update(session_record(cals[0]))
+        return cals[0]
+    return combine_calibrations(cals, sources)
 
 
 def fit(samples: ImuSamples, model: SensorModel, terms: Sequence[str], *, imus=None, reference=None,

@@ -156,9 +156,14 @@ def add_force_quiet(sp: argparse.ArgumentParser, *, force: str, quiet: str = QUI
     sp.add_argument("-q", "--quiet", action="store_true", help=quiet)
 
 
-def add_recording_inputs(sp: argparse.ArgumentParser, *, array: str, calibration: str) -> None:
-    """The recording (positional), ``--array`` (required) and ``--calibration``, with their help texts."""
-    sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
+def add_recording_inputs(sp: argparse.ArgumentParser, *, array: str, calibration: str, many: bool = False) -> None:
+    """The recording (positional; ``many``: one or more), ``--array`` (required) and ``--calibration``, with
+    their help texts."""
+    if many:
+        sp.add_argument("recording", type=Path, nargs="+",
+                        help="rosbag2 MCAP directories or .mcap files: one or more recordings of the same array")
+    else:
+        sp.add_argument("recording", type=Path, help="rosbag2 MCAP directory or .mcap file")
     sp.add_argument("--array", required=True, type=Path, help=array)
     sp.add_argument("--calibration", type=Path, help=calibration)
 

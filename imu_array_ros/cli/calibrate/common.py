@@ -19,10 +19,11 @@ __all__ = ["add_calibration_inputs", "add_still_options", "still_options", "chec
            "install"]
 
 
-def add_calibration_inputs(sp: argparse.ArgumentParser) -> None:
-    """The recording, --array and --calibration of every ``calibrate`` method."""
+def add_calibration_inputs(sp: argparse.ArgumentParser, *, many: bool = False) -> None:
+    """The recording (``many``: one or more), --array and --calibration of every ``calibrate`` method."""
     add_recording_inputs(sp, array="array description YAML (initial values)",
-                         calibration="calibrated description (same schema) to start from instead of --array's values")
+                         calibration="calibrated description (same schema) to start from instead of --array's values",
+                         many=many)
 
 
 def add_still_options(sp: argparse.ArgumentParser) -> None:

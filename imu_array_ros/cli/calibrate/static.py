@@ -81,23 +81,33 @@ def calibrate_stages(kind: str, recording: Path, *, array: Path, out: Path, cali
     """``calibrate static`` (``kind`` "static") and ``calibrate all`` ("all"): outputs checked, the
     recording read, the stages run (progress lines), the static table, the install, the static plot, the
     report (``report``: a directory, :mod:`imu_array_ros.calibration.report`)."""
-    out, plot = check_outputs(out, plot, [recording, array, calibration], force)
+    recordings = list(recording) if isinstance(recording, (list, tuple)) else [recording]
+    out, plot = check_outputs(out, plot, [*recordings, array, calibration], force)
     if report is not None:
-        report = check_report_dir(report, [recording, array, calibration], force,
+        report = check_report_dir(report, [*recordings, array, calibration], force,
                                   other_outputs=[("--out", out), ("--plot", plot)])
         require("matplotlib", "plots", f"--report {report}")
-    desc, samples = read_array_recording(recording, array, calibration, quiet, imus=[reference])
-    with about(recording):
-        cal = workflows.calibrate(kind, samples, desc, reference=reference, progress=lambda text: info(quiet, text),
-                                  source=str(recording), **options)
-    print_static_table(cal.details, quiet)
-    install(cal, desc, out, recording, quiet)
-    if plot is not None and cal.details.static is not None:
-        plot_static(cal.details, plot)
+    read = [read_array_recording(r, array, calibration, quiet, imus=[reference]) for r in recordings]
+    desc, samples = read[0][0], [s for _, s in read]
+    name = recordings[0] if len(recordings) == 1 else Path(", ".join(map(str, recordings)))
+    with about(name):
+        cal = workflows.calibrate(kind, samples[0] if len(samples) == 1 else samples, desc, reference=reference,
+                                  progress=lambda text: info(quiet, text),
+                                  source=str(recordings[0]) if len(recordings) == 1 else [str(r) for r in recordings],
+                                  **options)
+    per_recording = cal.details.recordings if len(recordings) > 1 else [cal]
+    for r, c in zip(recordings, per_recording):
+        if len(recordings) > 1:
+            info(quiet, f"{r}: {c.summary()}")
+        print_static_table(c.details, quiet)
+    install(cal, desc, out, name, quiet)
+    first = per_recording[0].details
+    if plot is not None and first.static is not None:
+        plot_static(first, plot)  # with several recordings: the first one's static stage
         info(quiet, f"wrote {plot}")
     if report is not None:
-        try:
-            write_calibration_report(report, [cal], start=desc, sources=[str(recording)])
+        try:  # with several recordings: the first in full, all of them in the repeatability section
+            write_calibration_report(report, per_recording, start=desc, sources=[str(r) for r in recordings])
         except OSError as err:
             raise OutputError(f"{report}: cannot write the report: {err.strerror or err}") from None
         info(quiet, f"wrote the report {report / 'index.md'}")

@@ -1,4 +1,4 @@
-"""``imu-array calibrate all``: the whole array from one recording.
+"""``imu-array calibrate all``: the whole array from one recording, or from several of the same array.
 
 Still poses -> accelerometer intrinsics and gyroscope biases; the moving phase ->
 positions, gyroscope gain, misalignment and non-orthogonality; then the timing (sample clocks, time offsets)
@@ -20,10 +20,11 @@ __all__ = ["add_parser", "run"]
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    sp = subparsers.add_parser("all", help="the whole array from one recording: still poses -> accelerometer "
-                                           "intrinsics and gyroscope biases; moving phase -> positions, gyroscope "
-                                           "gain, misalignment and non-orthogonality")
-    add_calibration_inputs(sp)
+    sp = subparsers.add_parser("all", help="the whole array from one or more recordings: still poses -> "
+                                           "accelerometer intrinsics and gyroscope biases; moving phase -> positions, "
+                                           "gyroscope gain, misalignment and non-orthogonality; several recordings: "
+                                           "device constants combined, biases with their turn-on repeatability")
+    add_calibration_inputs(sp, many=True)
     sp.add_argument("--reference", help="IMU that defines the array frame and holds the gauge (default: the first)")
     sp.add_argument("--static-method", choices=("ml", "pca"), default="ml", help="static stage method (default ml)")
     sp.add_argument("--moving-terms",
@@ -50,12 +51,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return sp
 
 
-def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, reference: str | None = None,
+def run(recording: list[Path], *, array: Path, out: Path, calibration: Path | None = None, reference: str | None = None,
         static_method: str = "ml", moving_terms: str | None = None, gravity: float | None = None,
         still_gyro: float | None = None, still_accel: float | None = None, still_min_duration: float | None = None,
         plot: Path | None = None, force: bool = False, quiet: bool = False, timing: bool = False,
         clock_period: float = 1e-3, report: Path | None = None) -> int:
-    """Whole-array calibration: still poses -> static stage -> moving stage -> timing stage, one description."""
+    """Whole-array calibration: still poses -> static stage -> moving stage -> timing stage, one description;
+    several recordings: each calibrated, device constants combined, biases with their turn-on repeatability."""
+    recording = list(recording) if isinstance(recording, (list, tuple)) else [recording]
+    if len(set(map(str, recording))) != len(recording):
+        raise ConfigError("the same recording is given twice")
+    if timing and len(recording) > 1:
+        raise ConfigError("--timing runs on one recording at a time (each power-up has its own clock phases)")
     if not (clock_period >= 0 and clock_period < 1.0):
         raise ConfigError(f"--clock-period must be in [0, 1) s, got {clock_period:g}")
     options = still_options(gravity, still_gyro, still_accel, still_min_duration)
