@@ -227,3 +227,26 @@ def test_cli_writes_per_imu_noise_and_a_plot(recordings, capsys):
     code, _, err = cli(capsys, "calibrate", "noise", recordings / "long", "--array", MIMU, "--out", out,
                        "--force", "-q")
     assert code == 0 and err == "" and (recordings / "noise.yaml.bak").exists()
+
+
+def test_raw_imu_messages_carry_each_imus_own_noise(mimu):
+    """The driver's and the recordings' raw Imu messages: covariance = diag(noise_std^2) of that IMU (its own
+    figures where the description has them, the pooled ones elsewhere)."""
+    from imu_array_ros.io.messages import concat_payloads, raw_imu_payloads
+    from imu_array_ros.io.rosbag.cdr_columns import decode_imu
+
+    imus = list(mimu.imus)
+    imus[2] = imus[2].with_noise({"accelerometer.noise_std": [0.03, 0.04, 0.05],
+                                  "gyroscope.noise_std": [0.002, 0.003, 0.004]})
+    desc = mimu.with_imus(imus)
+    k = len(desc.imus)
+    samples = ImuSamples(np.array([1, 2], dtype=np.int64), np.zeros((2, k, 3)), np.zeros((2, k, 3)), desc.names)
+    for i, (rows, payload) in enumerate(raw_imu_payloads(samples, desc)):
+        buf, off, length = concat_payloads(list(payload))
+        cols = decode_imu(buf, off, length)
+        acc = np.asarray(cols["linear_acceleration_covariance"]).reshape(-1, 3, 3)
+        gyr = np.asarray(cols["angular_velocity_covariance"]).reshape(-1, 3, 3)
+        want_a = [0.03, 0.04, 0.05] if i == 2 else [mimu.accelerometer_noise_std] * 3
+        want_g = [0.002, 0.003, 0.004] if i == 2 else [mimu.gyroscope_noise_std] * 3
+        np.testing.assert_allclose(acc[0], np.diag(np.square(want_a)))
+        np.testing.assert_allclose(gyr[1], np.diag(np.square(want_g)))

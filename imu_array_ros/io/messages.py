@@ -14,7 +14,8 @@ Topics and fields (the recording contract, :mod:`imu_array_ros.io.rosbag.recordi
 ``<prefix>/<name>/data_raw``  one Imu per IMU per array sample
     the IMU's own sensor frame, ``frame_id = <frame_prefix><name>``, the same stamp on
     every IMU of one sample, ``angular_velocity_covariance = diag(gyroscope_noise_std^2)``,
-    ``linear_acceleration_covariance = diag(accelerometer_noise_std^2)``, orientation
+    ``linear_acceleration_covariance = diag(accelerometer_noise_std^2)`` (the IMU's own per-axis
+    ``noise_std`` where the description has one, else the pooled figure), orientation
     zero with ``orientation_covariance[0] = -1`` (REP-145).
 ``<prefix>/fused/imu``, ``<prefix>/fused/accel``  the fusion output
     Imu: omega and specific force with their 3x3 CRB blocks;
@@ -74,10 +75,15 @@ def put_accel_block(cov: np.ndarray, rows: np.ndarray | slice, block: np.ndarray
 
 
 def raw_covariances(description: ArrayDescription) -> tuple[np.ndarray, np.ndarray]:
-    """(accelerometer, gyroscope) covariance of one raw Imu message, each (9,) row-major."""
-    acc = np.diag(np.full(3, float(description.accelerometer_noise_std) ** 2)).reshape(9)
-    gyr = np.diag(np.full(3, float(description.gyroscope_noise_std) ** 2)).reshape(9)
-    return acc, gyr
+    """(accelerometer, gyroscope) covariances of the raw Imu messages, each (K, 9) row-major per IMU: the IMU's
+    own ``noise_std`` per axis where the description gives it (``imu-array calibrate noise``), else the pooled
+    figure."""
+    def cov(sensor: str, pooled: float) -> np.ndarray:
+        std = np.array([np.asarray(imu.noise.get(f"{sensor}.noise_std", np.full(3, pooled)), dtype=float)
+                        for imu in description.imus])
+        return np.einsum("ki,ij->kij", std ** 2, np.eye(3)).reshape(len(description.imus), 9)
+    return (cov("accelerometer", float(description.accelerometer_noise_std)),
+            cov("gyroscope", float(description.gyroscope_noise_std)))
 
 
 def raw_imu_payloads(
@@ -90,17 +96,19 @@ def raw_imu_payloads(
     Raises ValueError for a stamp outside ``builtin_interfaces/Time``.
     """
     acc_cov, gyr_cov = raw_covariances(description)
+    index = {n: i for i, n in enumerate(description.names)}
     present = samples.present
     out = []
     for k, name in enumerate(samples.names):
+        d = index[name]
         rows = np.flatnonzero(present[:, k])
         payload = encode_imu(
             samples.stamps[rows],
             frame_prefix + name,
             angular_velocity=samples.gyro[rows, k],
             linear_acceleration=samples.accel[rows, k],
-            angular_velocity_covariance=gyr_cov,
-            linear_acceleration_covariance=acc_cov,
+            angular_velocity_covariance=gyr_cov[d],
+            linear_acceleration_covariance=acc_cov[d],
             orientation_covariance=NO_ORIENTATION,
         )
         out.append((rows, payload))
