@@ -93,7 +93,7 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
               progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None,
               only: dict | None = None, t0_ns: int | None = None, robust: str | None = None,
-              sandwich: bool = True) -> FitResult:
+              sandwich: bool = True, hold: Sequence[str] = ()) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
     samples: the readings (:class:`~imu_array_ros.model.samples.ImuSamples`: stamps (N,) int64 ns,
@@ -125,7 +125,10 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     IMU; with ``only``, a gauge freedom left is fixed by holding parameters as
     with gauge="reference", whatever ``gauge`` says); t0_ns: the time origin of
     drifts and sample clocks (default the first stamp; give the recording's when
-    ``samples`` are a part of it: a sample clock's phase counts from it); robust: None or "huber": refit
+    ``samples`` are a part of it: a sample clock's phase counts from it); hold: parameter names
+    (:attr:`FitResult.parameter_names`, e.g. "imu_1 gyroscope.gain[0]") held at their initial values, outside
+    the gauge search (a refit that must keep an earlier fit's gauge: with timing terms the gauge freedoms of the
+    other terms are no longer numerically null where the engine looks for them); robust: None or "huber": refit
     ``HUBER_ROUNDS`` times with the readings reweighted by Huber's weights on the residuals of the fit before
     (:func:`~imu_array_ros.fitting.robust.huber_sigma`, each axis' scale from its median absolute residual):
     readings far out count linearly instead of quadratically; nis/loglik "after" are then those of the
@@ -136,7 +139,7 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     if robust is not None:
         return _huber(samples, model, free, robust, dict(imus=imus, reference=reference, gauge=gauge,
                       max_iterations=max_iterations, tolerance=tolerance, progress=progress,
-                      motion_model=motion_model, only=only, t0_ns=t0_ns, sandwich=sandwich),
+                      motion_model=motion_model, only=only, t0_ns=t0_ns, sandwich=sandwich, hold=hold),
                       motion0, sigma)
     free = check_terms(free)
     if gauge not in ("reference", "mean"):
@@ -149,7 +152,7 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     motion = prob.drop(~lin.ok, motion)
     prob.check_dof(prob.m)
     lin = prob.linearize(model, motion)  # with the free parameters, at the initial point
-    gauge_fix = Gauge.find(prob, model, motion, lin, ref, gauge, _fixed(prob, model, only))
+    gauge_fix = Gauge.find(prob, model, motion, lin, ref, gauge, _fixed(prob, model, only, hold))
     dof = prob.check_dof(gauge_fix.rank)
     before = lin.cost
     model, motion, lin, iterations, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
@@ -215,9 +218,10 @@ def fit_motion(samples: ImuSamples, model: SensorModel, motion0=None, *, motion_
     return prob.expand(motion), prob.loglik(lin.cost), np.where(prob.valid, lin.r, np.nan)
 
 
-def _fixed(prob: Problem, model: SensorModel, only: dict | None) -> np.ndarray:
-    """(M,) True for the parameters ``only`` holds (its term not fitted on that IMU) and for the fields the
-    engine never fits (``Field.fitted`` False: a clock's nominal period, a phase found by search)."""
+def _fixed(prob: Problem, model: SensorModel, only: dict | None, hold: Sequence[str] = ()) -> np.ndarray:
+    """(M,) True for the parameters ``only`` holds (its term not fitted on that IMU), for the fields the
+    engine never fits (``Field.fitted`` False: a clock's nominal period, a phase found by search) and for
+    the parameters named in ``hold``."""
     fixed = np.zeros((len(prob.fit), prob.p), dtype=bool)
     offsets = prob.offsets
     for t in prob.free:
@@ -226,6 +230,12 @@ def _fixed(prob: Problem, model: SensorModel, only: dict | None) -> np.ndarray:
             fixed[:, col:col + f.size] = not f.fitted
             col += f.size
     fixed = fixed.reshape(-1)
+    if hold:
+        names = {n: i for i, n in enumerate(prob.parameter_names())}
+        unknown = [n for n in hold if n not in names]
+        if unknown:
+            raise CalibrationError(f"hold: {unknown[0]!r} is not a parameter of this fit")
+        fixed[[names[n] for n in hold]] = True
     if fixed.all():
         raise CalibrationError(f"no parameter of {', '.join(prob.free)} is fitted by the engine")
     if not only:
