@@ -182,6 +182,8 @@ def test_cli_discover_report_apply_validate(capsys, recordings):
     assert data["validation"][0]["delta_loglik"] > 0  # the findings carry over to the other recording
     md = (report / "report.md").read_text()
     assert "## Findings" in md and "imu_6" in md
+    manifest = json.loads((report / "manifest.json").read_text())
+    assert manifest["kind"] == "imu_array_ros discovery report" and "report.md" in manifest["files"]
     # the applied description explains the recording: discovering again finds nothing
     desc = load_description(applied)
     bias = desc.imus[2].value("accelerometer.bias")
@@ -210,8 +212,15 @@ def test_cli_discover_user_errors(capsys, recordings, tmp_path):
     (report / "report.json").write_text("{}\n")
     (report / "report.md").write_text("# old\n")
     assert_user_error(cli(capsys, "discover", str(rec), "--array", CORNERS, "--report", str(report), "-q"),
-                      "report.json", "--force")
+                      "discovery report", "--force")
     assert (report / "report.md").read_text() == "# old\n"
+    # a directory holding anything else is never written into, even with --force; nor one holding an input
+    (report / "notes.txt").write_text("mine\n")
+    assert_user_error(cli(capsys, "discover", str(rec), "--array", CORNERS, "--report", str(report), "--force",
+                          "-q"), "notes.txt", "choose an empty or new directory")
+    assert (report / "notes.txt").read_text() == "mine\n" and (report / "report.md").read_text() == "# old\n"
+    assert_user_error(cli(capsys, "discover", str(rec), "--array", CORNERS, "--report", str(rec.parent), "--force",
+                          "-q"), "holds the input")
     # an input is never an output
     assert_user_error(cli(capsys, "discover", str(rec), "--array", CORNERS, "--report", str(tmp_path / "r2"),
                           "--apply", CORNERS, "-q"), "input")

@@ -34,7 +34,6 @@ import numpy as np
 
 from imu_array_ros.calibration.result import Calibration
 from imu_array_ros.calibration.static import pose_samples
-from imu_array_ros.errors import OutputError
 from imu_array_ros.fitting.engine import fit_motion
 from imu_array_ros.fitting.motion_models import StaticMotion
 from imu_array_ros.fusion.residuals import AXES
@@ -42,14 +41,13 @@ from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
-from imu_array_ros.util.files import atomic_path, atomic_write_text, unnamed
+from imu_array_ros.io.outputs import MANIFEST, check_report_directory
+from imu_array_ros.util.files import atomic_path, atomic_write_text
 from imu_array_ros.util.jsontools import json_safe
 
 __all__ = ["write_calibration_report", "check_report_dir", "report_data", "markdown", "residual_maps",
            "repeatability", "MANIFEST", "PLOTS", "DISPLAY_UNITS"]
 
-#: the file that marks a directory as one of our calibration reports and lists its files
-MANIFEST = "manifest.json"
 _KIND = "imu_array_ros calibration report"
 #: the plots written next to index.md (when there are data for them)
 PLOTS = {"residual_map.png": "normalised residual RMS per IMU and axis, before (starting description) and after "
@@ -69,75 +67,10 @@ DISPLAY_UNITS = {"m": ("mm", 1e3), "rad": ("deg", 180 / np.pi), "rad/s": ("deg/s
 
 def check_report_dir(directory: str | os.PathLike, inputs: Sequence, force: bool, *, option: str = "--report",
                      other_outputs: Sequence[tuple[str, object]] = ()) -> Path:
-    """Refuse a report directory that may not be written; return it as a Path.
-
-    Allowed: a directory that does not exist yet, an empty one, or (with ``force``) one holding nothing but a
-    previous report of ours (the files its :data:`MANIFEST` lists).  Refused (:class:`OutputError`, one
-    line, nothing touched): a file or symbolic link; any other non-empty directory, even with ``force``; a
-    directory that is, holds or lies inside an input; the current directory or one containing it; one that
-    overlaps another output of the command."""
-    d = Path(directory)
-    if unnamed(d):
-        raise OutputError(f"{d}: {option} must name a directory, not {str(d)!r}")
-    if d.is_symlink():
-        raise OutputError(f"{d}: {option} is a symbolic link; give the real path")
-    if d.exists() and not d.is_dir():
-        raise OutputError(f"{d}: {option} must be a directory (it is a file)")
-    real = Path(os.path.realpath(d))
-    cwd = Path(os.path.realpath(Path.cwd()))
-    if real == cwd or real in cwd.parents:
-        raise OutputError(f"{d}: {option} {'is' if real == cwd else 'contains'} the current directory; "
-                          f"choose another {option}")
-    for inp in inputs:
-        if inp is None:
-            continue
-        inp_real = Path(os.path.realpath(inp))
-        if inp_real == real or real in inp_real.parents:
-            raise OutputError(f"{d}: {option} holds the input {inp}; choose another {option}")
-        if inp_real in real.parents:
-            raise OutputError(f"{d}: {option} lies inside the input {inp}; choose another {option}")
-    for name, other in other_outputs:
-        if other is None:
-            continue
-        other_real = Path(os.path.realpath(other))
-        if other_real == real or real in other_real.parents or other_real in real.parents:
-            raise OutputError(f"{d}: {option} overlaps {name} {other}; give them separate paths")
-    for parent in d.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise OutputError(f"{d}: {parent} is not a directory")
-            break
-    if not d.exists():
-        return d
-    entries = sorted(os.listdir(d))
-    if not entries:
-        return d
-    ours = _manifest_files(d)
-    if ours is None:
-        raise OutputError(f"{d}: {option} is a directory holding other files (e.g. {entries[0]!r}) and no "
-                          f"calibration report of ours; choose an empty or new directory")
-    others = [e for e in entries if e not in ours or not (d / e).is_file() or (d / e).is_symlink()]
-    if others:
-        raise OutputError(f"{d}: {option} holds {others[0]!r}, which is not part of its calibration report; "
-                          f"not replaced, even with --force")
-    if not force:
-        raise OutputError(f"{d}: holds a calibration report already (use --force to replace it)")
-    return d
-
-
-def _manifest_files(d: Path) -> set[str] | None:
-    """The files a report's manifest lists (with the manifest itself), or None when ``d`` has no such manifest."""
-    m = d / MANIFEST
-    if m.is_symlink() or not m.is_file() or m.stat().st_size > 1 << 20:
-        return None
-    try:
-        doc = json.loads(m.read_text(encoding="utf-8"))
-        files = doc["files"]
-        if doc.get("kind") != _KIND or not all(isinstance(f, str) and "/" not in f for f in files):
-            return None
-    except (ValueError, KeyError, TypeError, OSError):
-        return None
-    return set(files) | {MANIFEST}
+    """Refuse a report directory that may not be written; return it as a Path
+    (:func:`~imu_array_ros.io.outputs.check_report_directory`: new, empty, or with ``force`` holding nothing but
+    a previous calibration report of ours)."""
+    return check_report_directory(directory, inputs, force, kind=_KIND, option=option, other_outputs=other_outputs)
 
 
 # --------------------------------------------------------------------------- the numbers

@@ -21,7 +21,7 @@ from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, as_
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.discovery.report import PLOTS, write_report
 from imu_array_ros.errors import CalibrationError, OutputError
-from imu_array_ros.io.outputs import check_output
+from imu_array_ros.io.outputs import check_output, check_report_directory, write_report_manifest
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.util.extras import require
@@ -36,7 +36,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     add_recording_inputs(sp, array="array description YAML",
                          calibration="calibrated description (same schema) to start from")
     sp.add_argument("--report", required=True, type=Path,
-                    help="directory for report.md, report.json and the plots (created if missing)")
+                    help="directory for report.md, report.json and the plots: new or empty (--force: or holding "
+                         "only a previous discovery report, which is replaced); never one holding other files or "
+                         "an input")
     sp.add_argument("--sim", type=Path,
                     help="your own simulated recording of the same run (same stamps and IMUs): localise "
                          "recording - simulation instead of recording - model prediction")
@@ -59,22 +61,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return sp
 
 
-def _check_report(report: Path, inputs, force: bool, plots: bool) -> None:
-    """Check every file the report writes into ``report`` (a directory, created if missing)."""
-    if report.exists() and not report.is_dir():
-        raise OutputError(f"{report}: --report must be a directory (it is a file)")
-    if not report.exists():
-        check_output(report, inputs, "json", False, option="--report")  # not an input, not inside one
-    check_output(report / "report.json", inputs, "json", force, option="--report")
-    md = report / "report.md"
-    if md.exists() and not force:
-        raise OutputError(f"{md}: exists; pass --force to replace the report in {report}")
-    if md.exists() and not (report / "report.json").exists():
-        raise OutputError(f"{md}: exists without a report.json beside it; it is not one of our reports, "
-                          f"choose another --report")
-    if plots:
-        for name in PLOTS:
-            check_output(report / name, inputs, "png", force, option="--report")
+#: the kind of report ``--report`` holds (its manifest); a directory from before manifests holds only these files
+REPORT_KIND = "imu_array_ros discovery report"
+LEGACY_FILES = ("report.json", "report.md", *PLOTS)
 
 
 def _read(path: Path, desc: ArrayDescription, label: str, quiet: bool) -> ImuSamples:
@@ -99,13 +88,14 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
         raise CalibrationError(f"--terms: {err}") from None
     if not 0 < alpha < 1:
         raise CalibrationError(f"--alpha must be in (0, 1), got {alpha}")
-    report = Path(report)
-    _check_report(report, inputs, force, not no_plots)
+    report = check_report_directory(report, inputs, force, kind=REPORT_KIND, legacy=LEGACY_FILES)
     if not no_plots:
         require("matplotlib", "plots", "the report's plots (or pass --no-plots)")
     if apply is not None:
         apply = check_output(apply, inputs, "yaml", force, option="--apply",
                              other_outputs=[("--report", report / "report.json")])
+        if Path(apply).resolve().parent == report.resolve():
+            raise OutputError(f"{apply}: --apply inside --report {report}; give it a path outside the report")
     desc, _ = workflows.load_array(array, calibration)
 
     samples = _read(recording, desc, str(recording), quiet)
@@ -130,6 +120,7 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
                 f"moving {d.after.nis_moving:.4g}")
     try:
         written = write_report(d, report, plots=not no_plots, source=str(recording))
+        written.append(write_report_manifest(report, REPORT_KIND, [p.name for p in written]))
     except OSError as err:
         raise OutputError(f"{report}: cannot write the report: {err.strerror or err}") from None
     info(quiet, f"wrote {', '.join(str(p) for p in written)}")
@@ -139,7 +130,8 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
             info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
         else:
             try:
-                installed = workflows.findings_calibration(d, samples, source=str(recording)).install(desc, apply)
+                installed = workflows.findings_calibration(d, samples, source=str(recording),
+                                                           start=workflows.as_model(desc)).install(desc, apply)
             except CalibrationError as err:
                 raise CalibrationError(f"{err} (the report is in {report})") from None
             if installed.backup is not None:

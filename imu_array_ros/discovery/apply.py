@@ -5,17 +5,23 @@ from __future__ import annotations
 
 import numpy as np
 
+from imu_array_ros.calibration.guards import check_calibration
 from imu_array_ros.calibration.result import Calibration, provenance
 from imu_array_ros.calibration.scoring import WindowScorer
 from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["findings_calibration"]
 
 
-def findings_calibration(discovery, samples: ImuSamples, source: str | None = None) -> Calibration:
+def findings_calibration(discovery, samples: ImuSamples, source: str | None = None, *,
+                         start: SensorModel | None = None) -> Calibration:
     """The description extended with the terms :func:`~imu_array_ros.discovery.discover.discover` found
     (values and Cramér-Rao std of the last joint fit, on the IMUs they were found on), scored on
-    ``samples`` (the recording it ran on).  Raises nothing; with no findings the model is the input's."""
+    ``samples`` (the recording it ran on).  With no findings the model is the input's.  ``start``: the model
+    discovery started from; the result then passes the calibrations' checks
+    (:func:`~imu_array_ros.calibration.guards.check_calibration`: plausible values, fits the recording at least
+    as well) or CalibrationError says why it is not installed."""
     d = discovery
     std = {}
     for name in sorted({f.effect for f in d.findings}):
@@ -34,5 +40,8 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
         "log_likelihood_after": float(d.after.loglik),
     }
     line = (f"{len(d.findings)} findings; log-likelihood {d.baseline.loglik:.8g} -> {d.after.loglik:.8g}")
-    return Calibration(method="discover", model=d.model, std=std, record=record, scorer=WindowScorer(samples),
-                       data="recording", summary_line=line, details=d)
+    cal = Calibration(method="discover", model=d.model, std=std, record=record, scorer=WindowScorer(samples),
+                      data="recording", summary_line=line, details=d)
+    if start is not None:
+        check_calibration(cal, start)
+    return cal

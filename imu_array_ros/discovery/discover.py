@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.stats
 
+from imu_array_ros.discovery.blocks import short_recording_options
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
@@ -256,12 +257,10 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         terms = tuple(t for t in terms if t != "time_offset")
         notes.append("time_offset not tested: the stamps do not increase strictly")
     timings, t0 = {}, time.perf_counter()
+    opts = short_recording_options(stamps, opts, notes, say)
     blocks = _blocks(stamps, opts.block_s)
     nb = int(blocks[-1]) + 1
     fold_of_block = np.arange(nb) % opts.folds
-    if nb < 2 * opts.folds:
-        raise CalibrationError(f"recording too short for discovery: {nb} blocks of {opts.block_s} s "
-                               f"(need at least {2 * opts.folds}); record longer")
 
     # 1-2. fit and simulate
     say("fitting the motion with the model as given")

@@ -17,9 +17,10 @@ from typing import Iterable
 
 from imu_array_ros.errors import OutputError
 from imu_array_ros.io.rosbag.mcap_format import MAGIC as MCAP_MAGIC
-from imu_array_ros.util.files import unnamed
+from imu_array_ros.util.files import atomic_write_text, unnamed
 
-__all__ = ["check_output", "OUTPUT_KINDS"]
+__all__ = ["check_output", "OUTPUT_KINDS", "check_report_directory", "report_manifest", "write_report_manifest",
+           "MANIFEST"]
 
 #: What :func:`check_output` knows how to recognise (and therefore may replace).
 OUTPUT_KINDS = ("recording", "yaml", "json", "png")
@@ -197,3 +198,93 @@ def check_output(
     if not force:
         raise OutputError(f"{out}: already exists (use --force to replace it)")
     return out
+
+
+# --------------------------------------------------------------------------- report directories
+
+#: the file that marks a directory as one of our reports (its ``kind``) and lists the report's files
+MANIFEST = "manifest.json"
+
+
+def report_manifest(d: Path, kind: str) -> set[str] | None:
+    """The files the manifest of report directory ``d`` lists (with the manifest itself), or None when ``d`` has
+    no manifest of a report of ``kind``."""
+    m = d / MANIFEST
+    if m.is_symlink() or not m.is_file() or m.stat().st_size > 1 << 20:
+        return None
+    try:
+        doc = json.loads(m.read_text(encoding="utf-8"))
+        files = doc["files"]
+        if doc.get("kind") != kind or not all(isinstance(f, str) and "/" not in f for f in files):
+            return None
+    except (ValueError, KeyError, TypeError, OSError):
+        return None
+    return set(files) | {MANIFEST}
+
+
+def write_report_manifest(d: Path, kind: str, names: Iterable[str]) -> Path:
+    """Write the manifest of report directory ``d`` (atomic): its ``kind`` and the file names of the report."""
+    path = Path(d) / MANIFEST
+    atomic_write_text(path, json.dumps({"kind": kind, "files": sorted(set(names) - {MANIFEST})}, indent=1) + "\n")
+    return path
+
+
+def check_report_directory(directory, inputs, force: bool, *, kind: str, option: str = "--report",
+                           other_outputs=(), legacy: Iterable[str] = ()) -> Path:
+    """Refuse a report directory that may not be written; return it as a Path.
+
+    Allowed: a directory that does not exist yet, an empty one, or (with ``force``) one holding nothing but a
+    previous report of ``kind`` (the files its :data:`MANIFEST` lists; or, without a manifest, only files named
+    in ``legacy``: reports written before manifests existed).  Refused (:class:`OutputError`, one line, nothing
+    touched): a file or symbolic link; any other non-empty directory, even with ``force``; a directory that is,
+    holds or lies inside an input; the current directory or one containing it; one that overlaps another
+    output of the command (``other_outputs``: (option, path) pairs)."""
+    d = Path(directory)
+    if unnamed(d):
+        raise OutputError(f"{d}: {option} must name a directory, not {str(d)!r}")
+    if d.is_symlink():
+        raise OutputError(f"{d}: {option} is a symbolic link; give the real path")
+    if d.exists() and not d.is_dir():
+        raise OutputError(f"{d}: {option} must be a directory (it is a file)")
+    real = _real(d)
+    cwd = _real(Path.cwd())
+    if real == cwd or real in cwd.parents:
+        raise OutputError(f"{d}: {option} {'is' if real == cwd else 'contains'} the current directory; "
+                          f"choose another {option}")
+    for inp in inputs:
+        if inp is None:
+            continue
+        inp_real = _real(Path(inp))
+        if inp_real == real or real in inp_real.parents:
+            raise OutputError(f"{d}: {option} holds the input {inp}; choose another {option}")
+        if inp_real in real.parents:
+            raise OutputError(f"{d}: {option} lies inside the input {inp}; choose another {option}")
+    for name, other in other_outputs:
+        if other is None:
+            continue
+        other_real = _real(Path(other))
+        if other_real == real or real in other_real.parents or other_real in real.parents:
+            raise OutputError(f"{d}: {option} overlaps {name} {other}; give them separate paths")
+    for parent in d.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputError(f"{d}: {parent} is not a directory")
+            break
+    if not d.exists():
+        return d
+    entries = sorted(os.listdir(d))
+    if not entries:
+        return d
+    ours = report_manifest(d, kind)
+    if ours is None and MANIFEST not in entries and set(entries) <= set(legacy):
+        ours = set(legacy)
+    if ours is None:
+        raise OutputError(f"{d}: {option} is a directory holding other files (e.g. {entries[0]!r}) and no "
+                          f"{kind} of ours; choose an empty or new directory")
+    others = [e for e in entries if e not in ours or not (d / e).is_file() or (d / e).is_symlink()]
+    if others:
+        raise OutputError(f"{d}: {option} holds {others[0]!r}, which is not part of its {kind}; "
+                          f"not replaced, even with --force")
+    if not force:
+        raise OutputError(f"{d}: holds a {kind} already (use --force to replace it)")
+    return d
