@@ -124,6 +124,16 @@ class FileLayout:
     data_end: int = 0
 
 
+def _raw_capture_hint(head: bytes, path: Path) -> str:
+    """'; it looks like a raw OpenShoe serial capture: ...' when ``head`` (the file's first bytes) holds an
+    OpenShoe acknowledgement or several data-packet headers (``A0 28`` / ``AA``), else ''."""
+    looks = head.startswith(b"\xa0") or head.count(b"\xaa") >= 8 or Path(path).suffix.lower() == ".bin"
+    if not looks:
+        return ""
+    return (f"; if it is a raw OpenShoe serial capture, turn it into a recording first: imu-array import-openshoe "
+            f"{path} --array A.yaml --out rec.mcap")
+
+
 def read_layout(fh: BinaryIO, path: Path, source: Path, declared: McapDeclarations) -> FileLayout:
     """Check the magic, footer and summary CRC of the open file ``fh`` and read its summary into ``declared``.
 
@@ -140,7 +150,8 @@ def read_layout(fh: BinaryIO, path: Path, source: Path, declared: McapDeclaratio
             raise RecordingError(
                 f"{path}: sqlite3 rosbag2 storage is not supported; convert to mcap (`ros2 bag convert`)"
             ) from None
-        raise RecordingError(f"{path}: not an MCAP file (bad magic)") from None
+        fh.seek(0)
+        raise RecordingError(f"{path}: not an MCAP file (bad magic){_raw_capture_hint(fh.read(4096), path)}") from None
     footer_pos = size - MAGIC_SIZE - FOOTER_SIZE
     truncated = footer_pos < MAGIC_SIZE
     if not truncated:

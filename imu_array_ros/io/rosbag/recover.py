@@ -68,7 +68,8 @@ class RecoverStats:
     counted); messages_skipped: intact but on a channel the writer can not
     rewrite (``notes`` name the topics and why); chunks_kept / chunks_lost:
     complete CRC-valid chunks / chunks cut off or failing their CRC;
-    bytes_cut: bytes after the last complete record, over all files.
+    bytes_cut: bytes of the incomplete last record present in the files (after the last complete record),
+    over all files; the bytes cut off after them are not in the file and cannot be counted.
     """
 
     messages_kept: int = 0
@@ -87,8 +88,11 @@ class RecoverStats:
         lost = f"{self.messages_lost}" if self.lost_exact else f"~{self.messages_lost}"
         text = (
             f"kept {self.messages_kept} messages ({self.chunks_kept} chunks), lost {lost} "
-            f"({self.chunks_lost} chunks, {self.bytes_cut} bytes cut off; {self.lost_basis})"
+            f"({self.chunks_lost} chunks; {self.lost_basis})"
         )
+        if self.bytes_cut:  # what the file still holds of the record it broke in; what was cut is not in it
+            text += (f"; the file ends inside a record ({self.bytes_cut} bytes of it present; how much was cut "
+                     "off after them is not in the file)")
         if self.messages_skipped:
             text += f", skipped {self.messages_skipped} intact messages the writer can not rewrite"
         if self.notes:

@@ -1,0 +1,35 @@
+"""Mistakes a new user makes get a line that says what to do (issue 24's smaller defects)."""
+
+from __future__ import annotations
+
+import yaml
+
+from conftest import REPO, assert_user_error, cli
+
+ARRAY32 = REPO / "config" / "array32.yaml"
+SAMPLE = REPO / "bags" / "twist32_sample"
+CORNERS = REPO / "config" / "mimu4444bt_corners.yaml"
+
+
+def test_a_raw_capture_given_as_a_recording_points_to_import_openshoe(tmp_path, capsys):
+    capture = tmp_path / "exp_9.bin"
+    capture.write_bytes(bytes([0xA0, 0x28, 0x00, 0xC8]) + bytes([0xAA, 0, 1, 100]) * 40)
+    assert_user_error(cli(capsys, "fuse", capture, "--array", CORNERS, "--out", tmp_path / "f.mcap"),
+                      "not an MCAP file", "imu-array import-openshoe")
+    assert not (tmp_path / "f.mcap").exists()
+    other = tmp_path / "notes.mcap"
+    other.write_text("hello\n")  # not MCAP, not a capture: no hint
+    line = assert_user_error(cli(capsys, "fuse", other, "--array", CORNERS, "--out", tmp_path / "f.mcap"),
+                             "not an MCAP file")
+    assert "import-openshoe" not in line
+
+
+def test_positions_written_in_millimetres_are_refused(tmp_path, capsys):
+    doc = yaml.safe_load(ARRAY32.read_text())
+    for imu in doc["imu_array"]["imus"]:
+        imu["position"] = [1000 * x for x in imu["position"]]
+    mm = tmp_path / "array_mm.yaml"
+    mm.write_text(yaml.safe_dump(doc))
+    assert_user_error(cli(capsys, "fuse", SAMPLE, "--array", mm, "--out", tmp_path / "f.mcap"),
+                      str(mm), "span", "millimetres")
+    assert not (tmp_path / "f.mcap").exists()
