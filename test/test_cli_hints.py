@@ -33,3 +33,29 @@ def test_positions_written_in_millimetres_are_refused(tmp_path, capsys):
     assert_user_error(cli(capsys, "fuse", SAMPLE, "--array", mm, "--out", tmp_path / "f.mcap"),
                       str(mm), "span", "millimetres")
     assert not (tmp_path / "f.mcap").exists()
+
+
+def test_progress_lines_off_a_terminal_are_few(capsys, monkeypatch):
+    """Off a terminal: a quick job says 100 % once; a slow one also 25/50/75 % (at most one line a second)."""
+    from imu_array_ros.cli import progress
+
+    clock = iter([0.0] + [0.1 * i for i in range(1, 200)])
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    p = progress.Progress("fast")
+    for i in range(101):
+        p(i, 100)
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["fast: 100%  (0.5 s)"], err  # five buckets, 0.1 s apart: one line
+    slow = iter([0.0] + [2.0 * i for i in range(1, 200)])
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(slow))
+    p = progress.Progress("slow")
+    for i in range(101):
+        p(i, 100)
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(":")[1].split("%")[0].strip() for line in err] == ["0", "25", "50", "75", "100"], err
+    quick = iter([0.0] + [0.001 * i for i in range(1, 200)])
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(quick))
+    p = progress.Progress("quick")
+    for i in range(101):
+        p(i, 100)
+    assert capsys.readouterr().err.splitlines() == ["quick: 100%  (0.0 s)"]

@@ -15,16 +15,20 @@ __all__ = ["Progress", "info"]
 class Progress:
     """Progress lines on stderr: a live line on a terminal, a few lines otherwise.
 
-    Call with ``(done, total)``; prints at every percent on a terminal and at
-    0/25/50/75/100 % otherwise.  ``quiet=True`` prints nothing.
+    Call with ``(done, total)``; prints at every percent on a terminal; otherwise at 25/50/75 % when
+    at least ``MIN_INTERVAL_S`` have passed since the last line (a job of a second says it once), and
+    always at 100 %.  ``quiet=True`` prints nothing.
     """
+
+    #: off a terminal, the shortest time between two intermediate lines
+    MIN_INTERVAL_S = 1.0
 
     def __init__(self, label: str, quiet: bool = False) -> None:
         self.label = label
         self.quiet = quiet
         self.tty = sys.stderr.isatty()
         self.last = -1
-        self.t0 = time.perf_counter()
+        self.t0 = self.printed = time.perf_counter()
 
     def __call__(self, done, total=None) -> None:
         if self.quiet:
@@ -35,8 +39,12 @@ class Progress:
         if bucket == self.last:
             return
         self.last = bucket
+        now = time.perf_counter()
+        if not self.tty and pct < 100 and now - self.printed < self.MIN_INTERVAL_S:
+            return
+        self.printed = now
         end = "\r" if self.tty and pct < 100 else "\n"
-        print(f"{self.label}: {pct:3d}%  ({time.perf_counter() - self.t0:.1f} s)", end=end, file=sys.stderr, flush=True)
+        print(f"{self.label}: {pct:3d}%  ({now - self.t0:.1f} s)", end=end, file=sys.stderr, flush=True)
 
 
 def info(quiet: bool, text: str) -> None:
