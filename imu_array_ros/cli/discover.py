@@ -126,7 +126,7 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
     info(quiet, f"wrote {', '.join(str(p) for p in written)}")
     if apply is not None:
         # after the report: a refused install (the file there fits the recording better) loses no work
-        if not d.findings:
+        if not d.findings and not (d.timing is not None and d.timing.used):
             info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
         else:
             try:

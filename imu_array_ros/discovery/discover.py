@@ -37,7 +37,9 @@ import numpy as np
 import scipy.stats
 
 from imu_array_ros.discovery.blocks import short_recording_options
+from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates
+from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
 from imu_array_ros.model.constants import STANDARD_GRAVITY
@@ -68,6 +70,7 @@ class DiscoveryOptions:
     still_threshold: float = 0.2
     empirical: bool = True
     heldout: bool = True
+    timing: bool = True
 
     def candidate_terms(self) -> tuple[str, ...]:
         names = candidate_names() if self.terms is None else list(self.terms)
@@ -177,6 +180,7 @@ class Discovery:
     level_per_step: list[float]
     notes: list[str] = field(default_factory=list)
     sim_source: str = "model"
+    timing: object = None
 
     def to_dict(self) -> dict:
         loc = self.localization_before
@@ -198,6 +202,7 @@ class Discovery:
             "settings": self.settings,
             "timings_s": self.timings,
             "notes": self.notes,
+            "timing": self.timing.to_dict() if self.timing is not None else None,
         }
 
 
@@ -264,7 +269,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
 
     # 1-2. fit and simulate
     say("fitting the motion with the model as given")
-    motion, _, base_r = fit_motion(samples, model)
+    motion, base_ll, base_r = fit_motion(samples, model)
     base_motion = motion
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs")
     sb = score_blocks(samples, model, terms, motion, blocks)
@@ -283,9 +288,17 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     loc_before = _localize(res, exp, motion, samples, model, opts.still_threshold)
     timings["locate"] = time.perf_counter() - t1
 
-    # 4. explain
+    timing, current = None, model
+    if opts.timing:
+        t1 = time.perf_counter()
+        timing = timing_stage(samples, model, motion=motion, loglik=base_ll, residuals=base_r, say=say)
+        if timing.model is not model:
+            current = timing.model
+            motion, _, _ = fit_motion(samples, current, motion)
+            sb = score_blocks(samples, current, terms, motion, blocks)
+        timings["timing"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    current, all_candidates, indist, rejected, levels = model, [], [], [], []
+    all_candidates, indist, rejected, levels = [], [], [], []
     accepted: dict[tuple[str, int], Finding] = {}
     excluded: set[tuple[str, int]] = set()
     for step in range(1, opts.max_findings + 1):
@@ -315,9 +328,9 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             break
         fit, delta = result
         best.accepted = True
-        for other in confounded(sb, best, passing, level):
+        for other in confounded(sb, best, passing, level) + drift_confounded(sb, best, level, opts.block_s):
             indist.append({"effects": [best.effect, other["effect"]], "sensors": [best.sensor],
-                           "reason": (f"after the motion is profiled out their signatures correlate "
+                           "reason": other.get("reason") or (f"after the motion is profiled out their signatures correlate "
                                       f"{other['correlation']:.3f}; BIC gap {other['delta_bic_gap']:.1f} "
                                       f"(< 10) and {other['effect']} adds nothing once {best.effect} is in "
                                       f"(score {other['added_statistic']:.3g}); reported as {best.effect}"),
@@ -364,7 +377,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                                        f"block-robust test, and needs a positive held-out gain)")}
     return Discovery(model.names, current, baseline, after, findings, all_candidates, indist, rejected,
                      loc_before, loc_after, unexplained, empirical, heldout, validation, settings, timings, levels,
-                     notes, sim_source)
+                     notes, sim_source, timing)
 
 
 def _fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
@@ -430,7 +443,7 @@ def _validate(label, other, model: SensorModel, found: SensorModel, still_thresh
     if tuple(other.names) != tuple(model.names):
         raise CalibrationError(f"validate {label}: its IMUs differ from the description's")
     before, motion, _ = fit_summary(other, model, still_threshold=still_threshold)
-    after, _, _ = fit_summary(other, found, still_threshold=still_threshold, motion0=motion)
+    after, _, _ = fit_summary(other, session_model(other, found), still_threshold=still_threshold, motion0=motion)
     return {"recording": str(label), "before": before.to_dict(), "after": after.to_dict(),
             "delta_loglik": after.loglik - before.loglik}
 

@@ -49,6 +49,8 @@ import numpy as np
 import scipy.special
 import scipy.stats
 
+from imu_array_ros.discovery.drift import candidate_blocks
+
 __all__ = ["Candidate", "evaluate_candidates", "confounded", "BIC_GAP", "EIG_RTOL"]
 
 #: BIC difference (2 ln Bayes factor) below which two candidates count as explaining equally well (Kass & Raftery:
@@ -123,11 +125,10 @@ def evaluate_candidates(sb, names, folds: np.ndarray, *, terms=None, exclude=(),
     have = sb.counts > 0
     out = []
     for t in terms:
-        cols = sb.columns(t)
         for k, name in enumerate(names):
             if (t, k) in exclude:
                 continue
-            gb, Sb = sb.g[:, k, cols], sb.S[:, k, cols, cols]
+            gb, Sb = candidate_blocks(sb, t, k)
             c = _candidate(gb[have], Sb[have], folds[have], fold_ids)
             if c is None:
                 continue

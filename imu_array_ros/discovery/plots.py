@@ -30,7 +30,7 @@ import numpy as np
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.plotting import pyplot, save_png  # the lazy matplotlib import, one copy
 
-__all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "EVIDENCE_FLOOR"]
+__all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "plot_timing", "EVIDENCE_FLOOR"]
 
 #: delta loglik shown at the left edge of :func:`plot_evidence` (smaller and negative values are drawn there).
 EVIDENCE_FLOOR = 0.1
@@ -288,6 +288,45 @@ def plot_time(windows, ratio_before, ratio_after, path: str | Path, *, spans=())
         ax.set_xlabel("time (s)")
         ax.set_ylabel("observed / expected residual²")
         ax.set_title("residual ratio per window", fontsize=10)
+        save_png(fig, path, _DPI, close=False)
+    finally:
+        plt.close(fig)
+
+
+# --------------------------------------------------------------------------- timing
+
+
+def plot_timing(evidence: dict, path: str | Path, *, window_s: float = 3.0) -> None:
+    """PNG of a sample clock's evidence (:func:`imu_array_ros.discovery.timing.timing_stage`): left, one IMU's
+    reading delay relative to the other IMUs vs time (moving samples, the ``window_s`` seconds with the most
+    samples) with its fitted sawtooth (-age); right, its residual RMS (noise units) vs |omega_dot| before and
+    after the clocks."""
+    t = np.asarray(evidence["t"], dtype=float)
+    plt = pyplot(path)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11.0, 3.8), constrained_layout=True)
+    try:
+        if t.size:
+            starts = np.searchsorted(t, t + window_s, side="right") - np.arange(t.size)
+            i = int(np.argmax(starts))
+            sel = slice(i, i + int(starts[i]))
+            a.plot(t[sel], np.asarray(evidence["delay"])[sel] * 1e6, ".", ms=3, color="0.4",
+                   label="reading delay (from the residuals)")
+            a.plot(t[sel], np.asarray(evidence["sawtooth"])[sel] * 1e6, ".", ms=3, color="C3",
+                   label="sample clock found (-age)")
+            a.set_xlabel("time (s)")
+            a.set_ylabel("delay relative to the other IMUs (µs)")
+            a.legend(fontsize=8)
+        else:
+            _no_data(a, "no moving samples")
+        a.set_title(f"{evidence['imu']} {evidence['sensor']}: reading age vs time", fontsize=10)
+        x = np.asarray(evidence["omega_dot_bins"], dtype=float)
+        b.plot(x, evidence["rms_before"], "o-", color="0.45", label="without the clocks")
+        b.plot(x, evidence["rms_after"], "o-", color="C3", label="with the clocks")
+        b.axhline(1.0, color="black", ls="--", lw=0.8, label="noise level")
+        b.set_xlabel("|angular acceleration| (rad/s²)")
+        b.set_ylabel(f"{evidence['sensor']} residual RMS (noise std)")
+        b.set_title(f"{evidence['imu']}: residual vs angular acceleration", fontsize=10)
+        b.legend(fontsize=8)
         save_png(fig, path, _DPI, close=False)
     finally:
         plt.close(fig)

@@ -22,7 +22,9 @@ __all__ = ["write_report", "markdown", "PLOTS"]
 PLOTS = {"residual_map.png": "normalised residual (observed / expected r^2) by IMU x axis, before and after",
          "spectra.png": "relative PSD of the residual of the cells in most excess, before and after",
          "evidence.png": "log-likelihood gain of every candidate that passed, accepted ones highlighted",
-         "time.png": "residual ratio over time, before and after"}
+         "time.png": "residual ratio over time, before and after",
+         "timing.png": "a sample clock found: one IMU's reading delay vs time with its sawtooth; its residual vs "
+                       "angular acceleration without and with the clocks"}
 
 
 def _g(x, fmt=".4g") -> str:
@@ -77,7 +79,33 @@ def _plots(d, directory: Path) -> list[Path]:
         after = la.window_ratio if la is not None and len(la.window_ratio) == len(lb.window_ratio) else None
         plots.plot_time(lb.windows, lb.window_ratio, after, path, spans=lb.spans)
         out.append(path)
+    timing = getattr(d, "timing", None)
+    if timing is not None and timing.evidence:
+        path = directory / "timing.png"
+        plots.plot_timing(timing.evidence, path)
+        out.append(path)
     return out
+
+
+def _timing_lines(timing) -> list[str]:
+    """The report.md section of the timing stage (:mod:`imu_array_ros.discovery.timing`)."""
+    if timing is None:
+        return []
+    lines = ["", "## Timing (sample clocks, found by search)", ""]
+    if timing.findings:
+        lines += [f"- {f.text()}" for f in timing.findings]
+        lines += ["", f"Log-likelihood at the ML motion with the clocks (rates held, phases estimated for this "
+                      f"recording as session states): {_g(timing.loglik_before)} → {_g(timing.loglik_after)} "
+                      f"(+{_g(timing.delta_loglik)})."]
+    else:
+        lines.append("No sample clock found." if timing.tested else "Not tested.")
+    ctl = timing.to_dict()["false_finding_control"]
+    null = ctl["measured_on_simulated_nulls"]
+    lines += ["", f"False-finding control: {ctl['test']}; false-alarm rate per chip <= "
+                  f"{ctl['false_alarm_rate_per_chip_bound']:.1g} (Rayleigh bound); on {null['chips']} simulated null "
+                  f"chips the largest ratio was {_g(null['max_snr'], '.2g')}, {null['above_threshold']} reached it."]
+    lines += [f"- {n}" for n in timing.notes]
+    return lines
 
 
 def _map_table(before: np.ndarray, after: np.ndarray, names) -> str:
@@ -129,6 +157,7 @@ def markdown(d, *, source: str = "", figures=()) -> str:
     if lb is not None and lb.spans:
         lines += ["", "Time spans in excess: " + ", ".join(f"{t0:.1f}–{t1:.1f} s" for t0, t1 in lb.spans[:12])
                   + (" ..." if len(lb.spans) > 12 else "")]
+    lines += _timing_lines(getattr(d, "timing", None))
     lines += ["", "## Findings (terms of the sensor model)", ""]
     if d.findings:
         lines += ["| step | effect | sensor | parameters (± CRB std) | Δ log-lik | log p (LRT) | robust p | ΔBIC | held-out Δ log-lik |",
