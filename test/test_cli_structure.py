@@ -27,7 +27,8 @@ def test_every_subcommand_is_found():
     assert LEAVES == ["imu-array simulate", "imu-array fuse", "imu-array import-openshoe", "imu-array fake-device",
                       "imu-array residuals", "imu-array calibrate fit", "imu-array calibrate geometry",
                       "imu-array calibrate bayes", "imu-array calibrate static", "imu-array calibrate all",
-                      "imu-array calibrate noise", "imu-array discover", "imu-array recover"]
+                      "imu-array calibrate noise", "imu-array discover", "imu-array recover",
+                      "imu-array export kalibr", "imu-array import kalibr"]
 
 
 @pytest.mark.parametrize("prog", LEAVES)

@@ -18,8 +18,8 @@ import sys
 import typing
 from typing import Callable, Iterator
 
-from imu_array_ros.cli import (calibrate, discover, fake_device, fuse, import_openshoe, recover, residuals,
-                               simulate)
+from imu_array_ros.cli import (calibrate, discover, export, fake_device, fuse, import_kalibr, import_openshoe,
+                               recover, residuals, simulate)
 from imu_array_ros.errors import ImuArrayError
 from imu_array_ros.version import __version__
 
@@ -28,7 +28,7 @@ __all__ = ["main", "build_parser", "EXIT_USER_ERROR", "UsageError", "subcommands
 
 EXIT_USER_ERROR = 2
 #: what the parser itself sets: the subcommand names and the handler, not passed to the handler
-NOT_OPTIONS = frozenset({"handler", "command", "calibration_command"})
+NOT_OPTIONS = frozenset({"handler", "command", "calibration_command", "format_command"})
 
 
 class UsageError(Exception):
@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="imu-array", description="Inertial sensor array tools (imu_array_ros).")
     p.add_argument("--version", action="version", version=f"imu-array {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (simulate, fuse, import_openshoe, fake_device, residuals, calibrate, discover, recover):
+    for module in (simulate, fuse, import_openshoe, fake_device, residuals, calibrate, discover, recover, export,
+                   import_kalibr):
         module.add_parser(sub)
     return p
 
