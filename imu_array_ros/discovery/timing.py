@@ -14,7 +14,9 @@ within +-8000 ppm.
 delays that are noise) |S| is Rayleigh at each rate, so P(peak / median >= 8) at one rate is
 exp(-(8 sqrt(2 ln 2))^2 / 2) = 2^-64, and over the ~10^3-10^4 rates resolved in the search the
 false-alarm rate per chip is below 1e-15.  Measured on simulated nulls (:data:`NULL_MEASURED`):
-the largest ratio seen on any null chip.
+the largest ratio seen on any null chip.  The ratio alone is not enough when the model is wrong and the
+motion periodic (regular pose changes beat with the reads): a sensor's clocks are kept only when they lower
+its unexplained relative reading delays, and used only when they raise the log-likelihood.
 
 When clocks are found, the model continues with them (rates: device constants; phases: this
 recording's session states, :func:`~imu_array_ros.timing.session.estimate_session`; the constant delay
@@ -138,6 +140,18 @@ def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, l
     out.tested = True
     out.snr = {s: np.asarray(v, dtype=float) for s, v in search.snr.items()}
     out.notes += search.notes
+    # a sawtooth must explain the delays it was found in: a periodic motion (regular pose changes) beating with
+    # the reads can peak in the spectrum, but the sawtooth it implies leaves the delays worse, not better
+    worse = [s for s in search.rms_after if not search.rms_after[s] < search.rms_before[s]]
+    for sensor in worse:
+        out.notes.append(f"{sensor}s: the sawtooths found leave the relative reading delays worse "
+                         f"({search.rms_before[sensor] * 1e6:.0f} -> {search.rms_after[sensor] * 1e6:.0f} us RMS): "
+                         "not a sample clock (a periodic motion beating with the reads?); rejected")
+    if worse:
+        keep = tuple(s for s in search.rms_after if s not in worse)
+        search = find_sample_clocks(samples, model, period=period, sensors=keep) if keep else None
+        if search is None:
+            return out
     for sensor, found in search.found.items():
         for k in np.flatnonzero(found):
             out.findings.append(ClockFinding(sensor, int(k), model.names[k], period,
@@ -154,7 +168,10 @@ def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, l
     if out.delta_loglik > 0:
         out.model = clocked
     else:
-        out.notes.append(f"the clocks found do not raise the log-likelihood ({out.delta_loglik:.4g}): not used")
+        out.notes.append(f"the clocks found ({', '.join(f'{f.imu} {f.sensor}' for f in out.findings)}) do not "
+                         f"raise the log-likelihood ({out.delta_loglik:.4g}): rejected")
+        out.findings = []
+        return out
     out.evidence = _evidence(samples, model, clocked, out, motion1, residuals, r1)
     return out
 
