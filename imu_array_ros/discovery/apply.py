@@ -28,7 +28,7 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
         sd = np.full(d.model.terms[name].values.shape, np.nan)
         for f in d.findings:
             if f.effect == name:
-                sd[f.k] = f.std
+                sd[list(f.imus)] = f.std if f.imu_std is None else f.imu_std
         std[name] = sd
     record = {
         "method": "imu-array discover: terms found by mismatch discovery, fitted by the engine (fit_terms); "

@@ -38,7 +38,9 @@ import scipy.stats
 
 from imu_array_ros.discovery.blocks import short_recording_options
 from imu_array_ros.discovery.drift import drift_confounded
-from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates
+from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
+from imu_array_ros.discovery.confirm import confirm, only_imus, update_finding
+from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
 from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
@@ -60,7 +62,8 @@ class DiscoveryOptions:
     """terms: candidate registry names (default every registered term); alpha: family-wise false-finding rate
     per recording; block_s: time block (s) of the robust test and the held-out folds; folds: interleaved folds;
     max_findings: cap on the greedy steps; still_threshold: |omega| (rad/s) below which a sample is still;
-    empirical: model the unexplained residual; heldout: exact held-out check of the final findings."""
+    empirical: model the unexplained residual; heldout: exact held-out check of the final findings;
+    timing: search for sample clocks the model lacks (:mod:`.timing`)."""
 
     terms: tuple[str, ...] | None = None
     alpha: float = 0.01
@@ -84,7 +87,11 @@ class DiscoveryOptions:
 
 @dataclass
 class Finding:
-    """A term found on one IMU: values (P,) and their CRB std (SI), the evidence at the step it was added."""
+    """A term found on one IMU or at a pooled scope (:mod:`.scopes`): values (P,) and their CRB std (SI), the
+    evidence at the step it was added.  A pooled finding (scope "all shared", "top shared", "all own", ...;
+    imus its IMUs, k the first) is fitted exactly with each IMU's own value (imu_values, imu_std (G, P)); tie:
+    the test that they share one value (:func:`~.scopes.tie_test`); values/std: that shared value (the change
+    from the input model's values); shared: whether the tie test accepts it (p >= alpha)."""
 
     effect: str
     k: int
@@ -94,11 +101,26 @@ class Finding:
     candidate: Candidate
     exact_delta_loglik: float
     step: int
+    scope: str = "imu"
+    imus: tuple = ()
+    imu_values: np.ndarray | None = None
+    imu_std: np.ndarray | None = None
+    tie: dict | None = None
+    shared: bool = False
 
     def to_dict(self) -> dict:
         names = REGISTRY[self.effect].parameter_names()
         c = self.candidate
-        return {"effect": self.effect, "sensors": [self.sensor],
+        pooled = {} if self.scope == "imu" else {
+            "per_imu": {str(s): {n: float(v) for n, v in zip(names, vals)}
+                        for s, vals in zip(c.sensors, self.imu_values)},
+            "per_imu_std": {str(s): {n: _num(v) for n, v in zip(names, vals)}
+                            for s, vals in zip(c.sensors, self.imu_std)},
+            "shared_value": self.shared,
+            "tie_test": {"statistic": _num(self.tie["statistic"]), "dof": self.tie["dof"], "p": self.tie["p"],
+                         "method": "Wald test of one value shared by the IMUs in their own frames (GLS with the "
+                                   "exact fit's CRB)"}}
+        return {"effect": self.effect, "sensors": list(c.sensors), "scope": self.scope, **pooled,
                 "parameters": {n: float(v) for n, v in zip(names, self.values)},
                 "std": {n: _num(s) for n, s in zip(names, self.std)},
                 "units": {f.key: f.unit for f in REGISTRY[self.effect].fields},
@@ -288,22 +310,32 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     loc_before = _localize(res, exp, motion, samples, model, opts.still_threshold)
     timings["locate"] = time.perf_counter() - t1
 
+    # 3b. timing physics the model lacks (.timing): sample clocks, found by search
     timing, current = None, model
     if opts.timing:
         t1 = time.perf_counter()
         timing = timing_stage(samples, model, motion=motion, loglik=base_ll, residuals=base_r, say=say)
         if timing.model is not model:
             current = timing.model
-            motion, _, _ = fit_motion(samples, current, motion)
-            sb = score_blocks(samples, current, terms, motion, blocks)
+            motion, _, _ = fit_motion(samples, current, motion)  # the scores below start from it
         timings["timing"] = time.perf_counter() - t1
+
+    # 4. explain
     t1 = time.perf_counter()
     all_candidates, indist, rejected, levels = [], [], [], []
-    accepted: dict[tuple[str, int], Finding] = {}
-    excluded: set[tuple[str, int]] = set()
+    accepted: dict[tuple, Finding] = {}
+    excluded, retry = set(), set()  # (term, k) / Candidate.key: for good; not confirmed: until the next finding
+    scopes, tied = scopes_for(model.n_imus, geometry_groups(model.positions, model.rotations))
+    own = terms if model.n_imus <= OWN_MAX_IMUS else ()
+    sb = score_given(samples, current, terms, motion, blocks, tied, [], own_terms=own)
     for step in range(1, opts.max_findings + 1):
-        cands = evaluate_candidates(sb, model.names, fold_of_block, terms=terms, exclude=set(accepted) | excluded,
-                                    step=step)
+        cover = {(f.effect, k) for f in accepted.values() for k in f.imus}
+        skip = cover | excluded | {(t, imus[0]) for t, scope, imus in retry if scope == "imu"}
+        cands = evaluate_candidates(sb, model.names, fold_of_block, terms=terms, exclude=skip, step=step)
+        gone = set(retry) | {(t, sc.label, sc.imus) for t in terms for sc in scopes
+                             if any((t, k) in cover for k in sc.imus)
+                             and (sc.kind == "own" or all((t, k) in cover for k in sc.imus))}
+        cands += evaluate_scopes(sb, model.names, fold_of_block, scopes, terms=terms, exclude=gone, step=step)
         if not cands:
             break
         level = opts.alpha / len(cands)
@@ -316,11 +348,12 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         best = None
         for c in passing:
             say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly")
-            result = _confirm(samples, current, accepted, c, motion, level)
+            result = confirm(samples, current, accepted, c, motion, level, model, opts.alpha)
             if isinstance(result, str):
                 c.note = result
-                rejected.append({"effect": c.effect, "sensors": [c.sensor], "step": step, "reason": result})
-                excluded.add((c.effect, c.k))
+                rejected.append({"effect": c.effect, "sensors": list(c.sensors), "scope": c.scope, "step": step,
+                                 "reason": result})
+                retry.add(c.key)
                 continue
             best = c
             break
@@ -328,24 +361,26 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             break
         fit, delta = result
         best.accepted = True
+        retry = set()  # the model changed: candidates the exact fit did not confirm are tested again
         for other in confounded(sb, best, passing, level) + drift_confounded(sb, best, level, opts.block_s):
             indist.append({"effects": [best.effect, other["effect"]], "sensors": [best.sensor],
-                           "reason": other.get("reason") or (f"after the motion is profiled out their signatures correlate "
-                                      f"{other['correlation']:.3f}; BIC gap {other['delta_bic_gap']:.1f} "
-                                      f"(< 10) and {other['effect']} adds nothing once {best.effect} is in "
-                                      f"(score {other['added_statistic']:.3g}); reported as {best.effect}"),
+                           "reason": other.get("reason") or (
+                               f"after the motion is profiled out their signatures correlate "
+                               f"{other['correlation']:.3f}; BIC gap {other['delta_bic_gap']:.1f} "
+                               f"(< 10) and {other['effect']} adds nothing once {best.effect} is in "
+                               f"(score {other['added_statistic']:.3g}); reported as {best.effect}"),
                            "correlation": other["correlation"], "delta_bic_gap": other["delta_bic_gap"]})
             excluded.add((other["effect"], best.k))
         current = fit.model
-        accepted[(best.effect, best.k)] = Finding(best.effect, best.k, best.sensor, np.zeros(0), np.zeros(0),
-                                                  best, delta, step)
+        accepted[best.key] = Finding(best.effect, best.k, best.sensor, np.zeros(0), np.zeros(0), best, delta,
+                                     step, best.scope, best.imus)
         for f in accepted.values():  # every finding's values and std from the latest joint fit
-            f.values = current.terms[f.effect].values[f.k].copy()
-            f.std = fit.std[f.effect][f.k].copy()
+            update_finding(f, fit, model, opts.alpha)
         say(f"step {step}: found {best.effect} on {best.sensor}: log-likelihood +{delta:.4g}")
         motion = _fill(fit.motion, motion)
         motion, _, _ = fit_motion(samples, current, motion)
-        sb = score_blocks(samples, current, terms, motion, blocks)
+        sb = score_given(samples, current, terms, motion, blocks, tied, [(f.effect, f.imus) for f in accepted.values()],
+                         own_terms=own)
     findings = sorted(accepted.values(), key=lambda f: f.step)
     timings["explain"] = time.perf_counter() - t1
 
@@ -384,36 +419,11 @@ def _fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(new), new, old)
 
 
-def _only(accepted, extra=None) -> dict:
-    only: dict[str, list[int]] = {}
-    for (t, k) in list(accepted) + ([extra] if extra else []):
-        only.setdefault(t, []).append(k)
-    return only
-
-
-def _confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level: float):
-    """Exact refit of every finding so far plus ``c`` (the engine, ``only``); (FitResult, delta loglik) or a
-    reason string when the exact likelihood ratio does not confirm the candidate."""
-    only = _only(accepted, (c.effect, c.k))
-    imus = sorted({k for ks in only.values() for k in ks})
-    try:
-        fit = fit_terms(samples, current, list(only), imus=imus,
-                        only=only, motion0=motion, max_iterations=30)
-    except CalibrationError as err:
-        return f"the exact fit failed: {err}"
-    delta = fit.loglik_after - fit.loglik_before
-    need = 0.5 * scipy.stats.chi2.isf(level, c.dof)
-    if not np.isfinite(delta) or delta < need:
-        return (f"not confirmed by the exact fit: log-likelihood gain {delta:.3g} < {need:.3g} "
-                f"(the score test's first-order gain was {c.delta_loglik:.3g})")
-    return fit, float(delta)
-
-
 def _heldout(samples, model: SensorModel, findings, blocks, base_motion, base_r) -> dict:
     """The findings refitted on even blocks scored on odd ones and vice versa (exact, motion re-estimated):
     log-likelihood of the held-out samples with and without them.  base_motion, base_r: the ML motion and
     normalised residuals of the recording under ``model`` (the baseline of step 1)."""
-    only = _only({(f.effect, f.k): f for f in findings})
+    only = only_imus([(f.effect, f.imus) for f in findings])
     imus = sorted({k for ks in only.values() for k in ks})
     half = (blocks % 2).astype(bool)
     gain, nis_b, nis_a, n_h = 0.0, [], [], 0

@@ -49,9 +49,10 @@ import numpy as np
 import scipy.special
 import scipy.stats
 
-from imu_array_ros.discovery.drift import candidate_blocks
+from imu_array_ros.discovery.drift import GIVEN, candidate_blocks
+from imu_array_ros.discovery.scopes import Scope, scoped_blocks
 
-__all__ = ["Candidate", "evaluate_candidates", "confounded", "BIC_GAP", "EIG_RTOL"]
+__all__ = ["Candidate", "evaluate_candidates", "evaluate_scopes", "confounded", "BIC_GAP", "EIG_RTOL"]
 
 #: BIC difference (2 ln Bayes factor) below which two candidates count as explaining equally well (Kass & Raftery:
 #: >= 10 is "very strong" evidence for the better one)
@@ -69,7 +70,8 @@ class Candidate:
     delta_loglik = T / 2 (first order), delta_bic = q ln(n) - T, heldout:
     cross-validated gain in log-likelihood over the folds; theta (P,): the
     one-step estimate (SI units of the term's parameters); blocks: blocks
-    with data.
+    with data; scope: "imu" or a pooled scope's label (:mod:`.scopes`), imus: its IMU indexes (k the first),
+    sensor then names the scope.
     """
 
     effect: str
@@ -87,12 +89,25 @@ class Candidate:
     step: int = 0
     accepted: bool = False
     note: str = ""
+    scope: str = "imu"
+    imus: tuple = ()
+    sensors: tuple = ()
+
+    def __post_init__(self):
+        self.imus = tuple(self.imus) or (self.k,)
+        self.sensors = tuple(self.sensors) or (self.sensor,)
+
+    @property
+    def key(self) -> tuple:
+        """(effect, scope, imus): identifies the hypothesis across steps."""
+        return self.effect, self.scope, self.imus
 
     def passes(self, level: float) -> bool:
         return self.lrt_p < level and self.robust_p < level and self.heldout > 0.0
 
     def to_dict(self) -> dict:
-        return {"effect": self.effect, "sensors": [self.sensor], "step": self.step, "accepted": self.accepted,
+        return {"effect": self.effect, "sensors": list(self.sensors), "scope": self.scope, "step": self.step,
+                "accepted": self.accepted,
                 "statistic": _num(self.statistic), "dof": self.dof, "lrt_p": _num(self.lrt_p),
                 "robust_p": _num(self.robust_p), "delta_loglik": _num(self.delta_loglik),
                 "delta_bic": _num(self.delta_bic), "heldout_delta_loglik": _num(self.heldout), "note": self.note}
@@ -128,13 +143,42 @@ def evaluate_candidates(sb, names, folds: np.ndarray, *, terms=None, exclude=(),
         for k, name in enumerate(names):
             if (t, k) in exclude:
                 continue
-            gb, Sb = candidate_blocks(sb, t, k)
+            gb, Sb = candidate_blocks(sb, t, k)  # bias_drift: tested given the IMU's biases (.drift)
             c = _candidate(gb[have], Sb[have], folds[have], fold_ids)
             if c is None:
                 continue
             stat, q, lrt_p, log_p, robust_p, heldout, theta = c
             out.append(Candidate(t, k, name, stat, q, lrt_p, robust_p, 0.5 * stat, q * np.log(n_obs) - stat,
                                  heldout, theta, log_p, step))
+    return out
+
+
+def evaluate_scopes(sb, names, folds: np.ndarray, scopes: list[Scope], *, terms=None, exclude=(),
+                    step: int = 0) -> list[Candidate]:
+    """Every term of ``sb`` at every pooled scope (:mod:`.scopes`) not in ``exclude`` (Candidate.key
+    triples), with the same tests as one IMU's; ``sb`` scored with the scopes' groups and cross terms. Terms
+    tested given others (:data:`~.drift.GIVEN`) are tested on one IMU only."""
+    terms = [t for t in (sb.terms if terms is None else terms) if t not in GIVEN]
+    n_obs = max(sb.valid_axes, 2)
+    folds = np.asarray(folds)
+    fold_ids = np.unique(folds)
+    have = sb.counts > 0
+    out = []
+    for sc in scopes:
+        if sc.kind == "shared" and sb.S_groups is None:
+            continue
+        for t in terms:
+            if (t, sc.label, sc.imus) in exclude or (sc.kind == "own" and t not in sb.S_cross):
+                continue
+            gb, Sb = scoped_blocks(sb, t, sc)
+            c = _candidate(gb[have], Sb[have], folds[have], fold_ids)
+            if c is None:
+                continue
+            stat, q, lrt_p, log_p, robust_p, heldout, theta = c
+            sensors = tuple(names[k] for k in sc.imus)
+            out.append(Candidate(t, sc.imus[0], f"{sc.label} ({', '.join(sensors)})", stat, q, lrt_p, robust_p,
+                                 0.5 * stat, q * np.log(n_obs) - stat, heldout, theta, log_p, step,
+                                 scope=sc.label, imus=sc.imus, sensors=sensors))
     return out
 
 
@@ -189,7 +233,8 @@ def confounded(sb, best: Candidate, others: list[Candidate], level: float) -> li
     """
     out = []
     for a in others:
-        if a.k != best.k or a.effect == best.effect or not a.passes(level):
+        if a.scope != "imu" or best.scope != "imu" or a.k != best.k or a.effect == best.effect \
+                or not a.passes(level):
             continue
         gap = a.delta_bic - best.delta_bic
         if gap >= BIC_GAP:

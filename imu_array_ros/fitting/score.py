@@ -34,6 +34,12 @@ class ScoreBlocks:
     K, 6): E[r^2] = 1 - leverage of each valid axis (leverage: what the fitted
     motion absorbs, 9 per sample), NaN where masked; cost: sum r^2 / 2;
     loglik: log-likelihood of the valid axes; valid_axes: their number.
+
+    Cross-IMU information (the motion couples the IMUs; computed only when asked for):
+    S_groups (B, G, P, P): the information of one parameter vector shared by the IMUs of each of ``groups``
+    (its score is the sum of their g); S_cross: term -> (B, K, K, p, p) every IMU pair's information of that
+    term (``cross_terms``); given (F, 2) (IMU, column) of chosen parameters and S_given (B, F, K, P) their
+    information with every parameter (to profile them out of the tests).
     """
 
     terms: tuple[str, ...]
@@ -46,13 +52,17 @@ class ScoreBlocks:
     cost: float = 0.0
     loglik: float = 0.0
     valid_axes: int = 0
+    S_groups: np.ndarray | None = field(default=None, repr=False)
+    S_cross: dict = field(default_factory=dict, repr=False)
+    given: np.ndarray | None = None
+    S_given: np.ndarray | None = field(default=None, repr=False)
 
     def columns(self, term: str) -> slice:
         return slice(self.offsets[term], self.offsets[term] + REGISTRY[term].dim())
 
 
 def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], motion, blocks, *,
-                 sigma=None) -> ScoreBlocks:
+                 sigma=None, groups=(), cross_terms=(), given=()) -> ScoreBlocks:
     """Score test ingredients of every term in ``terms`` on every IMU at (model, motion), by time block.
 
     ``motion`` (N, 9): the ML motion for ``model`` (:func:`~imu_array_ros.fitting.engine.fit_motion`);
@@ -64,6 +74,9 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
     statistic of adding the term to that IMU (chi-square under the model) and
     g^T S^-1 g / 2 the log-likelihood it gains to first order.  Per block, so
     that held-out blocks and a block-robust (sandwich) variance can be formed.
+
+    groups: sequences of IMU indexes; cross_terms: terms of ``terms``; given: (IMU, column) pairs: the
+    cross-IMU informations of :class:`ScoreBlocks` (S_kl = delta_kl C_kk - sum_n G_n,k^T G_n,l).
     """
     terms = check_terms(terms)
     k = model.n_imus
@@ -77,6 +90,12 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
     g, S = np.zeros((nb, k, p)), np.zeros((nb, k, p, p))
     res, expected = np.full_like(prob.y, np.nan), np.full_like(prob.y, np.nan)
     cost = 0.0
+    groups = [np.asarray(gr, dtype=np.int64) for gr in groups]
+    s_groups = np.zeros((nb, len(groups), p, p))
+    offs = prob.offsets
+    cross = {t: np.zeros((nb, k, k, REGISTRY[t].dim(), REGISTRY[t].dim())) for t in cross_terms}
+    given = np.asarray(given, dtype=np.int64).reshape(-1, 2)
+    s_given = np.zeros((nb, len(given), k, p))
     mask = np.zeros(prob.y.shape, dtype=bool)
     edges = np.flatnonzero(np.diff(blocks)) + 1
     for b, (lo0, hi0) in zip(blocks[np.r_[0, edges]], zip(np.r_[0, edges], np.r_[edges, prob.n])):
@@ -92,7 +111,18 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
             jk = per_imu(jt)
             mk, gk = g_per_imu(jx, linv, jt)  # (n, K, 6, 9): rows (L^-1 phi)^T; (n, K, 9, P) G_n,k
             gs = gk.transpose(1, 0, 2, 3).reshape(k, -1, p)
-            S[b] += np.matmul(jk.transpose(0, 2, 1), jk) - np.matmul(gs.transpose(0, 2, 1), gs)
+            ck = np.matmul(jk.transpose(0, 2, 1), jk)
+            S[b] += ck - np.matmul(gs.transpose(0, 2, 1), gs)
+            for i, gr in enumerate(groups):
+                gg = gk[:, gr].sum(axis=1).reshape(-1, p)
+                s_groups[b, i] += ck[gr].sum(axis=0) - gg.T @ gg
+            for t, out in cross.items():
+                c = slice(offs[t], offs[t] + REGISTRY[t].dim())
+                out[b] -= np.einsum("nkip,nliq->klpq", gk[..., c], gk[..., c], optimize=True)
+                out[b, np.arange(k), np.arange(k)] += ck[:, c, c]
+            if len(given):
+                s_given[b] -= np.einsum("fni,nkip->fkp", gk[:, given[:, 0], :, given[:, 1]], gk, optimize=True)
+                s_given[b, np.arange(len(given)), given[:, 0]] += ck[given[:, 0], given[:, 1]]
             g[b] += (np.matmul(jk.transpose(0, 2, 1), r.transpose(1, 0, 2).reshape(k, -1, 1))[..., 0]
                      - np.einsum("nkip,ni->kp", gk, h))
             valid = prob.valid[lo:hi] & ok[:, None, None]
@@ -101,4 +131,5 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
             expected[lo:hi] = np.where(valid, 1.0 - np.sum(mk * mk, axis=3), np.nan)
             cost += 0.5 * float(np.sum(r * r))
     return ScoreBlocks(terms, prob.offsets, g, S, np.bincount(blocks, minlength=nb), res, expected, cost,
-                       prob.loglik(cost, mask), int(mask.sum()))
+                       prob.loglik(cost, mask), int(mask.sum()), s_groups if groups else None, cross,
+                       given if len(given) else None, s_given if len(given) else None)
