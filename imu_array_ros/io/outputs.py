@@ -240,6 +240,7 @@ def check_report_directory(directory, inputs, force: bool, *, kind: str, option:
     holds or lies inside an input; the current directory or one containing it; one that overlaps another
     output of the command (``other_outputs``: (option, path) pairs)."""
     d = Path(directory)
+    label = kind.removeprefix("imu_array_ros ")  # e.g. "calibration report"
     if unnamed(d):
         raise OutputError(f"{d}: {option} must name a directory, not {str(d)!r}")
     if d.is_symlink():
@@ -280,11 +281,11 @@ def check_report_directory(directory, inputs, force: bool, *, kind: str, option:
         ours = set(legacy)
     if ours is None:
         raise OutputError(f"{d}: {option} is a directory holding other files (e.g. {entries[0]!r}) and no "
-                          f"{kind} of ours; choose an empty or new directory")
+                          f"{label} of ours; choose an empty or new directory")
     others = [e for e in entries if e not in ours or not (d / e).is_file() or (d / e).is_symlink()]
     if others:
-        raise OutputError(f"{d}: {option} holds {others[0]!r}, which is not part of its {kind}; "
+        raise OutputError(f"{d}: {option} holds {others[0]!r}, which is not part of its {label}; "
                           f"not replaced, even with --force")
     if not force:
-        raise OutputError(f"{d}: holds a {kind} already (use --force to replace it)")
+        raise OutputError(f"{d}: holds a {label} already (use --force to replace it)")
     return d
