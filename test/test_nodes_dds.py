@@ -97,7 +97,7 @@ def test_replay_through_fusion_node_equals_offline_fuse(ros_env, tmp_path):
 
 @pytest.mark.parametrize("exe, args, fragment", [
     ("fusion_node", ["-p", "array_config:=/nonexistent/array.yaml"], "/nonexistent/array.yaml"),
-    ("fusion_node", ["-p", f"array_config:={ARRAY32}", "-p", "sync_timeout:=-1.0"], "'sync_timeout'"),
+    ("fusion_node", ["-p", f"array_config:={ARRAY32}", "-p", "sync_timeout:=-2.0"], "'sync_timeout'"),
     ("fusion_node", ["-p", f"array_config:={ARRAY32}", "-p", "max_batch:=fast"], "'max_batch'"),
     ("fusion_node", [], "'array_config' is required"),
     ("driver_node", ["-p", f"array_config:={ARRAY32}", "-p", "mode:=tape"], "'mode'"),

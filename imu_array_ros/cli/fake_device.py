@@ -6,6 +6,13 @@ it; progress and the final summary go to stderr (``-q`` silences them).  The
 data plays once a host sends the start command; the command runs until Ctrl-C
 or SIGTERM (exit 0, symlink removed) or, without ``--loop``, until all data
 was sent and read.
+
+``--speed`` other than 1 (and 0) plays the data faster or slower while the device
+clock keeps real time: the packets' device timestamps are rescaled by 1/speed (as
+a device sampling ``speed`` x faster), so the driver's stamps follow the host
+clock.  (A device clock running at ``speed`` x real time made the driver's clock
+filter re-anchor again and again, stepping stamps back: the fusion node dropped
+most messages as "backwards".)  A capture is then re-encoded, not byte for byte.
 """
 
 from __future__ import annotations
@@ -22,7 +29,7 @@ from imu_array_ros.cli.options import MAX_SIMULATED_SAMPLES, non_negative_float,
 from imu_array_ros.cli.progress import info
 from imu_array_ros.errors import ImuArrayError
 
-__all__ = ["add_parser", "run", "probability", "openshoe_rate"]
+__all__ = ["add_parser", "run", "probability", "openshoe_rate", "real_time_ticks"]
 
 _DRAIN_S = 2.0  # after the last byte: how long the host may take to read what is buffered
 
@@ -48,6 +55,16 @@ def openshoe_rate(text: str) -> float:
         raise argparse.ArgumentTypeError(str(err).replace(f"got {float(text)!r}", f"got {text!r}")) from None
 
 
+def real_time_ticks(ticks, speed: float) -> np.ndarray:
+    """Device timestamps (uint32, 64 MHz) rescaled by 1/``speed`` from the first: played at ``speed`` x
+    the data's own pace, they advance in real time.  (N,) uint32."""
+    from imu_array_ros.io.openshoe.framing import TickUnwrapper
+
+    t = TickUnwrapper().unwrap(np.asarray(ticks).astype(np.uint32))
+    scaled = t[0] + np.round((t - t[0]) / float(speed)).astype(np.int64)
+    return (scaled % (1 << 32)).astype(np.uint32)
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
     sp = subparsers.add_parser("fake-device", help="simulated OpenShoe array on a pseudo-terminal (no hardware needed)")
     sp.add_argument("--array", required=True, type=Path,
@@ -65,7 +82,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="symlink to create for the port (default: in a new temporary directory); an existing PATH "
                          "is replaced only if it is a symlink to a pseudo-terminal")
     sp.add_argument("--speed", type=non_negative_float, default=1.0,
-                    help="playback speed, x real time, >= 0; 0 = as fast as the port is read (default 1)")
+                    help="playback speed, x real time, >= 0; 0 = as fast as the port is read (default 1); the device "
+                         "clock keeps real time (it reads as a device sampling speed x faster)")
     sp.add_argument("--loop", action="store_true", help="replay the data forever (default: stop at its end)")
     sp.add_argument("--garbage-every", type=non_negative_int, default=0, metavar="N",
                     help="insert random bytes after every N-th packet (default 0: never)")
@@ -128,7 +146,7 @@ def run(
         given = [name for name, v in (("--duration", duration), ("--rate", rate)) if v is not None]
         if given:
             raise ImuArrayError(f"{' and '.join(given)}: only for simulated data, not with --capture")
-        device = FakeArrayDevice.from_capture(capture, k, **faults)
+        device = _capture_device(FakeArrayDevice, Path(capture), k, faults)
         what = f"{Path(capture).name}"
     else:
         from imu_array_ros.simulation.simulator import simulate_twist
@@ -140,7 +158,14 @@ def run(
             raise ImuArrayError(f"--duration {duration:g} s at --rate {rate:g} Hz gives {n} samples "
                                 f"(need 1..{MAX_SIMULATED_SAMPLES})")
         samples, _ = simulate_twist(desc, duration, rate, np.random.default_rng(faults["seed"]))
-        device = FakeArrayDevice.from_imu_samples(samples, **faults)
+        if speed not in (0.0, 1.0):  # the device clock keeps real time (see the module docstring)
+            from imu_array_ros.io.openshoe.fake_device import samples_to_counts, stamps_to_ticks
+
+            counts = samples_to_counts(samples.accel, samples.gyro)
+            ticks = real_time_ticks(stamps_to_ticks(samples.stamps), speed)
+            device = FakeArrayDevice.from_samples(counts, ticks, **{**faults, "speed": 1.0})
+        else:
+            device = FakeArrayDevice.from_imu_samples(samples, **faults)
         what = f"simulated twisting, {duration:g} s at {rate:g} Hz"
     old = _on_sigterm()
     try:
@@ -163,6 +188,23 @@ def run(
     if device.error is not None:
         raise ImuArrayError(f"fake-device: stopped early: {device.error}")
     return 0
+
+
+def _capture_device(device_class, capture: Path, k: int, faults: dict):
+    """The device for a capture; with a speed other than 0 and 1 its timestamps rescaled to real time."""
+    speed = faults["speed"]
+    if speed in (0.0, 1.0):
+        return device_class.from_capture(capture, k, **faults)
+    from imu_array_ros.io.openshoe.framing import packet_length, parse_buffer
+
+    try:
+        data = capture.read_bytes()
+    except OSError:
+        return device_class.from_capture(capture, k, **faults)  # its one-line error
+    p, _ = parse_buffer(data, k)
+    if len(p) * packet_length(k) < 0.5 * len(data):
+        return device_class.from_capture(capture, k, **faults)  # its one-line error
+    return device_class(p.counter, real_time_ticks(p.ticks, speed), p.raw, **{**faults, "speed": 1.0})
 
 
 def _on_sigterm():

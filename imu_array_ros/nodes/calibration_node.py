@@ -37,8 +37,8 @@ from imu_array_ros.errors import ConfigError, ImuArrayError
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.io.window import SampleWindow
 from imu_array_ros.model.description import load_description
-from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
+from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, NODE_OPTIONS, declare
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, RawSubscriptions, run, timer
 from imu_array_ros.workflows import calibrate, load_array
 
 __all__ = ["CalibrationNode", "main", "SERVICE"]
@@ -53,7 +53,7 @@ class _Cancelled(Exception):
 
 class CalibrationNode(Node):
     def __init__(self) -> None:
-        super().__init__("imu_array_calibration")
+        super().__init__("imu_array_calibration", **NODE_OPTIONS)
         p = self.p = declare(self, CALIBRATION_PARAMS)
         self.desc, _ = load_array(Path(p.array_config), None)
         if p.reference_imu and p.reference_imu not in self.desc.names:
@@ -63,9 +63,11 @@ class CalibrationNode(Node):
         self._check_output()
         self.window = SampleWindow(self.desc, p.frame_prefix, p.sync_timeout, p.window, p.window_samples)
         self.raw = RawQueue()
-        for k, name in enumerate(self.desc.names):
-            self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self.raw.receiver(k),
-                                     qos(p.reliable, keep_all=True), raw=True)
+        hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
+                "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
+        self.raw_subs = RawSubscriptions(self, Imu, [imu_topic(n, p.topic_prefix) for n in self.desc.names],
+                                         self.raw, p.reliable, hint)
+        timer(self, 0.25, self.raw_subs.adapt)
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
         timer(self, p.period, self._step)
         timer(self, 1.0, self._diagnose)
@@ -191,6 +193,7 @@ class CalibrationNode(Node):
             response.success = False
             response.message = (f"a calibration is already running (for {age:.1f} s); "
                                 "call again when it has finished")
+            self.get_logger().warning(f"calibration call refused: {response.message}", throttle_duration_sec=5.0)
             return response
         t0 = time.monotonic()
         received = self.window.counts().received
@@ -243,6 +246,10 @@ class CalibrationNode(Node):
 
     def close(self) -> None:
         """Stop the service thread (a running calibration stops at its next iteration), destroy its node."""
+        with self._state:
+            ok, failed, refused = self._ok, self._failed, self._refused
+        self.get_logger().info(f"exiting: {self.window.counts().received} samples received, calibrations: {ok} ok, "
+                               f"{failed} failed, {refused} refused while busy")
         self._closing.set()
         if self._busy.acquire(timeout=30.0):  # the callback runs in the executor's pool: let it end
             self._busy.release()

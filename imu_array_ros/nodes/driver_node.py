@@ -4,6 +4,13 @@ republishes every message with its own recorded stamp, also when the IMUs of the
 recording stamp their messages with their own clocks (``restamp`` moves each
 message's stamp with its array sample's, keeping the IMUs' recorded offsets).
 
+QoS: a replay publishes reliable (keeping the last 1000; ``rate: 0`` keep-all), so
+best-effort and reliable subscribers both receive it, and by default waits until
+every IMU topic has a subscriber (``wait_for_subscribers`` -1, at most
+``wait_timeout``) before it starts; the serial stream publishes sensor-data
+(best effort) unless ``reliable``.  The console says when the port is missing or
+lost, the reconnect, a device restart, the end of a replay, and the totals on exit.
+
 Topics: ``<topic_prefix>/<name>/data_raw`` for every IMU of ``array_config``
 (recording contract, :mod:`imu_array_ros.io.messages`), ``/diagnostics``.
 Parameters: :data:`imu_array_ros.nodes.parameters.DRIVER_PARAMS`.
@@ -24,25 +31,36 @@ from imu_array_ros.errors import ConfigError
 from imu_array_ros.io.rosbag.recording import imu_payloads, imu_topic
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.samples import ImuSamples
-from imu_array_ros.nodes.parameters import DRIVER_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, run, timer
+from imu_array_ros.nodes.parameters import DRIVER_PARAMS, NODE_OPTIONS, declare
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, qos_events, run, timer
 
 __all__ = ["DriverNode", "main"]
 
 
 class DriverNode(Node):
     def __init__(self) -> None:
-        super().__init__("imu_array_driver")
+        super().__init__("imu_array_driver", **NODE_OPTIONS)
         p = self.p = declare(self, DRIVER_PARAMS)
         self.desc = load_description(p.array_config)
-        flat_out = p.mode == "replay" and p.rate == 0  # as fast as possible without loss: DDS flow control
-        q = qos(p.reliable or flat_out, keep_all=flat_out)
-        self.pubs = [self.create_publisher(Imu, imu_topic(n, p.topic_prefix), q) for n in self.desc.names]
+        replay = p.mode == "replay"
+        flat_out = replay and p.rate == 0  # as fast as possible without loss: DDS flow control
+        q = qos(p.reliable or replay, keep_all=flat_out)
+        hint = ("the subscriber asks for reliable delivery: set reliable:=false on it (a best-effort subscription "
+                "receives from every publisher) or reliable:=true here")
+        self.pubs = [self.create_publisher(Imu, imu_topic(n, p.topic_prefix), q,
+                                           event_callbacks=qos_events(self, "publisher", hint))
+                     for n in self.desc.names]
+        self.wait_for = p.wait_for_subscribers if p.wait_for_subscribers >= 0 else int(replay)
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: {p.mode}", p.port if p.mode == "serial" else p.bag)
         self.published = 0
         self.finished = False
         self._start = None
+        self._wait_started: float | None = None
+        self._t_start = time.monotonic()
         self._last_diag = (time.monotonic(), 0)
+        self._link_seen = ("", "disconnected", 0, 0)  # (last_error, state, reconnects, device_restarts) logged
+        self._error_logged_at = -1e9
+        self._ended = False
         if p.mode == "replay":
             from imu_array_ros.io.replay import Replay
 
@@ -60,7 +78,7 @@ class DriverNode(Node):
                                             rate_divider=p.rate_divider, now=self._now)
             except ValueError as err:
                 raise ConfigError(f"parameter 'imu_mask': {err} (the IMUs of {p.array_config})") from None
-            self.get_logger().info(f"streaming {len(self.desc.names)} IMUs from {p.port}")
+            self.get_logger().info(f"opening {p.port} for {len(self.desc.names)} IMUs")
         timer(self, p.poll_period, self._tick)
         timer(self, 1.0, self._diagnose)
 
@@ -72,6 +90,7 @@ class DriverNode(Node):
             return
         if self.link is not None:
             batch = self.link.poll()
+            self._log_link()
             samples = ImuSamples(batch.stamps_ns, batch.accel, batch.gyro, self.desc.names)
         else:
             samples = self._replay_step()
@@ -80,18 +99,56 @@ class DriverNode(Node):
         self._publish(samples)
 
     def _waiting(self) -> bool:
-        """Before the first sample: wait for ``wait_for_subscribers`` on every topic."""
-        if self._start is None:
-            if any(pub.get_subscription_count() < self.p.wait_for_subscribers for pub in self.pubs):
+        """Before the first sample: wait for ``wait_for_subscribers`` on every topic, at most ``wait_timeout``."""
+        if self._start is not None:
+            return False
+        p, log, mono = self.p, self.get_logger(), time.monotonic()
+        missing = sum(pub.get_subscription_count() < self.wait_for for pub in self.pubs)
+        what = "the replay" if self.link is None else "streaming"
+        if missing:
+            if self._wait_started is None:
+                self._wait_started = mono
+                limit = f"at most {p.wait_timeout:g} s" if p.wait_timeout > 0 else "without a time limit"
+                log.info(f"waiting for {self.wait_for} subscriber(s) on each of the {len(self.pubs)} IMU topics "
+                         f"({limit}; wait_for_subscribers, wait_timeout) before starting {what}")
+            waited = mono - self._wait_started
+            if p.wait_timeout == 0 or waited < p.wait_timeout:
                 return True
-            self._start = self._now()
+            log.warning(f"{missing} of {len(self.pubs)} IMU topics still lack {self.wait_for} subscriber(s) after "
+                        f"{waited:.1f} s: starting {what} anyway (what they miss is lost)")
+        elif self._wait_started is not None:
+            log.info(f"subscribers matched after {mono - self._wait_started:.2f} s: starting {what}")
+        self._start = self._now()
         return False
+
+    def _log_link(self) -> None:
+        """Console lines for the link's changes: port missing or lost (a repeat of the same error at most
+        every 30 s), streaming (again), device restarts."""
+        st, log, port = self.link.stats, self.get_logger(), self.p.port
+        last_error, state, _, restarts = self._link_seen
+        mono = time.monotonic()
+        if st.last_error and st.state == "disconnected" and (
+                st.last_error != last_error or state != "disconnected" or mono - self._error_logged_at >= 30.0):
+            lost = "lost" if state == "streaming" else "cannot open"
+            err = st.last_error.removeprefix(f"{port}: ")
+            log.error(f"serial port {port}: {lost}: {err}; retrying (backoff up to {self.link.backoff[1]:g} s)")
+            self._error_logged_at = mono
+        if st.state == "streaming" and state != "streaming":
+            again = f" again (reconnect {st.reconnects})" if st.connects > 1 else ""
+            log.info(f"streaming {len(self.desc.names)} IMUs from {port}{again}")
+        if st.device_restarts > restarts:
+            log.warning(f"device on {port} restarted (its packet counter went back; {st.device_restarts} restarts "
+                        f"so far): stamps re-anchored")
+        self._link_seen = (st.last_error, st.state, st.reconnects, st.device_restarts)
 
     def _replay_step(self) -> ImuSamples | None:
         p, src = self.p, self.source
         if src.done:
+            if not self._ended:
+                self._ended = True
+                self.get_logger().info(f"replay finished: {self._totals()} in "
+                                       f"{(self._now() - self._start) / 1e9:.2f} s")
             if p.exit_at_end and self._acknowledged():
-                self.get_logger().info(f"replay finished: {self.published} samples published")
                 self.finished = True
             return None
         return src.due(self._now() - self._start, self._start if p.restamp else None)
@@ -130,9 +187,18 @@ class DriverNode(Node):
             level, message = OK, ("finished" if self.source.done else "replaying")
         self.diagnostics.publish(level, message, values)
 
+    def _totals(self) -> str:
+        return f"{self.published} samples ({self.published * len(self.pubs)} messages) published"
+
     def close(self) -> None:
+        totals = self._totals()
         if self.link is not None:
+            st = self.link.stats
+            totals += (f"; {st.packets} packets, {st.bad_checksums} bad checksums, {st.garbage_bytes} garbage bytes, "
+                       f"{st.counter_gaps} counter gaps, {st.reconnects} reconnects, {st.device_restarts} device "
+                       f"restarts")
             self.link.close()
+        self.get_logger().info(f"exiting after {time.monotonic() - self._t_start:.1f} s: {totals}")
 
 
 def main(args=None) -> int:

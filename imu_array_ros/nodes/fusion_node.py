@@ -8,6 +8,17 @@ publishes ``<topic_prefix>/fused/imu`` (Imu) and ``<topic_prefix>/fused/accel``
 All the work is :class:`imu_array_ros.fusion.live.LiveFusion`; the
 subscriptions take the serialized messages (``raw=True``) and only queue them.
 
+QoS: the raw subscriptions are reliable keep-all, and a topic switches to best effort
+(keeping the last 1000) when a best-effort publisher appears on it
+(:class:`~imu_array_ros.nodes.runtime.RawSubscriptions`), so the replay's reliable
+stream loses nothing and the serial driver's sensor-data stream connects;
+``reliable``: reliable keep-all throughout.  The fused topics are published
+reliable (keeping the last 1000), which every subscriber can take.  A peer whose QoS
+cannot connect is logged.  The console also says when the NIS ratio leaves its band
+(above :data:`NIS_WARN_RATIO`) and comes back, a calibration reloaded or refused,
+and the totals on exit.  Latency in /diagnostics is reported only for live stamps
+(within :data:`LIVE_STAMP_S` of the clock): a replay's recorded stamps are not.
+
 With sample clocks in the description or ``stamps:=own``, the session states
 (clock phases, common rate, stamp clocks) are tracked by a
 :class:`~imu_array_ros.workflows.live_session.SessionTracker`: estimated in a worker
@@ -33,15 +44,31 @@ from sensor_msgs.msg import Imu
 from imu_array_ros.errors import ConfigError, ImuArrayError
 from imu_array_ros.fusion.live import LiveFusion
 from imu_array_ros.io.rosbag.recording import imu_topic
-from imu_array_ros.nodes.parameters import FUSION_PARAMS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, qos, run, timer
+from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_OPTIONS, declare
+from imu_array_ros.nodes.runtime import (OK, WARN, DiagnosticsPublisher, RawQueue, RawSubscriptions, output_qos,
+                                         qos_events, run, timer)
 from imu_array_ros.workflows import load_array
 from imu_array_ros.workflows.live_session import MIN_MOVING_S, BiasSessionTracker, SessionTracker, has_sample_clocks
 
-__all__ = ["FusionNode", "main", "NIS_WARN_RATIO"]
+__all__ = ["FusionNode", "main", "NIS_WARN_RATIO", "LIVE_STAMP_S", "latency_values"]
 
+#: sync_timeout -1 (by QoS): seconds while every raw topic is reliable, and once one is best effort
+SYNC_TIMEOUT_RELIABLE_S, SYNC_TIMEOUT_BEST_EFFORT_S = 5.0, 0.05
 #: NIS ratio above which the diagnostics say the model no longer fits (WARN).
 NIS_WARN_RATIO = 3.0
+#: seconds between two console lines about the NIS band
+NIS_LOG_INTERVAL_S = 10.0
+#: stamps whose median latency (publish - stamp) lies outside [-LIVE_STAMP_S, LIVE_STAMP_S] are not live
+LIVE_STAMP_S = 60.0
+
+
+def latency_values(p50: float, p99: float) -> dict:
+    """/diagnostics latency values: the quantiles (s) when the stamps are live, else a note (a replay of
+    recorded stamps measured against the wall clock gives days or years, not a latency)."""
+    if p50 == p50 and abs(p50) > LIVE_STAMP_S:
+        return {"latency": f"not measured: stamps are {p50:.3g} s from this clock (recorded, not live; "
+                           "restamp:=true on a replay gives live stamps)"}
+    return {"latency_p50_s": p50, "latency_p99_s": p99}
 
 
 def _file_id(path: str):
@@ -54,7 +81,7 @@ def _file_id(path: str):
 
 class FusionNode(Node):
     def __init__(self) -> None:
-        super().__init__("imu_array_fusion")
+        super().__init__("imu_array_fusion", **NODE_OPTIONS)
         p = self.p = declare(self, FUSION_PARAMS)
         cal = p.calibration_file or None
         self._cal_id = _file_id(cal) if cal else None
@@ -63,7 +90,8 @@ class FusionNode(Node):
         if p.reference_imu and p.reference_imu not in desc.names:
             raise ConfigError(f"parameter 'reference_imu': no IMU {p.reference_imu!r} in {source}")
         reference = list(desc.names).index(p.reference_imu) if p.reference_imu else 0
-        self.core = LiveFusion(desc, frame_prefix=p.frame_prefix, sync_timeout_s=p.sync_timeout, max_batch=p.max_batch,
+        self.core = LiveFusion(desc, frame_prefix=p.frame_prefix, sync_timeout_s=self._sync_timeout(all_reliable=True),
+                               max_batch=p.max_batch,
                                own_stamps=own, reference=reference, timed_batch_s=p.timed_batch)
         self.tracker: SessionTracker | None = None
         self._logged_error: str | None = None
@@ -75,13 +103,19 @@ class FusionNode(Node):
         self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}{grid}")
         self._track_start(self.core.fusion.model)
         self.raw = RawQueue()
-        q = qos(p.reliable)
-        for k, name in enumerate(desc.names):  # reliable input: keep every message until taken
-            self.create_subscription(Imu, imu_topic(name, p.topic_prefix), self.raw.receiver(k),
-                                     qos(p.reliable, keep_all=True), raw=True)
+        hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
+                "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
+        self.raw_subs = RawSubscriptions(self, Imu, [imu_topic(n, p.topic_prefix) for n in desc.names],
+                                         self.raw, p.reliable, hint)
+        timer(self, 0.25, self._adapt)
         out = f"{p.topic_prefix.rstrip('/')}/fused"
-        self.pub_imu = self.create_publisher(Imu, out + "/imu", q)
-        self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, out + "/accel", q)
+        events = qos_events(self, "publisher", "check the subscriber's QoS")
+        self.pub_imu = self.create_publisher(Imu, out + "/imu", output_qos(), event_callbacks=events)
+        self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, out + "/accel", output_qos(),
+                                               event_callbacks=events)
+        self._nis_high = False
+        self._nis_logged_at = -1e18
+        self._t_start = self._now()
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
         self._reported: set[str] = set()
         self._foreign: set[str] = set()
@@ -92,6 +126,22 @@ class FusionNode(Node):
 
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
+
+    def _sync_timeout(self, all_reliable: bool) -> float:
+        if self.p.sync_timeout >= 0:
+            return self.p.sync_timeout
+        return SYNC_TIMEOUT_RELIABLE_S if all_reliable else SYNC_TIMEOUT_BEST_EFFORT_S
+
+    def _adapt(self) -> None:
+        """Raw topics to best effort when a best-effort publisher appears; sync_timeout -1 follows."""
+        subs = self.raw_subs
+        was = all(subs.reliable)
+        subs.adapt()
+        if was and not all(subs.reliable) and self.p.sync_timeout < 0:
+            timeout_ns = int(round(self._sync_timeout(all_reliable=False) * 1e9))
+            self.core.timeout_ns = self.core.intake.assembler.timeout_ns = timeout_ns
+            self.get_logger().info(f"sync_timeout now {timeout_ns / 1e9:g} s (a best-effort topic: a missing "
+                                   "message is lost, not late)")
 
     def _step(self) -> None:
         now = self._now()
@@ -150,8 +200,9 @@ class FusionNode(Node):
                 self._foreign.add(topic)
                 self.get_logger().warning(f"ignoring {topic}: its IMU is not in {self.p.array_config}")
         values = {"input_rate_msgs": s.input_rate, "fused_rate_hz": s.fused_rate, "nis_ratio": s.nis_ratio,
-                  "nis_samples": s.nis_samples, "latency_p50_s": s.latency_p50, "latency_p99_s": s.latency_p99,
+                  "nis_samples": s.nis_samples, **latency_values(s.latency_p50, s.latency_p99),
                   "unknown_imu_topics": len(self._foreign), **s.counts}
+        self._log_nis(s.nis_ratio)
         if self.tracker is not None:
             values.update(self.tracker.values(self._now()))
         if self.biases is not None:
@@ -165,6 +216,32 @@ class FusionNode(Node):
         if self.tracker is not None and self.tracker.states is None:
             msg += "; session states not estimated yet (fallback)"
         self.diagnostics.publish(level, msg, values)
+
+    def _log_nis(self, ratio: float) -> None:
+        """A console line when the NIS ratio leaves its band (above NIS_WARN_RATIO) and when it is back,
+        at most one every NIS_LOG_INTERVAL_S (a change in between is said at the next chance)."""
+        if ratio != ratio:  # nothing fused in the last second: no verdict
+            return
+        high = ratio > NIS_WARN_RATIO
+        now = self._now()
+        if high == self._nis_high or now - self._nis_logged_at < NIS_LOG_INTERVAL_S * 1e9:
+            return
+        self._nis_high, self._nis_logged_at = high, now
+        if high:
+            self.get_logger().warning(f"model does not fit the data: NIS ratio {ratio:.3g} over the last second "
+                                      f"(band: up to {NIS_WARN_RATIO:g}; 1 = noise level): check the description "
+                                      "or calibration, saturation, or a loose IMU")
+        else:
+            self.get_logger().info(f"NIS ratio back in its band: {ratio:.3g} over the last second")
+
+    def _totals(self) -> str:
+        c = self.core.summary(self._now()).counts
+        kinds = ("late", "duplicate", "backwards", "undecodable", "wrong_frame_id", "non_finite")
+        rejected = ", ".join(f"{c[k]} {k.replace('_', ' ')}" for k in kinds if c.get(k))
+        return (f"fused {c.get('fused', 0)} samples ({c.get('complete_samples', 0)} complete, "
+                f"{c.get('incomplete_samples', 0)} incomplete) from {c.get('messages', 0)} messages in "
+                f"{(self._now() - self._t_start) / 1e9:.1f} s"
+                + (f"; rejected messages: {rejected}" if rejected else ""))
 
     # ------------------------------------------------------------------ session states
 
@@ -234,6 +311,10 @@ class FusionNode(Node):
             self._step()
             self._publish(self.core.step(self._now(), flush=True))
         except Exception:  # noqa: BLE001 - shutting down: the context may already be gone
+            pass
+        try:
+            self.get_logger().info(f"exiting: {self._totals()}")
+        except Exception:  # noqa: BLE001 - a summary must not turn a clean exit into a failure
             pass
 
 

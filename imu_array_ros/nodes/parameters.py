@@ -3,12 +3,19 @@
 A node calls :func:`declare` with its table; a value of the wrong type, outside
 its range or not among its choices stops the node with one line naming the
 parameter (:class:`~imu_array_ros.errors.ConfigError`), before anything opens.
+A parameter given to the node that is in neither its table nor ROS's own
+(``use_sim_time``, ``start_type_description_service``, ``qos_overrides.*``) stops it
+the same way, naming the parameter and the nearest known name (a misspelling
+would otherwise run with the default).  The nodes are created with
+``automatically_declare_parameters_from_overrides=True`` (:data:`NODE_OPTIONS`) so
+that every name given is visible through ``get_parameters_by_prefix('')``.
 The tables are also the source of the parameter tables in the README and of the
 example files ``config/<node>.params.yaml`` (a test checks they agree).
 """
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any
@@ -16,7 +23,14 @@ from typing import Any
 from imu_array_ros.calibration.geometry import DEFAULT_METHOD, METHODS, MIN_EXCITATION
 from imu_array_ros.errors import ConfigError
 
-__all__ = ["Param", "DRIVER_PARAMS", "FUSION_PARAMS", "CALIBRATION_PARAMS", "declare", "NODE_PARAMS"]
+__all__ = ["Param", "DRIVER_PARAMS", "FUSION_PARAMS", "CALIBRATION_PARAMS", "declare", "NODE_PARAMS", "NODE_OPTIONS",
+           "ROS_PARAMS", "unknown_parameters"]
+
+#: keyword arguments of ``rclpy.node.Node`` for a node that checks its parameter names with :func:`declare`
+NODE_OPTIONS = {"automatically_declare_parameters_from_overrides": True}
+
+#: parameters of ROS itself, allowed on every node (and names starting with ``qos_overrides.``)
+ROS_PARAMS = ("use_sim_time", "start_type_description_service")
 
 
 @dataclass(frozen=True)
@@ -38,8 +52,11 @@ _COMMON = (
     Param("array_config", "", "array description YAML (IMU names, positions, noise)", required=True),
     Param("topic_prefix", "/imu_array", "topics are <topic_prefix>/<imu name>/data_raw and <topic_prefix>/fused/..."),
     Param("frame_prefix", "", "raw messages carry header.frame_id = <frame_prefix><imu name>"),
-    Param("reliable", False, "reliable QoS (publishers keep the last 1000, subscribers keep all) instead of the "
-          "sensor-data profile (best effort, depth 5)"),
+    Param("reliable", False, "raw IMU topics reliable throughout: the serial driver publishes reliable (keeping "
+          "the last 1000), the fusion and calibration nodes subscribe reliable keep-all (a best-effort publisher "
+          "then cannot connect); false: serial publishes sensor-data (best effort, depth 5), replay reliable, and "
+          "the subscriptions start reliable keep-all and switch a topic to best effort (keeping the last 1000) "
+          "when a best-effort publisher appears on it"),
 )
 
 DRIVER_PARAMS = _COMMON + (
@@ -55,8 +72,10 @@ DRIVER_PARAMS = _COMMON + (
           0.0, 1000.0),
     Param("loop", False, "replay: start again at the end (stamps keep increasing)"),
     Param("restamp", False, "replay: stamp samples with the time they are published instead of the recorded time"),
-    Param("wait_for_subscribers", 0, "wait until every IMU topic has this many subscribers before starting "
-          "the replay / the serial stream", 0, 1000),
+    Param("wait_for_subscribers", -1, "wait until every IMU topic has this many subscribers (at most "
+          "'wait_timeout') before starting the replay / the serial stream; -1 = 1 in replay, 0 in serial", -1, 1000),
+    Param("wait_timeout", 10.0, "seconds to wait for the subscribers of 'wait_for_subscribers' before starting "
+          "anyway (logged); 0 = wait forever", 0.0, 3600.0),
     Param("exit_at_end", False, "replay: exit when the recording has been played (and acknowledged)"),
     Param("poll_period", 0.002, "seconds between reads of the port / replay steps", 0.0005, 1.0),
 )
@@ -64,8 +83,9 @@ DRIVER_PARAMS = _COMMON + (
 FUSION_PARAMS = _COMMON + (
     Param("calibration_file", "", "calibrated description YAML; used instead of array_config's values when "
           "present, and reloaded whenever it changes on disk", read_only=True),
-    Param("sync_timeout", 0.05, "seconds an array sample waits for missing IMUs before it is fused without them",
-          0.0, 10.0),
+    Param("sync_timeout", -1.0, "seconds an array sample waits for missing IMUs before it is fused without them; "
+          "-1 = by QoS: 5 s while every raw topic is reliable (a message is late, not lost: a retransmission can "
+          "take the writer's heartbeat period, up to 3 s, on a loaded machine), 0.05 s once one is best effort", -1.0, 10.0),
     Param("max_batch", 1000, "most samples per fusion call", 1, 1_000_000),
     Param("period", 0.005, "seconds between fusion steps", 0.0005, 1.0),
     Param("watch_period", 0.5, "seconds between checks of calibration_file", 0.05, 60.0),
@@ -111,17 +131,37 @@ def _range_text(p: Param) -> str:
     return f"in [{p.low:g}, {p.high:g}]"
 
 
+def unknown_parameters(given, params: tuple[Param, ...]) -> str | None:
+    """The refusal for names in ``given`` that are neither in ``params`` nor ROS's own; None if all are known."""
+    known = [p.name for p in params]
+    unknown = sorted(n for n in given if n not in known and n not in ROS_PARAMS and not n.startswith("qos_overrides."))
+    if not unknown:
+        return None
+    parts = []
+    for name in unknown:
+        near = difflib.get_close_matches(name, known, n=1)
+        parts.append(f"'{name}'" + (f" (did you mean '{near[0]}'?)" if near else ""))
+    s = "s" if len(unknown) > 1 else ""
+    return f"unknown parameter{s} {', '.join(parts)}"
+
+
 def declare(node, params: tuple[Param, ...]) -> SimpleNamespace:
     """Declare ``params`` on an rclpy node with descriptors; return the checked values.
 
-    Raises ConfigError (one line naming the parameter) for a wrong type, a value
-    out of range or not among the choices, or a missing required value.
+    Raises ConfigError (one line naming the parameter) for an unknown parameter name
+    given to the node (created with :data:`NODE_OPTIONS`), a wrong type, a value out
+    of range or not among the choices, or a missing required value.
     """
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
+    refusal = unknown_parameters(node.get_parameters_by_prefix(""), params)
+    if refusal:
+        raise ConfigError(refusal)
     values = {}
     for p in params:
+        if node.has_parameter(p.name):  # declared from an override, untyped: declared again with its descriptor
+            node.undeclare_parameter(p.name)
         desc = ParameterDescriptor(description=p.description, read_only=p.read_only)
         if p.choices:
             desc.additional_constraints = "one of: " + ", ".join(p.choices)

@@ -20,9 +20,13 @@ import threading
 
 from imu_array_ros.errors import ImuArrayError
 
-__all__ = ["run", "qos", "timer", "DiagnosticsPublisher", "RawQueue", "OK", "WARN", "ERROR"]
+__all__ = ["run", "qos", "raw_subscription_qos", "output_qos", "qos_events", "timer", "DiagnosticsPublisher",
+           "RawQueue", "RawSubscriptions", "OK", "WARN", "ERROR", "RAW_DEPTH"]
 
 OK, WARN, ERROR = b"\x00", b"\x01", b"\x02"
+
+#: messages a best-effort raw subscription (and every reliable keep-last publisher) keeps per topic
+RAW_DEPTH = 1000
 
 
 def qos(reliable: bool, keep_all: bool = False):
@@ -34,7 +38,88 @@ def qos(reliable: bool, keep_all: bool = False):
         return qos_profile_sensor_data
     if keep_all:
         return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RAW_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def raw_subscription_qos(reliable: bool):
+    """A raw subscription's QoS: reliable keep-all, or (``reliable`` False) best effort keeping the
+    last :data:`RAW_DEPTH` per topic, which receives from best-effort and reliable publishers alike."""
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    if reliable:
+        return qos(True, keep_all=True)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RAW_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+class RawSubscriptions:
+    """The raw IMU subscriptions of the fusion and calibration nodes (serialized messages into ``queue``).
+
+    ``reliable`` True: reliable keep-all throughout (a best-effort publisher cannot connect: logged).
+    False (adaptive): each topic starts reliable keep-all, so a reliable publisher (the replay) loses
+    nothing even on a loaded machine; :meth:`adapt` (a timer of the node) switches a topic to best
+    effort, keeping the last :data:`RAW_DEPTH`, as soon as a best-effort publisher (the live serial
+    driver) appears on it, once, with one console line for all topics switched together."""
+
+    def __init__(self, node, msg_type, topics: list[str], queue: "RawQueue", reliable: bool, hint: str) -> None:
+        self.node, self.msg_type, self.topics, self.queue = node, msg_type, list(topics), queue
+        self.adaptive = not reliable
+        self.reliable = [True] * len(self.topics)
+        self.hint = hint
+        self.subs = [self._subscribe(k, True) for k in range(len(self.topics))]
+
+    def _subscribe(self, k: int, reliable: bool):
+        hint = self.hint if not self.adaptive else "the node switches to best effort when it sees the publisher"
+        return self.node.create_subscription(self.msg_type, self.topics[k], self.queue.receiver(k),
+                                             raw_subscription_qos(reliable), raw=True,
+                                             event_callbacks=qos_events(self.node, "subscription", hint))
+
+    def adapt(self) -> None:
+        """Switch to best effort every reliable topic that has a best-effort publisher (adaptive only)."""
+        if not self.adaptive or not any(self.reliable):
+            return
+        from rclpy.qos import ReliabilityPolicy
+
+        switched = []
+        for k, topic in enumerate(self.topics):
+            if self.reliable[k] and any(info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                                        for info in self.node.get_publishers_info_by_topic(topic)):
+                new = self._subscribe(k, False)  # before the old one goes: no gap
+                self.node.destroy_subscription(self.subs[k])
+                self.subs[k], self.reliable[k] = new, False
+                switched.append(topic)
+        if switched:
+            self.node.get_logger().info(
+                f"best-effort publisher(s) on {len(switched)} IMU topic(s) (e.g. {switched[0]}): subscribing "
+                f"them best effort, keeping the last {RAW_DEPTH} messages")
+
+
+def output_qos():
+    """Publishers that every subscriber can take from: reliable, keeping the last :data:`RAW_DEPTH`
+    (a best-effort subscriber receives from a reliable publisher; the reverse does not connect)."""
+    return qos(True)
+
+
+def qos_events(node, kind: str, hint: str):
+    """Event callbacks of a publisher (``kind`` 'publisher') or subscription ('subscription') that log,
+    at most every 10 s, a peer whose QoS cannot connect: the topic, the policy, and ``hint`` (the fix)."""
+    from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+    from rclpy.qos import QoSPolicyKind
+
+    logger = node.get_logger()
+
+    def incompatible(event) -> None:
+        try:
+            policy = QoSPolicyKind(event.last_policy_kind).name
+        except ValueError:
+            policy = str(event.last_policy_kind)
+        peer = "subscriber" if kind == "publisher" else "publisher"
+        logger.warning(f"a {peer} with incompatible QoS ({policy}) cannot connect to this {kind} "
+                       f"({event.total_count} so far); no messages pass between them: {hint}",
+                       throttle_duration_sec=10.0)
+
+    if kind == "publisher":
+        return PublisherEventCallbacks(incompatible_qos=incompatible)
+    return SubscriptionEventCallbacks(incompatible_qos=incompatible)
 
 
 def timer(node, period: float, callback):
