@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.harness import load_average
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 ARRAY = REPO / "config" / "array32.yaml"
@@ -118,6 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="results markdown (default: print only)")
     ap.add_argument("--logs", type=Path, default=None, help="keep the nodes' logs in this directory")
     args = ap.parse_args(argv)
+    load_start = load_average()
     samples = read_imu_recording(BAG, load_description(ARRAY))[0]
     n, rate = len(samples), 1e9 / float(np.median(np.diff(samples.stamps)))
     rows = []
@@ -137,7 +140,8 @@ def main(argv=None) -> int:
         f"{datetime.date.today().isoformat()}, `python -m benchmarks.bench_default_replay --runs {args.runs}`: "
         "probe (reliable keep-all), `fusion_node` and `driver_node mode:=replay bag:=bags/twist32_sample` "
         "with every other parameter at its default, started one right after the other, each run in a DDS domain "
-        f"of its own (2-core machine shared with other jobs, load average 9-12). Recording: {n} samples × 32 IMUs "
+        f"of its own (2-core machine; load average at the start {load_start}, at the end {load_average()}). "
+        f"Recording: {n} samples × 32 IMUs "
         f"at {rate:.0f} Hz ({n * 32} messages).",
         "",
         "| run | fused by the node | of them complete (all 32 IMUs) | received by the probe | "
