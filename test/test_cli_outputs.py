@@ -168,7 +168,7 @@ def test_residuals_json_is_not_overwritten_without_force(bag, tmp_path, capsys):
     assert report.read_text() == '{"mine": true}\n'
     code, _, err = cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", report, "--force")
     assert code == 0, err
-    assert set(json.loads(report.read_text())) == {"recording"}
+    assert set(json.loads(report.read_text())) == {"recording", "gyroscope_biases"}  # biases tracked by default
     thesis = tmp_path / "thesis.json"
     thesis.write_text("\\documentclass{article}\n")
     assert_user_error(cli(capsys, "residuals", bag, "--array", ARRAY32, "--json", thesis, "--force"), "not a JSON file")
