@@ -45,6 +45,36 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
+def _cwd_relation(real: Path) -> str | None:
+    """"is" / "contains" when the resolved output path ``real`` is / contains the current directory."""
+    cwd = _real(Path.cwd())
+    return "is" if real == cwd else "contains" if real in cwd.parents else None
+
+
+def _input_relation(out: Path, real: Path, inp: Path) -> str | None:
+    """How output ``out`` (resolved: ``real``) meets input ``inp``: "same", "contains", "inside" or None
+    (symbolic and hard links followed)."""
+    inp_real = _real(inp)
+    if _same(out, inp):
+        return "same"
+    if real in inp_real.parents:
+        return "contains"
+    if inp_real in real.parents:
+        return "inside"
+    return None
+
+
+def _overlap(real: Path, other_outputs) -> tuple | None:
+    """The first (option, path) of ``other_outputs`` that is, contains or lies inside ``real``."""
+    for name, other in other_outputs:
+        if other is None:
+            continue
+        other_real = _real(Path(other))
+        if other_real == real or other_real in real.parents or real in other_real.parents:
+            return name, other
+    return None
+
+
 def _read_head(path: Path, n: int) -> bytes | None:
     try:
         with open(path, "rb") as fh:
@@ -162,27 +192,19 @@ def check_output(
     if unnamed(out):
         raise OutputError(f"{out}: {option} must name a file or directory, not {str(out)!r}")
     real = _real(out)
-    cwd = _real(Path.cwd())
-    if real == cwd or real in cwd.parents:
-        what = "is" if real == cwd else "contains"
+    what = _cwd_relation(real)
+    if what:
         raise OutputError(f"{out}: {option} {what} the current directory; choose another {option}")
     for inp in inputs:
         if inp is None:
             continue
-        inp = Path(inp)
-        inp_real = _real(inp)
-        if _same(out, inp):
-            raise OutputError(f"{out}: output would overwrite the input {inp}; choose another {option}")
-        if real in inp_real.parents:
-            raise OutputError(f"{out}: output contains the input {inp}; choose another {option}")
-        if inp_real in real.parents:
-            raise OutputError(f"{out}: output lies inside the input {inp}; choose another {option}")
-    for other_option, other in other_outputs:
-        if other is None:
-            continue
-        other_real = _real(Path(other))
-        if other_real == real or other_real in real.parents or real in other_real.parents:
-            raise OutputError(f"{out}: {option} overlaps {other_option} {other}; give them separate paths")
+        relation = _input_relation(out, real, Path(inp))
+        if relation:
+            verb = {"same": "would overwrite", "contains": "contains", "inside": "lies inside"}[relation]
+            raise OutputError(f"{out}: output {verb} the input {inp}; choose another {option}")
+    overlap = _overlap(real, other_outputs)
+    if overlap:
+        raise OutputError(f"{out}: {option} overlaps {overlap[0]} {overlap[1]}; give them separate paths")
     if out.is_symlink():
         raise OutputError(f"{out}: is a symbolic link (to {os.readlink(out)}); give the real path as {option}")
     for parent in out.parents:
@@ -248,24 +270,19 @@ def check_report_directory(directory, inputs, force: bool, *, kind: str, option:
     if d.exists() and not d.is_dir():
         raise OutputError(f"{d}: {option} must be a directory (it is a file)")
     real = _real(d)
-    cwd = _real(Path.cwd())
-    if real == cwd or real in cwd.parents:
-        raise OutputError(f"{d}: {option} {'is' if real == cwd else 'contains'} the current directory; "
-                          f"choose another {option}")
+    what = _cwd_relation(real)
+    if what:
+        raise OutputError(f"{d}: {option} {what} the current directory; choose another {option}")
     for inp in inputs:
         if inp is None:
             continue
-        inp_real = _real(Path(inp))
-        if inp_real == real or real in inp_real.parents:
-            raise OutputError(f"{d}: {option} holds the input {inp}; choose another {option}")
-        if inp_real in real.parents:
-            raise OutputError(f"{d}: {option} lies inside the input {inp}; choose another {option}")
-    for name, other in other_outputs:
-        if other is None:
-            continue
-        other_real = _real(Path(other))
-        if other_real == real or real in other_real.parents or other_real in real.parents:
-            raise OutputError(f"{d}: {option} overlaps {name} {other}; give them separate paths")
+        relation = _input_relation(d, real, Path(inp))
+        if relation:
+            verb = "lies inside" if relation == "inside" else "holds"
+            raise OutputError(f"{d}: {option} {verb} the input {inp}; choose another {option}")
+    overlap = _overlap(real, other_outputs)
+    if overlap:
+        raise OutputError(f"{d}: {option} overlaps {overlap[0]} {overlap[1]}; give them separate paths")
     for parent in d.parents:
         if parent.exists():
             if not parent.is_dir():
