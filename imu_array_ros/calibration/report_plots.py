@@ -145,43 +145,39 @@ def _pair_axes(plt):
 def plot_residual_time(t, before, after, path: Path) -> None:
     """PNG: residual RMS over the IMUs per block of the moving window (time from its first sample; the
     window skips the still intervals and the samples that rotate too little), before and after."""
-    plt = pyplot(path)
-    fig, axes = _pair_axes(plt)
-    try:
-        tb, rb = block_rms(t, before)
-        ta, ra = block_rms(t, after)
-        for c, (ax, what) in enumerate(zip(axes, ("accelerometers", "gyroscopes"))):
-            ax.plot(tb, rb[:, c], ".", ms=3, color="0.6", label="before (starting description)")
-            ax.plot(ta, ra[:, c], ".", ms=3, color="C3", label="after (calibration)")
-            ax.axhline(1.0, color="k", lw=0.8, ls="--", label="noise level")
-            ax.set_yscale("log")
-            ax.set_ylabel(f"{what}\nRMS / noise std")
-            ax.grid(True, which="both", alpha=0.3)
-        axes[0].legend(fontsize=8, loc="upper right")
-        axes[1].set_xlabel(f"time in the moving window (s from its first sample; {len(tb)} blocks)")
-        fig.suptitle("normalised residual over the moving window (RMS over IMUs and axes)", fontsize=11)
-        save_png(fig, path, _DPI, close=False)
-    finally:
-        plt.close(fig)
+    tb, rb = block_rms(t, before)
+    ta, ra = block_rms(t, after)
+    _plot_before_after((tb, rb), (ta, ra), path, style=".", ms=3, legend="upper right",
+                       xlabel=f"time in the moving window (s from its first sample; {len(tb)} blocks)",
+                       title="normalised residual over the moving window (RMS over IMUs and axes)")
 
 
 def plot_residual_rate(rate, before, after, path: Path) -> None:
     """PNG: residual RMS over the IMUs against |omega| (deg/s, quantile bins), before and after."""
+    cb, rb = binned_rms(rate, before)
+    ca, ra = binned_rms(rate, after)
+    _plot_before_after((np.rad2deg(cb), rb), (np.rad2deg(ca), ra), path, style="o-", ms=4, legend="upper left",
+                       xlabel=f"angular rate |ω| (deg/s; {len(ca)} bins of equal sample count)",
+                       title="normalised residual against the angular rate (moving window)")
+
+
+def _plot_before_after(before, after, path: Path, *, style: str, ms: float, legend: str, xlabel: str,
+                       title: str) -> None:
+    """The accelerometer and gyroscope panels of a residual RMS (``(x, rms (n, 2))`` before and after) against
+    x, on a log scale with the noise level."""
     plt = pyplot(path)
     fig, axes = _pair_axes(plt)
     try:
-        cb, rb = binned_rms(rate, before)
-        ca, ra = binned_rms(rate, after)
         for c, (ax, what) in enumerate(zip(axes, ("accelerometers", "gyroscopes"))):
-            ax.plot(np.rad2deg(cb), rb[:, c], "o-", ms=4, color="0.6", label="before (starting description)")
-            ax.plot(np.rad2deg(ca), ra[:, c], "o-", ms=4, color="C3", label="after (calibration)")
+            ax.plot(before[0], before[1][:, c], style, ms=ms, color="0.6", label="before (starting description)")
+            ax.plot(after[0], after[1][:, c], style, ms=ms, color="C3", label="after (calibration)")
             ax.axhline(1.0, color="k", lw=0.8, ls="--", label="noise level")
             ax.set_yscale("log")
             ax.set_ylabel(f"{what}\nRMS / noise std")
             ax.grid(True, which="both", alpha=0.3)
-        axes[0].legend(fontsize=8, loc="upper left")
-        axes[1].set_xlabel(f"angular rate |ω| (deg/s; {len(ca)} bins of equal sample count)")
-        fig.suptitle("normalised residual against the angular rate (moving window)", fontsize=11)
+        axes[0].legend(fontsize=8, loc=legend)
+        axes[1].set_xlabel(xlabel)
+        fig.suptitle(title, fontsize=11)
         save_png(fig, path, _DPI, close=False)
     finally:
         plt.close(fig)
