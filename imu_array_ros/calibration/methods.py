@@ -110,29 +110,28 @@ def whole_array(samples: ImuSamples | Sequence[ImuSamples], model: SensorModel, 
     options = dict(reference=reference, static_method=static_method, static_terms=static_terms,
                    moving_terms=moving_terms, gravity=gravity, still_options=still_options,
                    max_iterations=max_iterations, timing=timing, clock_period=clock_period)
-    if isinstance(samples, ImuSamples):
-        cal = _array(samples, model, "all", source, progress=progress, **options)
-        cal.record.update(session_record(cal))
-        return cal
-    # several recordings (calibrate all REC1 REC2 ...): each on its own, then combined
-    recordings = list(samples)
+    recordings = [samples] if isinstance(samples, ImuSamples) else list(samples)
     sources = list(source) if isinstance(source, (list, tuple)) else [source] * len(recordings)
     if len(sources) != len(recordings):
         raise CalibrationError(f"{len(recordings)} recordings but {len(sources)} sources")
-    if timing and len(recordings) > 1:
+    if len(recordings) == 1:
+        cal = _array(recordings[0], model, "all", sources[0], progress=progress, **options)
+        cal.record.update(session_record(cal))
+        return cal
+    # several recordings (calibrate all REC1 REC2 ...): each on its own, then combined
+    if timing:
         raise CalibrationError("the timing stage runs on one recording at a time (its clocks' phases and the "
                                "searched clocks differ per recording): calibrate the timing on one recording")
     say = progress or (lambda text: None)
     cals = []
     for i, (rec, src) in enumerate(zip(recordings, sources)):
-        say(f"recording {i + 1} of {len(recordings)}{'' if src is None else f' ({src})'}")
+        name = '' if src is None else f' ({src})'
+        where = f"recording {i + 1}{name}"
+        say(f"recording {i + 1} of {len(recordings)}{name}")
         try:
             cals.append(_array(rec, model, "all", None if src is None else str(src), progress=progress, **options))
         except CalibrationError as err:
-            raise CalibrationError(f"recording {i + 1}{'' if src is None else f' ({src})'}: {err}") from None
-    if len(cals) == 1:
-        cals[0].record.update(session_record(cals[0]))
-        return cals[0]
+            raise CalibrationError(f"{where}: {err}") from None
     return combine_calibrations(cals, sources)
 
 
