@@ -79,18 +79,14 @@ class SessionCalibration:
     spread: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     birge: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
-    @property
-    def static(self):
-        """The first recording's static stage (for tables that show one)."""
-        return getattr(self.recordings[0].details, "static", None)
-
     def repeatability(self) -> dict[str, float | None]:
         """term -> median over its parameters of (spread over the recordings / within-recording std)."""
         out = {}
         for t, s in self.spread.items():
-            w = self.within[t]
-            w = np.where(np.isfinite(w).any(axis=0), np.nanmedian(np.where(np.isfinite(w).any(axis=0), w, 0.0),
-                                                                   axis=0), np.nan)  # held: NaN everywhere
+            within = self.within[t]
+            fitted = np.isfinite(within).any(axis=0)  # held parameters: NaN in every recording
+            w = np.full(within.shape[1:], np.nan)
+            w[fitted] = np.nanmedian(within[:, fitted], axis=0)
             with np.errstate(divide="ignore", invalid="ignore"):
                 out[t] = _median(np.where(w > 0, s / w, np.nan))
         return out
