@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.stats
 
-from imu_array_ros.discovery.blocks import short_recording_options
+from imu_array_ros.discovery.blocks import short_recording_options, time_blocks
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
 from imu_array_ros.discovery.confirm import confirm, only_imus, update_finding
@@ -228,11 +228,6 @@ class Discovery:
         }
 
 
-def _blocks(stamps: np.ndarray, block_s: float) -> np.ndarray:
-    t = (np.asarray(stamps, dtype=np.int64) - int(stamps[0])) * 1e-9
-    return np.floor(t / block_s).astype(np.int64)
-
-
 def _near_saturation(samples, model: SensorModel) -> np.ndarray:
     acc = np.abs(np.nan_to_num(samples.accel)) >= NEAR_SATURATION * model.acc_clip
     gyr = np.abs(np.nan_to_num(samples.gyro)) >= NEAR_SATURATION * model.gyro_clip
@@ -285,7 +280,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         notes.append("time_offset not tested: the stamps do not increase strictly")
     timings, t0 = {}, time.perf_counter()
     opts = short_recording_options(stamps, opts, notes, say)
-    blocks = _blocks(stamps, opts.block_s)
+    blocks = time_blocks(stamps, opts.block_s)
     nb = int(blocks[-1]) + 1
     fold_of_block = np.arange(nb) % opts.folds
 
