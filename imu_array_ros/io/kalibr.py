@@ -174,11 +174,11 @@ def kalibr_from_description(desc: ArrayDescription, *, rate: float, topic_prefix
         model = "scale-misalignment" if any(_has_intrinsics(imu) for imu in desc.imus) else "calibrated"
     if model not in MODELS:
         raise ConfigError(f"unknown Kalibr IMU model {model!r} (known: {', '.join(MODELS)})")
-    pooled = {"accelerometer": desc.accelerometer_noise_std, "gyroscope": desc.gyroscope_noise_std}
+    noise_std = {s: desc.noise_std(s) for s in _SENSORS}
     out = []
-    for imu in desc.imus:
+    for k, imu in enumerate(desc.imus):
         c_ib, m_a = _imu_frame(imu, model, desc.source)
-        density = {s: _rms(imu.noise.get(f"{s}.noise_std", np.full(3, pooled[s]))) / math.sqrt(rate) for s in _SENSORS}
+        density = {s: _rms(noise_std[s][k]) / math.sqrt(rate) for s in _SENSORS}
         intrinsics = None
         if model == "scale-misalignment":
             q = c_ib @ imu.orientation  # C_i_b = Q R^T

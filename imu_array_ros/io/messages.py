@@ -78,12 +78,10 @@ def raw_covariances(description: ArrayDescription) -> tuple[np.ndarray, np.ndarr
     """(accelerometer, gyroscope) covariances of the raw Imu messages, each (K, 9) row-major per IMU: the IMU's
     own ``noise_std`` per axis where the description gives it (``imu-array calibrate noise``), else the pooled
     figure."""
-    def cov(sensor: str, pooled: float) -> np.ndarray:
-        std = np.array([np.asarray(imu.noise.get(f"{sensor}.noise_std", np.full(3, pooled)), dtype=float)
-                        for imu in description.imus])
-        return np.einsum("ki,ij->kij", std ** 2, np.eye(3)).reshape(len(description.imus), 9)
-    return (cov("accelerometer", float(description.accelerometer_noise_std)),
-            cov("gyroscope", float(description.gyroscope_noise_std)))
+    def cov(sensor: str) -> np.ndarray:
+        std = description.noise_std(sensor)
+        return np.einsum("ki,ij->kij", std ** 2, np.eye(3)).reshape(len(std), 9)
+    return cov("accelerometer"), cov("gyroscope")
 
 
 def raw_imu_payloads(

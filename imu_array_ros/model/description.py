@@ -155,6 +155,13 @@ class ArrayDescription:
         """(K, 3) accelerometer positions in the array frame, m."""
         return np.array([imu.position for imu in self.imus], dtype=float).reshape(-1, 3)
 
+    def noise_std(self, sensor: str) -> np.ndarray:
+        """(K, 3) white-noise std per IMU and axis of ``sensor`` ("accelerometer" or "gyroscope"): the IMU's own
+        ``noise_std`` where it has one, else the array's pooled figure."""
+        pooled = float(getattr(self, f"{sensor}_noise_std"))
+        return np.array([np.asarray(imu.noise.get(f"{sensor}.noise_std", np.full(3, pooled)), dtype=float)
+                         for imu in self.imus]).reshape(len(self.imus), 3)
+
     @property
     def orientations(self) -> np.ndarray:
         """(K, 3, 3) rotations sensor -> array."""

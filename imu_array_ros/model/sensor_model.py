@@ -140,12 +140,8 @@ class SensorModel:
                 values[i] = np.concatenate([np.asarray(imu.value(f.key), dtype=float).ravel() for f in tc.fields])
             terms[name] = tc(values)
         half = lambda lsb: None if lsb is None else 0.5 * lsb  # noqa: E731
-        # white noise per IMU and axis: the IMU's own noise_std where the description gives one, else the pooled figure
-        std = lambda sensor, pooled: np.array([np.asarray(imu.noise.get(f"{sensor}.noise_std", np.full(3, pooled)),  # noqa: E731
-                                                          dtype=float) for imu in desc.imus]).reshape(k, 3)
         return cls(names=desc.names, frame_id=desc.frame_id, rotations=desc.orientations,
-                   acc_std=std("accelerometer", desc.accelerometer_noise_std),
-                   gyro_std=std("gyroscope", desc.gyroscope_noise_std), terms=terms,
+                   acc_std=desc.noise_std("accelerometer"), gyro_std=desc.noise_std("gyroscope"), terms=terms,
                    acc_clip=float(desc.accelerometer_clip or desc.accelerometer_range),
                    gyro_clip=float(desc.gyroscope_clip or desc.gyroscope_range),
                    acc_clip_tolerance=half(desc.accelerometer_lsb), gyro_clip_tolerance=half(desc.gyroscope_lsb))
