@@ -43,3 +43,13 @@ def test_the_shipped_sample_is_analysed(tmp_path, capsys):
     assert "short recording (2 s)" in err
     data = json.loads((report / "report.json").read_text())
     assert any("short recording" in n for n in data["notes"])
+
+
+def test_apply_inside_the_report_directory_is_refused(tmp_path, capsys):
+    from conftest import assert_user_error
+
+    report = tmp_path / "report"
+    assert_user_error(cli(capsys, "discover", REPO / "bags" / "twist32_sample", "--array",
+                          REPO / "config" / "array32.yaml", "--report", report, "--apply", report / "cal.yaml"),
+                      "--apply overlaps --report")
+    assert not report.exists()
