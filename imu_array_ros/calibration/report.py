@@ -41,7 +41,7 @@ from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
-from imu_array_ros.io.outputs import MANIFEST, check_report_directory
+from imu_array_ros.io.outputs import MANIFEST, check_report_directory, write_report_manifest
 from imu_array_ros.util.files import atomic_path, atomic_write_text
 from imu_array_ros.util.jsontools import json_safe
 
@@ -398,5 +398,5 @@ def write_calibration_report(directory: str | os.PathLike, calibrations: Sequenc
             names += figures
         atomic_write_text(tmp / "index.md", markdown(data, figures))
         names.append("index.md")
-        atomic_write_text(tmp / MANIFEST, json.dumps({"kind": _KIND, "files": names}, indent=1) + "\n")
+        write_report_manifest(tmp, _KIND, names)
     return [directory / n for n in names + [MANIFEST]]
