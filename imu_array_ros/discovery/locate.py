@@ -9,8 +9,10 @@ The statistics, one module each:
 
 * ratio, z and significance of a cell (IMU k, axis a), the split by **regime** of the
   fitted motion and by **time**: :mod:`~imu_array_ros.discovery.excess`;
-* by **frequency** (relative PSD, the band of a finding, the narrowband line test):
+* by **frequency** (relative PSD, the band of a finding):
   :mod:`~imu_array_ros.discovery.spectra`;
+* **narrowband modes** shared across the array (frequency, band, mode shape, when present,
+  held-out empirical model): :mod:`~imu_array_ros.discovery.modes`;
 * by **geometry** (rigid-body test of the accelerometer residual field):
   :mod:`~imu_array_ros.discovery.rigid`.
 
@@ -34,7 +36,8 @@ from imu_array_ros.discovery.excess import (
     window_sums,
 )
 from imu_array_ros.discovery.rigid import RigidTest, rigid_body_test
-from imu_array_ros.discovery.spectra import imu_spectra, line_significant, narrowest_band
+from imu_array_ros.discovery.modes import ModeSearch, detect_modes
+from imu_array_ros.discovery.spectra import imu_spectra, narrowest_band
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.jsontools import json_safe
 
@@ -57,7 +60,8 @@ class Localization:
     window_ratio_by_imu (W, K), spans: [(t0, t1)] s of merged significant windows.
     freqs (F,) Hz and psd (K, 6, F): relative PSD (white noise of variance v -> v);
     floor (K, 6): the white level (mean E[r^2]).  rigid: :class:`RigidTest` or None.
-    line (K, 6): cells significant by the narrowband line test (included in ``significant``).
+    line (K, 6): cells carrying a narrowband mode (not in ``significant``, which is the broadband test).
+    modes: the :class:`~imu_array_ros.discovery.modes.ModeSearch` (None when not run).
     """
 
     names: tuple[str, ...]
@@ -83,6 +87,7 @@ class Localization:
     z_threshold: float = 5.0
     rate_hz: float = float("nan")
     line: np.ndarray | None = None
+    modes: ModeSearch | None = None
     _groups: list | None = field(default=None, repr=False)
 
     # ---- conveniences
@@ -200,11 +205,45 @@ class Localization:
         into the others through the fitted motion (which averages over all IMUs),
         so the IMUs that carry it come first, the leaks after.
         """
-        rows = sorted(self._findings(), key=lambda g: -g["share_of_excess"])[:max_entries]
-        return [{"sensors": list(g["sensors"]), "sensor_shares": [float(v) for v in g["sensor_shares"]],
+        groups = self._findings()
+        modes = self.mode_entries()
+        mode_cells = [{(k, a) for k, a in zip(*np.nonzero(m["mask"]))} for m in modes]
+        kept = []
+        for g in groups:  # a broadband group inside a mode's cells and band is that mode
+            cells = {(k, a) for k, a in zip(*np.nonzero(g["mask"]))}
+            if not any(cells <= mc and g["band_hz"][0] <= m["band_hz"][1] and m["band_hz"][0] <= g["band_hz"][1]
+                       for m, mc in zip(modes, mode_cells)):
+                kept.append(g)
+        rows = sorted(kept, key=lambda g: -g["share_of_excess"])[:max(0, max_entries - len(modes))]
+        rows = sorted(rows + modes, key=lambda g: -g["share_of_excess"])
+        out = []
+        for g in rows:
+            e = {"sensors": list(g["sensors"]), "sensor_shares": [float(v) for v in g["sensor_shares"]],
                  "axes": list(g["axes"]), "regime": g["regime"],
                  "band_hz": [float(g["band_hz"][0]), float(g["band_hz"][1])],
-                 "share_of_excess": float(g["share_of_excess"])} for g in rows]
+                 "share_of_excess": float(g["share_of_excess"])}
+            if "mode" in g:
+                e["mode"] = g["mode"]
+            out.append(e)
+        return out
+
+    def mode_entries(self) -> list[dict]:
+        """The narrowband modes as entries (:meth:`entries`' keys plus "mode": the mode's detail and "mask");
+        share_of_excess: the positive O - E of the mode's cells over the total positive excess (as a group's)."""
+        if self.modes is None:
+            return []
+        exc = self.observed - self.expected
+        total = float(np.nansum(np.clip(exc, 0.0, None)))
+        out = []
+        for m in self.modes.modes:
+            e = m.entry(self.names)
+            mask = np.zeros(self.ratio.shape, dtype=bool)
+            for k, a in m.channels:
+                mask[k, a] = True
+            e["mask"] = mask
+            e["share_of_excess"] = max(float(np.nansum(exc[mask])), 0.0) / total if total > 0 else 0.0
+            out.append(e)
+        return out
 
     def to_dict(self, *, spectra: bool = False, max_entries: int = 10) -> dict:
         """JSON-serialisable summary (plain floats and lists, None for NaN); ``spectra`` adds freqs and psd."""
@@ -222,6 +261,9 @@ class Localization:
             "window_ratio_by_imu": self.window_ratio_by_imu, "spans": [list(s) for s in self.spans],
             "rigid": self.rigid.to_dict(names) if self.rigid is not None else None,
             "entries": self.entries(max_entries),
+            "modes": None if self.modes is None else {
+                **self.modes.summary(), "found": [m.to_dict(names) for m in self.modes.modes],
+                "motion_lines": [m.to_dict(names) for m in self.modes.motion_lines]},
         }
         if spectra:
             out["freqs"] = self.freqs
@@ -234,7 +276,7 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
              near_saturation: np.ndarray | None = None, rotations: np.ndarray | None = None,
              positions: np.ndarray | None = None, acc_std: np.ndarray | None = None,
              still_threshold: float = 0.2, window_s: float = 1.0, gravity: float = 9.80665,
-             z_threshold: float = 5.0) -> Localization:
+             z_threshold: float = 5.0, std: np.ndarray | None = None, modes: bool = True) -> Localization:
     """Locate the residual excess of a fitted recording.
 
     residuals, expected: (N, K, 6) normalised residuals and E[r^2] = 1 - leverage
@@ -244,7 +286,9 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
     near_saturation: (N, K, 6) bool or None.  rotations (K, 3, 3) sensor -> array,
     positions (K, 3) m and acc_std (K, 3) m/s^2 enable the rigid-body test.
     still_threshold rad/s; window_s s; gravity m/s^2; z_threshold: see
-    :mod:`~imu_array_ros.discovery.excess`.
+    :mod:`~imu_array_ros.discovery.excess`.  std (K, 6) noise stds (else acc_std for the
+    accelerometers): mode amplitudes in SI units.  modes: run the narrowband mode search
+    (:func:`~imu_array_ros.discovery.modes.detect_modes`).
     """
     r = np.asarray(residuals, dtype=float)
     e = np.asarray(expected, dtype=float)
@@ -262,7 +306,8 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
     o_all, e_all = r2.sum(axis=0), ev.sum(axis=0)
 
     # ---- regimes
-    reg_o, reg_e, reg_n = regime_sums(r2, ev, valid, regime_masks(motion, still_threshold, gravity), near_saturation)
+    masks = regime_masks(motion, still_threshold, gravity)
+    reg_o, reg_e, reg_n = regime_sums(r2, ev, valid, masks, near_saturation)
 
     # ---- time windows
     t = (stamps - stamps[0]) * 1e-9 if n else np.zeros(0)
@@ -276,8 +321,16 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
     nv = valid.sum(axis=0)
     floor = excess_ratio(e_all, nv)
     significant = is_significant(o_all, e_all, z_threshold)
-    line = line_significant(psd, floor, n)
-    significant = significant | line
+    search = None
+    line = np.zeros((k, 6), dtype=bool)
+    if modes:
+        if std is None and acc_std is not None:
+            std = np.concatenate([np.asarray(acc_std, dtype=float).reshape(k, 3), np.full((k, 3), np.nan)], axis=1)
+        search = detect_modes(r, fs, valid=valid, positions=positions, rotations=rotations, std=std,
+                              still=masks["still"], motion=motion)
+        for m in search.modes:
+            for kk, a in m.channels:
+                line[kk, a] = True
 
     # ---- rigid body
     rigid = None
@@ -293,5 +346,5 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
         n_samples=int(np.count_nonzero(valid.any(axis=(1, 2)))),
         windows=starts, window_ratio=excess_ratio(o_w, e_w), window_ratio_by_imu=excess_ratio(o_wk, e_wk), spans=spans,
         freqs=freqs, psd=psd, floor=floor, rigid=rigid, window_s=float(window_s), z_threshold=float(z_threshold),
-        rate_hz=fs,
+        rate_hz=fs, modes=search,
     )

@@ -12,7 +12,8 @@ times the noise (:mod:`imu_array_ros.fusion.residuals`):
   peak is a vibration mode, a rising low-frequency end coloured noise or drift;
 * :func:`plot_evidence`: the log-likelihood gain (delta loglik) of every candidate
   term, accepted ones highlighted, against the per-step significance threshold;
-* :func:`plot_time`: the residual ratio per time window, with shaded spans.
+* :func:`plot_time`: the residual ratio per time window, with shaded spans;
+* :func:`plot_mode`: a narrowband mode's shape across the array and its line in the spectrum.
 
 PNG files are written atomically (:func:`~imu_array_ros.util.plotting.save_png`):
 a failed plot leaves no partial file and no temporary behind; the figure is
@@ -30,7 +31,7 @@ import numpy as np
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.plotting import pyplot, save_png  # the lazy matplotlib import, one copy
 
-__all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "plot_timing", "EVIDENCE_FLOOR"]
+__all__ = ["plot_residual_maps", "plot_spectra", "plot_evidence", "plot_time", "plot_timing", "plot_mode", "EVIDENCE_FLOOR"]
 
 #: delta loglik shown at the left edge of :func:`plot_evidence` (smaller and negative values are drawn there).
 EVIDENCE_FLOOR = 0.1
@@ -327,6 +328,60 @@ def plot_timing(evidence: dict, path: str | Path, *, window_s: float = 3.0) -> N
         b.set_ylabel(f"{evidence['sensor']} residual RMS (noise std)")
         b.set_title(f"{evidence['imu']}: residual vs angular acceleration", fontsize=10)
         b.legend(fontsize=8)
+        save_png(fig, path, _DPI, close=False)
+    finally:
+        plt.close(fig)
+
+
+# --------------------------------------------------------------------------- narrowband modes
+
+
+def plot_mode(mode: dict, names: Sequence[str], positions, freqs, pooled, threshold: float,
+              path: str | Path) -> None:
+    """PNG of a narrowband mode (:meth:`imu_array_ros.discovery.modes.Mode.to_dict`): left, the IMUs at their
+    (x, y) positions (mm) coloured by the signed amplitude of the mode shape (its ``shape`` entry; the arrow:
+    the in-plane part of the mode's direction scaled by it); right, the pooled line statistic (mean over
+    channels of PSD / local floor) against frequency with its detection threshold and the mode's band."""
+    names = [str(n) for n in names]
+    p = np.asarray(positions, dtype=float).reshape(len(names), 3) * 1e3
+    shape = mode.get("shape") or {}
+    s = np.asarray(shape.get("signed_amplitude") or np.zeros(len(names)), dtype=float)
+    d = np.asarray(shape.get("direction_array_frame") or [0.0, 0.0, 1.0], dtype=float)
+    plt = pyplot(path)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11.0, 4.2), constrained_layout=True)
+    try:
+        lim = float(np.abs(s).max()) if s.size and np.abs(s).max() > 0 else 1.0
+        sc = a.scatter(p[:, 0], p[:, 1], c=s, cmap="coolwarm", vmin=-lim, vmax=lim, s=160, edgecolors="k")
+        span = float(max(np.ptp(p[:, 0]), np.ptp(p[:, 1]), 1.0))
+        if np.linalg.norm(d[:2]) > 1e-6:
+            a.quiver(p[:, 0], p[:, 1], s / lim * d[0], s / lim * d[1], angles="xy", scale_units="xy",
+                     scale=1.0 / (0.25 * span), color="0.2", width=0.006)
+        for (x, y, _), n in zip(p, names):
+            a.annotate(n, (x, y), textcoords="offset points", xytext=(0, 9), ha="center", fontsize=7)
+        unit = "m/s²" if shape.get("sensor") == "accelerometer" else "rad/s"
+        fig.colorbar(sc, ax=a, label=f"signed amplitude ({unit} RMS, or noise std without stds)")
+        best = shape.get("best") or "—"
+        r2 = (shape.get("fits") or {}).get(best, {}).get("r2")
+        a.set_title(f"mode at {mode['frequency_hz']:.3g} Hz, {shape.get('sensor', '')}: shape {best}"
+                    + (f" (R² {r2:.2f})" if r2 is not None else ""), fontsize=10)
+        a.set_xlabel("x (mm)")
+        a.set_ylabel("y (mm)")
+        a.set_aspect("equal", adjustable="datalim")
+        f = np.asarray(freqs, dtype=float)
+        q = np.asarray(pooled, dtype=float)
+        if f.size:
+            b.plot(f, q, color="0.35", lw=1.0, label="mean PSD / local floor over channels")
+            b.axhline(threshold, color="C3", ls="--", lw=0.9, label="detection threshold")
+            lo, hi = mode["band_hz"]
+            b.axvspan(lo, hi, color="C1", alpha=0.35, label=f"band {lo:.3g}–{hi:.3g} Hz")
+            b.set_yscale("log")
+            b.set_xlabel("Hz")
+            b.legend(fontsize=8)
+        else:
+            _no_data(b, "no spectrum")
+        b.set_title(f"line statistic (p = {mode['p_value']:.2g}, present in "
+                    f"{(mode.get('presence') or {}).get('fraction_present', float('nan')):.0%} of the time blocks)",
+                    fontsize=10)
         save_png(fig, path, _DPI, close=False)
     finally:
         plt.close(fig)

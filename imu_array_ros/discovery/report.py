@@ -16,7 +16,10 @@ from imu_array_ros.util.files import atomic_write_text
 from imu_array_ros.util.jsontools import json_safe
 from imu_array_ros.model.terms import REGISTRY
 
-__all__ = ["write_report", "markdown", "PLOTS"]
+__all__ = ["write_report", "markdown", "PLOTS", "MAX_MODE_PLOTS"]
+
+#: a plot for each of the strongest modes, at most this many
+MAX_MODE_PLOTS = 3
 
 #: the plots written next to the report
 PLOTS = {"residual_map.png": "normalised residual (observed / expected r^2) by IMU x axis, before and after",
@@ -24,7 +27,10 @@ PLOTS = {"residual_map.png": "normalised residual (observed / expected r^2) by I
          "evidence.png": "log-likelihood gain of every candidate that passed, accepted ones highlighted",
          "time.png": "residual ratio over time, before and after",
          "timing.png": "a sample clock found: one IMU's reading delay vs time with its sawtooth; its residual vs "
-                       "angular acceleration without and with the clocks"}
+                       "angular acceleration without and with the clocks",
+         **{f"mode_{i}.png": "a narrowband mode (outside the library): its shape across the array (IMU positions "
+                             "coloured by signed amplitude, arrows its in-plane direction) and its line in the "
+                             "spectrum" for i in range(1, MAX_MODE_PLOTS + 1)}}
 
 
 def _g(x, fmt=".4g") -> str:
@@ -79,12 +85,58 @@ def _plots(d, directory: Path) -> list[Path]:
         after = la.window_ratio if la is not None and len(la.window_ratio) == len(lb.window_ratio) else None
         plots.plot_time(lb.windows, lb.window_ratio, after, path, spans=lb.spans)
         out.append(path)
+    search = _mode_search(d)
+    if search is not None and search.positions is not None:
+        for i, m in enumerate(search.modes[:MAX_MODE_PLOTS], start=1):
+            path = directory / f"mode_{i}.png"
+            plots.plot_mode(m.to_dict(d.names), list(d.names), search.positions, search.freqs, search.pooled,
+                            search.pooled_threshold, path)
+            out.append(path)
     timing = getattr(d, "timing", None)
     if timing is not None and timing.evidence:
         path = directory / "timing.png"
         plots.plot_timing(timing.evidence, path)
         out.append(path)
     return out
+
+
+def _mode_search(d):
+    """The mode search of the localisation the unexplained entries come from (after the findings, else before)."""
+    loc = d.localization_after if d.localization_after is not None else d.localization_before
+    return getattr(loc, "modes", None) if loc is not None else None
+
+
+def _mode_lines(d) -> list[str]:
+    """The report.md subsection on narrowband modes (:mod:`imu_array_ros.discovery.modes`)."""
+    search = _mode_search(d)
+    if search is None or not len(search.freqs):
+        return []
+    sm = search.summary()
+    lines = ["", "### Narrowband modes (outside the library)", "",
+             f"Searched {sm['bins_tested']} frequency bins of {_g(sm['resolution_hz'], '.3g')} Hz up to Nyquist in "
+             f"every IMU x axis; false-alarm rate: {sm['false_alarm_rate']}.", ""]
+    if not search.modes:
+        lines.append("No narrowband mode.")
+    for i, m in enumerate(search.modes, start=1):
+        chans = ", ".join(f"{d.names[k]} {AXES[a]} {_g(float(m.amplitude[k, a]), '.2g')}σ"
+                          f"∠{np.degrees(m.phase[k, a]):.0f}°" for k, a in m.channels[:8])
+        more = f" (+{len(m.channels) - 8} more)" if len(m.channels) > 8 else ""
+        sh, pr, em = m.shape, m.presence, m.model
+        fits = ", ".join(f"{n} R² {v['r2']:.2f}" for n, v in sh.get("fits", {}).items())
+        lines += [f"{i}. **{m.frequency_hz:.4g} Hz** (band {m.band_hz[0]:.4g}–{m.band_hz[1]:.4g} Hz, p = "
+                  f"{m.p_value:.2g}, {m.test} test) on {len(m.imus)} IMU(s): {chans}{more} (in-band RMS in noise "
+                  f"stds, phase relative to the strongest).",
+                  f"   Shape ({sh.get('sensor', '')}, array frame): {sh.get('best') or '—'}"
+                  + (f" [{fits}]" if fits else "") + ".",
+                  f"   When: present in {pr.get('fraction_present', 0.0):.0%} of {pr.get('blocks', 0)} blocks of "
+                  f"{pr.get('block_s', 0):g} s; regime {pr.get('regime', 'all')}.",
+                  "   Empirical model: " + (f"{em['method']}: held-out sum of squared residuals of its channels × "
+                                           f"{_g(em.get('ratio_after_before'), '.3g')}" if "ratio_after_before" in em
+                                           else em.get("method", "not fitted")) + "."]
+    if search.motion_lines:
+        lines += ["", "Lines that follow the motion (a misfit for the library terms, not a mode): "
+                      + ", ".join(f"{m.frequency_hz:.3g} Hz" for m in search.motion_lines) + "."]
+    return lines
 
 
 def _timing_lines(timing) -> list[str]:
@@ -192,6 +244,7 @@ def markdown(d, *, source: str = "", figures=()) -> str:
         lines += ["", "Empirical models are reported, never applied to the description."]
     else:
         lines.append("Nothing left above the noise.")
+    lines += _mode_lines(d)
     if d.baseline.observed["all"].size:
         lines += ["", "## Residual map (observed / expected r², before → after)", "",
                   _map_table(d.baseline.ratio("all"), d.after.ratio("all"), d.names)]

@@ -1,0 +1,210 @@
+"""Narrowband-mode search (issue 23, item 3): false modes on nulls, detection power vs amplitude on fresh seeds.
+
+Its own generator (not the suite's): per scenario an array (4 planar, the 8 MIMU4444BT corners, 32), a rate
+(62.5-1000 Hz), a session (hand twisting, or 20 icosahedron rests then twisting) capped at 120 000 readings,
+simulated with :mod:`imu_array_ros.simulation`, the motion fitted by the engine (``fit_motion``) with the
+model it is analysed with, then :func:`imu_array_ros.discovery.modes.detect_modes` on the normalised residuals.
+
+* **nulls** (three kinds, equal shares): ``white`` (the truth model, white noise); ``broadband`` (analysed
+  with the truth model, but 1-3 IMUs carry first-order Gauss-Markov noise of 0.05-2 s and 0.5-2 noise stds on
+  random sensors and a random-walk bias: a misfit spread over frequency); ``library`` (analysed without a
+  library term the recording has: a gain, misalignment, position or g-sensitivity error 1-5x its test size
+  on one IMU -- a misfit that follows the motion).  Any mode reported is a false finding.
+* **modes**: a narrowband process (a pure sinusoid, or an AR(2) resonance 0.05-1.5 Hz wide, unit RMS) at a
+  frequency log-uniform in 0.5 Hz .. 0.95 x Nyquist, on the accelerometers (70 %) or gyroscopes, on a
+  random subset of IMUs with random gains 0.2-1, standing (phases 0 / pi) or travelling (random phases),
+  a random direction per IMU; present all the time or (30 %) in one window of 30-70 % of the recording.
+  Size: the RMS of the strongest channel, log-uniform 0.02-1 noise std; binned by the oracle evidence
+  E = sum over channels of N a_c^2 / 2 (a_c: channel RMS in noise stds).  *Detected*: a mode whose band
+  holds the frequency (+- one bin) and whose IMUs include the strongest one.
+
+    python -m benchmarks.discovery_modes [--nulls 60] [--modes 120] [--seed 5150]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import numpy as np
+
+from imu_array_ros.discovery.excess import regime_masks
+from imu_array_ros.discovery.modes import MODE_ALPHA, detect_modes
+from imu_array_ros.fitting.engine import fit_motion
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.layouts import grid_array32, planar_square4
+from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.simulation.icosahedron import simulate_icosahedron
+from imu_array_ros.simulation.perturb import TERM_TEST_SIZES
+from imu_array_ros.simulation.simulator import simulate_twist
+
+ARRAYS = {"planar4": planar_square4, "corners8": lambda: load_description("config/mimu4444bt_corners.yaml"),
+          "grid32": grid_array32}
+RATES = (62.5, 100.0, 200.0, 500.0, 1000.0)
+CAP = 120_000
+MISFIT_TERMS = ("accelerometer_gain", "gyroscope_gain", "accelerometer_misalignment", "gyroscope_misalignment",
+                "position", "gyroscope_g_sensitivity")
+EDGES = (0, 30, 100, 300, 1000, 3000, 10_000, np.inf)
+
+
+def _session(rng, misfit: bool = False):
+    """(array, rate, still poses, the model analysed with, the recording, the term left out or "")."""
+    array = str(rng.choice(list(ARRAYS)))
+    model = SensorModel.from_description(ARRAYS[array]())
+    k = model.n_imus
+    sim, term = model, ""
+    if misfit:
+        term = str(rng.choice(MISFIT_TERMS))
+        v = model.terms[term].values.copy()
+        kk = int(rng.integers(k))
+        v[kk] += rng.normal(size=v[kk].shape) * TERM_TEST_SIZES[term] * rng.uniform(1.0, 5.0)
+        sim = model.with_terms(**{term: v})
+    still = rng.random() < 0.3
+    rates = [r for r in RATES if (38.0 if still else 8.0) * r * k <= CAP]
+    rate = float(rng.choice(rates))
+    if still:
+        twist = float(min(rng.uniform(5.0, 15.0), CAP / (rate * k) - 20 * 0.8 - 19 * 0.6))
+        samples, truth, _ = simulate_icosahedron(sim, rng, rate_hz=rate, still_s=0.8, transition_s=0.6,
+                                                 twist_s=max(twist, 0.0))
+    else:
+        dur = float(min(rng.uniform(10.0, 30.0), CAP / (rate * k)))
+        samples, truth = simulate_twist(sim, dur, rate, rng)
+    return array, rate, still, model, samples, term
+
+
+def _process(rng, n, fs, f, bw):
+    """Unit-RMS narrowband process: a sinusoid (bw 0) or an AR(2) resonance of full width bw Hz."""
+    t = np.arange(n) / fs
+    if bw <= 0:
+        x = np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
+    else:
+        from scipy.signal import lfilter
+        rad = np.exp(-np.pi * bw / fs)
+        x = lfilter([1.0], [1.0, -2 * rad * np.cos(2 * np.pi * f / fs), rad * rad], rng.normal(size=n + 2000))[2000:]
+    return x / np.sqrt(np.mean(x ** 2))
+
+
+def _add(samples: ImuSamples, added: np.ndarray) -> ImuSamples:
+    return ImuSamples(samples.stamps, samples.accel + added[..., :3], samples.gyro + added[..., 3:], samples.names)
+
+
+def _analyse(samples, model):
+    motion, _, r = fit_motion(samples, model)
+    fs = 1e9 / float(np.median(np.diff(samples.stamps)))
+    still = regime_masks(motion, 0.2, 9.80665)["still"]
+    return detect_modes(r, fs, positions=model.positions, rotations=model.rotations, std=model.std, still=still,
+                        motion=motion), fs, len(r)
+
+
+def null_case(seed: int, kind: str) -> dict:
+    rng = np.random.default_rng([seed, 1])
+    array, rate, still, model, samples, term = _session(rng, misfit=kind == "library")
+    n, k = samples.accel.shape[:2]
+    if kind == "broadband":
+        from scipy.signal import lfilter
+        added = np.zeros((n, k, 6))
+        for kk in rng.choice(k, size=int(rng.integers(1, min(3, k) + 1)), replace=False):
+            tau, ratio = rng.uniform(0.05, 2.0), rng.uniform(0.5, 2.0)
+            a = np.exp(-1.0 / (tau * rate))
+            e = lfilter([np.sqrt(1 - a * a)], [1.0, -a], rng.normal(size=(n, 6)), axis=0)
+            walk = np.cumsum(rng.normal(size=(n, 6)), axis=0) / np.sqrt(n)
+            added[:, kk] = (ratio * e + walk) * model.std[kk][None]
+        samples = _add(samples, added)
+    elif kind == "library":
+        kind = f"library ({term})"
+    search, fs, n = _analyse(samples, model)
+    return {"kind": kind, "seed": seed, "array": array, "rate_hz": rate, "still_poses": still, "samples": n,
+            "modes": [(round(m.frequency_hz, 3), m.p_value) for m in search.modes],
+            "motion_lines": len(search.motion_lines)}
+
+
+def mode_case(seed: int) -> dict:
+    rng = np.random.default_rng([seed, 2])
+    array, rate, still, model, samples, _ = _session(rng)
+    n, k = samples.accel.shape[:2]
+    nyq = rate / 2
+    f = float(np.exp(rng.uniform(np.log(0.5), np.log(0.95 * nyq))))
+    bw = 0.0 if rng.random() < 0.4 else float(rng.uniform(0.05, 1.5))
+    x = _process(rng, n, rate, f, bw)
+    gate = np.ones(n)
+    if rng.random() < 0.3:
+        w = rng.uniform(0.3, 0.7)
+        s0 = rng.uniform(0, 1 - w)
+        gate[: int(s0 * n)] = 0
+        gate[int((s0 + w) * n):] = 0
+    from scipy.signal import hilbert
+    z = hilbert(x * gate)
+    m = int(rng.integers(1, k + 1))
+    imus = rng.choice(k, size=m, replace=False)
+    gains = rng.uniform(0.2, 1.0, m)
+    gains[0] = 1.0
+    phases = rng.choice([0.0, np.pi], m) if rng.random() < 0.5 else rng.uniform(0, 2 * np.pi, m)
+    acc = rng.random() < 0.7
+    size = float(np.exp(rng.uniform(np.log(0.02), np.log(1.0))))
+    added = np.zeros((n, k, 6))
+    energy = 0.0
+    for kk, g, ph in zip(imus, gains, phases):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        sl = slice(0, 3) if acc else slice(3, 6)
+        sd = model.std[kk, sl]
+        sig = np.real(z * np.exp(1j * ph))[:, None] * d[None] * g * size * sd.max()
+        added[:, kk, sl] = sig
+        energy += 0.5 * float(np.sum((sig / sd[None]) ** 2))
+    search, fs, _ = _analyse(_add(samples, added), model)
+    df = search.freqs[1] - search.freqs[0] if len(search.freqs) > 1 else 0.0
+    lead = int(imus[0])
+    hit = [md for md in search.modes if md.band_hz[0] - df <= f <= md.band_hz[1] + df and lead in md.imus]
+    false = [md for md in search.modes if not (md.band_hz[0] - 2 * df <= f <= md.band_hz[1] + 2 * df)]
+    return {"seed": seed, "array": array, "rate_hz": rate, "still_poses": still, "frequency_hz": f,
+            "bandwidth_hz": bw, "sensor": "accelerometer" if acc else "gyroscope", "imus": len(imus),
+            "gated": bool(gate.min() == 0), "size_noise_std": size, "evidence": energy, "detected": bool(hit),
+            "band_hz": list(hit[0].band_hz) if hit else None,
+            "regime": hit[0].presence.get("regime") if hit else None,
+            "fraction_present": hit[0].presence.get("fraction_present") if hit else None,
+            "heldout_ratio": hit[0].model.get("ratio_after_before") if hit else None,
+            "in_motion_lines": any(md.band_hz[0] - df <= f <= md.band_hz[1] + df for md in search.motion_lines),
+            "other_modes": len(false)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--nulls", type=int, default=60)
+    ap.add_argument("--modes", type=int, default=120)
+    ap.add_argument("--seed", type=int, default=5150)
+    ap.add_argument("--out", default="benchmarks/results/discovery_modes.json")
+    a = ap.parse_args()
+    t0 = time.time()
+    nulls, modes = [], []
+    kinds = ("white", "broadband", "library")
+    for i in range(a.nulls):
+        nulls.append(null_case(a.seed * 1000 + i, kinds[i % 3]))
+        print(json.dumps(nulls[-1]), flush=True)
+    for i in range(a.modes):
+        modes.append(mode_case(a.seed * 1000 + 500 + i))
+        print(json.dumps(modes[-1]), flush=True)
+    false = sum(bool(r["modes"]) for r in nulls)
+    ev = np.array([r["evidence"] for r in modes])
+    det = np.array([r["detected"] for r in modes])
+    power = []
+    for lo, hi in zip(EDGES[:-1], EDGES[1:]):
+        sel = (ev >= lo) & (ev < hi)
+        power.append({"evidence": [lo, hi], "n": int(sel.sum()), "detected": int(det[sel].sum())})
+    summary = {"alpha": MODE_ALPHA, "nulls": len(nulls), "nulls_with_a_mode": false,
+               "by_kind": {kd: [sum(bool(r["modes"]) for r in nulls if r["kind"].startswith(kd)),
+                                sum(r["kind"].startswith(kd) for r in nulls)] for kd in kinds},
+               "mode_scenarios": len(modes), "detected": int(det.sum()), "power": power,
+               "false_modes_in_mode_scenarios": int(sum(r["other_modes"] for r in modes)),
+               "seconds": time.time() - t0, "machine": platform.processor() or platform.machine(),
+               "cpus": os.cpu_count(), "load_average": os.getloadavg()}
+    print(json.dumps(summary, indent=1))
+    with open(a.out, "w") as fh:
+        json.dump({"summary": summary, "nulls": nulls, "modes": modes}, fh, indent=1, default=float)
+
+
+if __name__ == "__main__":
+    main()

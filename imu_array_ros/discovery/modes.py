@@ -1,0 +1,404 @@
+"""Narrowband modes of the residual across the array: detected up to Nyquist, located, described, modelled.
+
+A structural mode of the board (or any narrowband disturbance outside the sensor
+model's library) leaves, in the normalised residuals r (N, K, 6) of a fitted
+model, a spectral line that several IMUs and axes share with fixed amplitude
+ratios and phases: the mode shape.  :func:`detect_modes` finds such lines.
+
+**Spectra.** Welch (Hann, 50 % overlap) of every channel (IMU x axis) as a
+relative PSD (:func:`~imu_array_ros.discovery.spectra.relative_psd`: white noise
+of variance v gives v), with a segment length giving about ``RESOLUTION_HZ``
+bins (at least 8 segments).  Each channel's **local floor** is the larger of two
+running medians of its PSD, over the bins below and over the bins above the
+bin tested (``HALF_WINDOW`` bins each side, the ``GUARD`` bins next to it left
+out), divided by the median of chi^2_nu / nu: a line must stand out of both
+sides, so a broadband misfit (coloured noise, drift, a steep low-frequency
+end) raises the floor with the PSD and is no line.
+
+**Tests** (every bin from max(``MIN_FREQ_HZ``, 2 bins) to the last bin below Nyquist):
+
+* *pooled*: the mean over channels of PSD / floor.  Channels are correlated
+  (the fitted motion couples the IMUs), so its null law is taken as a scaled
+  chi-square whose mean and variance are those of the statistic over the bins
+  tested (sigma-clipped, so lines do not inflate them): Satterthwaite's
+  moment match; tested at ``alpha / 2`` Bonferroni over the bins;
+* *per channel*: PSD / floor against F(nu, nu_floor), nu = 2 L / 1.056 Welch's
+  equivalent degrees of freedom of L segments, nu_floor those of the floor
+  estimate (median of HALF_WINDOW - GUARD bins, adjacent bins correlated:
+  ``FLOOR_EFFICIENCY``; the larger of two medians only raises the floor); at ``alpha / 2`` Bonferroni over bins x channels.
+
+Family-wise false-alarm rate of the detector on a recording: <= ``alpha``
+(:data:`MODE_ALPHA`), measured on null recordings by
+``benchmarks/discovery_modes.py``.
+
+**Each mode** (runs of significant bins, 2-bin gaps merged): frequency (the
+peak bin), band (the run +- half a bin), per channel the RMS of the in-band
+excess (noise stds; m/s^2 or rad/s when the stds are given) and its phase
+relative to the strongest channel (Welch cross-spectrum over the band), the
+channels significant in the band (chi-square at ``alpha`` / channels; when the
+pooled test found it and no channel passes: those beyond 1 % each, else the
+strongest), a shape
+description (:func:`~imu_array_ros.discovery.modeshape.describe_shape`), when it
+is present (:func:`~imu_array_ros.discovery.modeshape.presence`) and the
+empirical model with its held-out gain
+(:func:`~imu_array_ros.discovery.modeshape.heldout_model`).
+
+A line the motion itself carries (hand twisting is a sum of sinusoids; a
+misfit of a library term then leaves lines in the residual at the motion's
+frequencies) is not a mode: when the fitted motion's in-band content exceeds
+``MOTION_FACTOR`` x what the mode could leak into it, the line is kept in
+``motion_lines`` (a misfit that follows the motion, for the library terms) and
+not reported as a mode.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage, signal, stats
+
+from imu_array_ros.discovery.modeshape import bandpass, describe_shape, heldout_model, presence
+from imu_array_ros.discovery.spectra import relative_psd
+from imu_array_ros.fusion.residuals import AXES
+from imu_array_ros.util.jsontools import json_safe
+
+__all__ = ["MODE_ALPHA", "MIN_FREQ_HZ", "RESOLUTION_HZ", "Mode", "ModeSearch", "detect_modes", "mode_segment"]
+
+#: family-wise false-alarm rate of the mode detector per recording
+MODE_ALPHA = 0.01
+#: lowest frequency tested (below it a mode cannot be told from drift and the motion)
+MIN_FREQ_HZ = 0.5
+#: target bin width of the spectra
+RESOLUTION_HZ = 0.5
+#: bins either side of the tested one left out of its floor / used for it
+GUARD, HALF_WINDOW = 3, 24
+#: effective share of the floor's bins (adjacent Hann bins are correlated; the median is 64 % efficient)
+FLOOR_EFFICIENCY = 0.5 * 0.64
+#: at most this many modes per recording (the strongest)
+MAX_MODES = 8
+#: the motion carries the line when its in-band content exceeds this many times the mode's possible leak
+MOTION_FACTOR = 3.0
+
+
+def mode_segment(n: int, fs: float) -> int:
+    """Welch segment length: the power of 2 giving bins of about RESOLUTION_HZ, at most n / 4 (>= 7 segments)."""
+    want = 2 ** int(np.ceil(np.log2(max(fs / RESOLUTION_HZ, 16.0))))
+    cap = 2 ** int(np.floor(np.log2(max(n / 4.0, 16.0))))
+    return int(max(32, min(want, cap)))
+
+
+@dataclass
+class Mode:
+    """A narrowband mode (see the module docstring).  amplitude (K, 6) in-band RMS in noise stds, amplitude_si
+    the same in m/s^2 / rad/s (NaN without stds), phase (K, 6) rad relative to the reference channel,
+    coherence (K, 6) with it, channels: significant (k, a) pairs strongest first; p_value: the detection's
+    (Bonferroni-corrected); shape: describe_shape(); presence: presence(); model: heldout_model()."""
+
+    frequency_hz: float
+    band_hz: tuple[float, float]
+    p_value: float
+    test: str
+    amplitude: np.ndarray
+    amplitude_si: np.ndarray
+    phase: np.ndarray
+    coherence: np.ndarray
+    channels: list[tuple[int, int]]
+    share_of_excess: float = 0.0
+    shape: dict = field(default_factory=dict)
+    presence: dict = field(default_factory=dict)
+    model: dict = field(default_factory=dict)
+    motion: dict = field(default_factory=dict)
+
+    @property
+    def follows_motion(self) -> bool:
+        return bool(self.motion.get("follows_motion", False))
+
+    @property
+    def imus(self) -> list[int]:
+        """IMUs of the significant channels, largest in-band amplitude first."""
+        out = []
+        for k, _ in self.channels:
+            if k not in out:
+                out.append(k)
+        return out
+
+    @property
+    def axes(self) -> list[int]:
+        return sorted({a for _, a in self.channels})
+
+    def entry(self, names) -> dict:
+        """A localisation entry (keys of Localization.entries) with the mode's detail under "mode"."""
+        imus = self.imus
+        amp = [float(np.sqrt(np.sum(self.amplitude[k, self.axes] ** 2))) for k in imus]
+        tot = sum(amp)
+        return {"sensors": [str(names[k]) for k in imus], "sensor_shares": [a / tot if tot > 0 else 0.0 for a in amp],
+                "axes": [AXES[a] for a in self.axes], "regime": self.presence.get("regime", "all"),
+                "band_hz": [float(self.band_hz[0]), float(self.band_hz[1])],
+                "share_of_excess": float(self.share_of_excess), "mode": self.to_dict(names)}
+
+    def to_dict(self, names) -> dict:
+        return json_safe({
+            "kind": "narrowband mode (outside the library)", "frequency_hz": self.frequency_hz,
+            "band_hz": list(self.band_hz), "p_value": self.p_value, "test": self.test,
+            "channels": [[str(names[k]), AXES[a]] for k, a in self.channels],
+            "amplitude_noise_std": self.amplitude, "amplitude_si": self.amplitude_si, "phase_rad": self.phase,
+            "coherence": self.coherence, "shape": self.shape, "presence": self.presence,
+            "empirical_model": self.model, "motion": self.motion})
+
+
+@dataclass
+class ModeSearch:
+    """Everything the detector computed: freqs (F,), pooled (F,) statistic and its threshold, channel_max (F,)
+    (largest PSD / floor over channels) and its threshold, tested (F,) bool, nu, modes, motion_lines,
+    positions (K, 3) m of the IMUs (None when not given)."""
+
+    freqs: np.ndarray
+    pooled: np.ndarray
+    pooled_threshold: float
+    channel_max: np.ndarray
+    channel_threshold: float
+    tested: np.ndarray
+    nu: float
+    alpha: float
+    modes: list[Mode]
+    motion_lines: list[Mode]
+    positions: np.ndarray | None = None
+
+    def summary(self) -> dict:
+        return json_safe({"alpha": self.alpha, "bins_tested": int(self.tested.sum()),
+                          "resolution_hz": float(self.freqs[1] - self.freqs[0]) if len(self.freqs) > 1 else None,
+                          "pooled_threshold": self.pooled_threshold, "channel_threshold": self.channel_threshold,
+                          "welch_dof": self.nu, "modes": len(self.modes), "motion_lines": len(self.motion_lines),
+                          "false_alarm_rate": f"family-wise <= {self.alpha:g} per recording (pooled test at "
+                                              f"{self.alpha / 2:g} over the bins, per-channel test at "
+                                              f"{self.alpha / 2:g} over bins x channels, Bonferroni)"})
+
+
+def _local_floor(p: np.ndarray, nu: float) -> np.ndarray:
+    """(C, F) the larger of the running medians of p over the HALF_WINDOW - GUARD bins below and above the
+    GUARD bins around the tested one (edges: the end bin repeated), made unbiased for white noise.  A line
+    must stand out of both sides: a steep coloured spectrum is no line."""
+    out = None
+    for side in (-1, 1):
+        foot = np.zeros(2 * HALF_WINDOW + 1, dtype=bool)
+        if side < 0:
+            foot[:HALF_WINDOW - GUARD] = True
+        else:
+            foot[HALF_WINDOW + GUARD + 1:] = True
+        med = ndimage.median_filter(p, footprint=foot[None, :], mode="nearest")
+        out = med if out is None else np.fmax(out, med)
+    return out / (stats.chi2.median(nu) / nu)
+
+
+def _clipped_moments(t: np.ndarray) -> tuple[float, float]:
+    keep = np.isfinite(t)
+    for _ in range(6):
+        mu, sd = float(np.mean(t[keep])), float(np.std(t[keep]))
+        new = np.isfinite(t) & (t < mu + 4.0 * sd)
+        if (new == keep).all():
+            break
+        keep = new
+    return mu, sd
+
+
+def _runs(hit: np.ndarray, gap: int = 2) -> list[tuple[int, int]]:
+    idx = np.flatnonzero(hit)
+    if not len(idx):
+        return []
+    out, lo, hi = [], idx[0], idx[0]
+    for i in idx[1:]:
+        if i - hi <= gap + 1:
+            hi = i
+        else:
+            out.append((lo, hi))
+            lo = hi = i
+    out.append((lo, hi))
+    return out
+
+
+def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None = None,
+                 positions: np.ndarray | None = None, rotations: np.ndarray | None = None,
+                 std: np.ndarray | None = None, still: np.ndarray | None = None, motion: np.ndarray | None = None,
+                 alpha: float = MODE_ALPHA, heldout: bool = True) -> ModeSearch:
+    """Narrowband modes of the normalised residuals (N, K, 6) sampled at ``fs`` Hz (module docstring).
+
+    valid (N, K, 6) bool (default: finite); positions (K, 3) m, rotations (K, 3, 3) sensor -> array: the
+    shape description; std (K, 6) noise stds: amplitudes in SI units; still (N,) bool: the regime;
+    motion (N, 9) fitted [omega, omega_dot, s]: the motion-line check.  heldout: fit the empirical model.
+    """
+    r = np.asarray(residuals, dtype=float)
+    n, k = r.shape[:2]
+    valid = np.isfinite(r) if valid is None else (np.asarray(valid, dtype=bool) & np.isfinite(r))
+    x = np.where(valid, r, np.nan).reshape(n, k * 6)
+    chan_ok = valid.reshape(n, k * 6).mean(axis=0) > 0.5
+    empty = ModeSearch(np.zeros(0), np.zeros(0), np.inf, np.zeros(0), np.inf, np.zeros(0, bool), 0.0, alpha, [], [])
+    if n < 256 or not np.isfinite(fs) or fs <= 0 or not chan_ok.any():
+        return empty
+    nper = mode_segment(n, fs)
+    segments = 1 + (n - nper) // (nper // 2)
+    nu = 2.0 * segments / 1.056
+    freqs, p = relative_psd(x[:, chan_ok], fs, nperseg=nper)        # (C, F)
+    if len(freqs) < 2 * HALF_WINDOW:
+        return empty
+    floor = _local_floor(p, nu)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = p / floor
+    df = freqs[1] - freqs[0]
+    tested = (freqs >= max(MIN_FREQ_HZ, 2 * df)) & (freqs < fs / 2 - 0.5 * df)
+    nb, c = int(tested.sum()), int(chan_ok.sum())
+    if nb == 0:
+        return empty
+    pooled = np.nanmean(ratio, axis=0)
+    mu, sd = _clipped_moments(pooled[tested])
+    m_eff = 2.0 * mu * mu / max(sd * sd, 1e-12)
+    pooled_thr = mu * stats.chi2.isf(alpha / 2 / nb, m_eff) / m_eff
+    nu_floor = nu * (HALF_WINDOW - GUARD) * FLOOR_EFFICIENCY
+    chan_thr = float(stats.f.isf(alpha / 2 / (nb * c), nu, nu_floor))
+    cmax = np.nanmax(ratio, axis=0)
+    hit = tested & ((pooled > pooled_thr) | (cmax > chan_thr))
+    runs = _runs(hit)
+    # strongest first: by the smaller p-value of the two tests at the run's peak
+    cands = []
+    for lo, hi in runs:
+        sl = slice(lo, hi + 1)
+        pk = lo + int(np.nanargmax(pooled[sl] / pooled_thr + cmax[sl] / chan_thr))
+        p_pool = min(1.0, stats.chi2.sf(pooled[pk] / mu * m_eff, m_eff) * 2 * nb)
+        p_chan = min(1.0, stats.f.sf(cmax[pk], nu, nu_floor) * 2 * nb * c)
+        cands.append((min(p_pool, p_chan), lo, hi, pk, "pooled" if p_pool <= p_chan else "channel"))
+    cands.sort()
+    full_p = np.full((k * 6, len(freqs)), np.nan)
+    full_p[chan_ok], full_floor = p, np.full((k * 6, len(freqs)), np.nan)
+    full_floor[chan_ok] = floor
+    total_excess = float(np.nansum(np.clip(p - floor, 0, None)[:, tested]))
+    mline = _motion_lines(motion, fs, nper, nu, nu_floor) if motion is not None else None
+    modes, motion_lines = [], []
+    for pval, lo, hi, pk, test in cands[:MAX_MODES]:
+        band = (max(0.0, float(freqs[lo] - df / 2)), min(fs / 2, float(freqs[hi] + df / 2)))
+        mode = _describe(x, valid.reshape(n, k * 6), full_p, full_floor, freqs, lo, hi, pk, band, fs, nper, nu, alpha,
+                         k, pval, test)
+        mode.share_of_excess = float(np.nansum(np.clip(p - floor, 0, None)[:, lo:hi + 1])) / total_excess \
+            if total_excess > 0 else 0.0
+        if not mode.channels:
+            continue
+        _finish(mode, x, valid.reshape(n, k * 6), full_floor[:, pk], fs, positions, rotations, std, still, motion,
+                heldout, None if mline is None else mline[:, lo:hi + 1].any(axis=1))
+        (motion_lines if mode.follows_motion else modes).append(mode)
+    return ModeSearch(freqs, pooled, float(pooled_thr), cmax, chan_thr, tested, nu, alpha, modes, motion_lines,
+                      None if positions is None else np.asarray(positions, dtype=float))
+
+
+def _describe(x, valid, p, floor, freqs, lo, hi, pk, band, fs, nper, nu, alpha, k, pval, test) -> Mode:
+    """Amplitudes, phases and significant channels of the line in bins lo..hi."""
+    sl = slice(lo, hi + 1)
+    nbins = hi - lo + 1
+    df = freqs[1] - freqs[0]
+    with np.errstate(invalid="ignore"):
+        excess = np.nansum(p[:, sl] - floor[:, sl], axis=1)          # (C,)
+        band_ratio = np.nanmean(p[:, sl] / floor[:, sl], axis=1)
+    var = np.clip(excess, 0.0, None) * df / (fs / 2)
+    amp = np.sqrt(var)
+    ok = np.isfinite(band_ratio)
+    dof = max(nu * nbins / 2.0, 1.0)                                 # adjacent bins correlated
+    limit = stats.chi2.isf(alpha / max(int(ok.sum()), 1), dof) / dof
+    sig = ok & (band_ratio > limit)
+    if not sig.any():  # found by the pooled test, no channel strong on its own: those beyond 1 % each
+        sig = ok & (band_ratio > stats.chi2.isf(0.01, dof) / dof)
+    if not sig.any():
+        sig = ok & (np.arange(len(ok)) == int(np.nanargmax(np.where(ok, band_ratio, -np.inf))))
+    ref = int(np.nanargmax(np.where(ok, amp, -1.0)))
+    z = np.nan_to_num(x)
+    _, s_xr = signal.csd(z, z[:, ref:ref + 1], fs=fs, window="hann", nperseg=nper, detrend=False, axis=0)
+    _, s_rr = signal.welch(z[:, ref], fs=fs, window="hann", nperseg=nper, detrend=False)
+    _, s_xx = signal.welch(z, fs=fs, window="hann", nperseg=nper, detrend=False, axis=0)
+    cross = s_xr[sl].sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        coh = np.abs(cross) ** 2 / (s_xx[sl].sum(axis=0) * s_rr[sl].sum())
+    phase = np.angle(cross)
+    order = [int(i) for i in np.argsort(-np.where(sig, amp, -1.0)) if sig[i]]
+    shape = (k, 6)
+    return Mode(float(freqs[pk]), band, float(pval), test, amp.reshape(shape), np.full(shape, np.nan),
+                np.where(ok, phase, np.nan).reshape(shape), np.where(ok, coh, np.nan).reshape(shape),
+                [(i // 6, i % 6) for i in order])
+
+
+def _motion_features(motion: np.ndarray) -> np.ndarray:
+    """(N, 15) [omega, omega_dot, s, omega_i omega_j] of the fitted motion, 0 on NaN rows."""
+    m = np.asarray(motion, dtype=float)
+    mz = np.where(np.isfinite(m).all(axis=1)[:, None], np.nan_to_num(m), 0.0)
+    w = mz[:, 0:3]
+    return np.concatenate([mz, w[:, [0, 1, 2, 0, 0, 1]] * w[:, [0, 1, 2, 1, 2, 2]]], axis=1)
+
+
+def _motion_lines(motion, fs, nper, nu, nu_floor) -> np.ndarray:
+    """(15, F) bool: bins where a motion feature has a line of its own (PSD / local floor beyond F at 1 %)."""
+    feats = _motion_features(motion)
+    _, p = relative_psd(feats, fs, nperseg=nper)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.nan_to_num(p / _local_floor(p, nu)) > stats.f.isf(0.01, nu, nu_floor)
+
+
+def _finish(mode: Mode, x, valid, floor_pk, fs, positions, rotations, std, still, motion, heldout: bool,
+            motion_line=None) -> None:
+    """SI amplitudes, the motion-line check, shape, presence and held-out model of ``mode``."""
+    n = len(x)
+    k = mode.amplitude.shape[0]
+    if std is not None:
+        mode.amplitude_si = mode.amplitude * np.asarray(std, dtype=float).reshape(k, 6)
+    cols = [kk * 6 + a for kk, a in mode.channels]
+    y = bandpass(np.where(valid[:, cols], np.nan_to_num(x[:, cols]), 0.0), fs, mode.band_hz)
+    if motion is not None:
+        mode.motion = _motion_check(mode, motion, fs, positions, std, motion_line)
+    mode.shape = describe_shape(mode, positions, rotations)
+    mode.presence = presence(y, valid[:, cols], floor_pk[cols], fs, mode.band_hz, still)
+    if heldout:
+        mode.model = heldout_model(np.nan_to_num(x[:, cols]), y, valid[:, cols], fs, n)
+
+
+def _motion_check(mode: Mode, motion, fs, positions, std, motion_line) -> dict:
+    """Does the fitted motion carry a line in the band far stronger than the mode could leak into it?
+
+    Per sample the ML motion takes omega from the gyroscopes (an accelerometer mode reaches it only through
+    the centripetal term, weighted by rho = (2 |omega| arm sigma_gyro / sigma_acc)^2 against the gyroscopes),
+    omega_dot and s from the accelerometers.  Leak bounds: s <= the largest accelerometer amplitude a;
+    omega <= the largest gyroscope amplitude + a min(1, rho) / (2 |omega| arm_min); the products
+    omega_i omega_j <= 2 |omega| (omega leak) + its square.  The motion carries the line when s, omega or the
+    products have a line of their own in the band (motion_line: (15,) bool per feature) whose in-band RMS
+    exceeds MOTION_FACTOR x its bound (broadband motion is not a line)."""
+    m = np.asarray(motion, dtype=float)
+    ok = np.isfinite(m).all(axis=1)
+    if not ok.any() or not np.isfinite(mode.amplitude_si).any():
+        return {"checked": False, "follows_motion": False, "reason": "no motion or no noise stds"}
+    feats = _motion_features(m)
+    w = feats[:, 0:3]
+    mb = bandpass(feats, fs, mode.band_hz)[ok]
+    line = np.ones(15, dtype=bool) if motion_line is None else np.asarray(motion_line, dtype=bool)
+
+    def rms(cols):
+        sel = np.arange(15)[cols][line[cols]]  # only the features with a line of their own in the band
+        return float(np.sqrt(np.mean(np.sum(mb[:, sel] ** 2, axis=1)))) if len(sel) else 0.0
+
+    w_rms, s_rms, c_rms = rms(slice(0, 3)), rms(slice(6, 9)), rms(slice(9, 15))
+    omega = max(float(np.sqrt(np.mean(np.sum(w[ok] ** 2, axis=1)))), 1e-3)
+    amp = np.nan_to_num(mode.amplitude_si)
+    acc = float(np.linalg.norm(amp[:, :3], axis=1).max())
+    gyr = float(np.linalg.norm(amp[:, 3:], axis=1).max())
+    arm_max, arm_min = 0.05, 0.005
+    if positions is not None:
+        d = np.linalg.norm(np.asarray(positions, float) - np.mean(positions, axis=0), axis=1)
+        arm_max = float(max(d.max(), 1e-3))
+        arm_min = float(max(d[d > 1e-6].min() if (d > 1e-6).any() else 1e-3, 1e-3))
+    rho = 1.0
+    if std is not None:
+        sd = np.asarray(std, dtype=float).reshape(-1, 6)
+        sa, sg = np.nanmin(sd[:, :3]), np.nanmax(sd[:, 3:]) if np.isfinite(sd[:, 3:]).any() else np.nan
+        if np.isfinite(sa) and np.isfinite(sg) and sa > 0:
+            rho = min(1.0, (2.0 * omega * arm_max * sg / sa) ** 2)
+    w_leak = gyr + acc * rho / (2.0 * omega * arm_min)
+    c_leak = 2.0 * omega * w_leak + w_leak ** 2
+    follows = bool(s_rms > MOTION_FACTOR * acc or w_rms > MOTION_FACTOR * w_leak or c_rms > MOTION_FACTOR * c_leak)
+    return {"checked": True, "follows_motion": follows, "omega_in_band_rms": w_rms, "s_in_band_rms": s_rms,
+            "omega_products_in_band_rms": c_rms, "mode_acc_amplitude": acc, "mode_gyro_amplitude": gyr,
+            "omega_leak_bound": w_leak, "products_leak_bound": c_leak,
+            "rule": f"the line follows the motion when the fitted motion's in-band RMS exceeds {MOTION_FACTOR:g} x "
+                    f"what the mode could leak into it"}
