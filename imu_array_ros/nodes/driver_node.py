@@ -12,7 +12,11 @@ every IMU topic has a subscriber (``wait_for_subscribers`` -1, at most
 lost, the reconnect, a device restart, the end of a replay, and the totals on exit.
 
 Topics: ``<topic_prefix>/<name>/data_raw`` for every IMU of ``array_config``
-(recording contract, :mod:`imu_array_ros.io.messages`), ``/diagnostics``.
+(recording contract, :mod:`imu_array_ros.io.messages`), ``/diagnostics``; the IMU frames on
+``/tf_static`` (``publish_frames``, :mod:`imu_array_ros.nodes.frames`); in replay ``/clock``
+(``publish_clock``): the time of the replayed stamps, published before the samples of that time, so
+that nodes run with ``use_sim_time`` see the recording's time.  The replay itself is paced by the
+system clock (a ``use_sim_time`` given to the driver is turned off, with one line: it is the clock).
 Parameters: :data:`imu_array_ros.nodes.parameters.DRIVER_PARAMS`.
 The serial protocol, reconnection and the device clock live in
 :mod:`imu_array_ros.io.openshoe.serial_link`; replay timing in
@@ -31,6 +35,7 @@ from imu_array_ros.errors import ConfigError
 from imu_array_ros.io.rosbag.recording import imu_payloads, imu_topic
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.samples import ImuSamples
+from imu_array_ros.nodes.frames import StaticFramePublisher
 from imu_array_ros.nodes.parameters import DRIVER_PARAMS, NODE_OPTIONS, declare
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, qos_events, run, timer
 
@@ -61,6 +66,7 @@ class DriverNode(Node):
         self._link_seen = ("", "disconnected", 0, 0)  # (last_error, state, reconnects, device_restarts) logged
         self._error_logged_at = -1e9
         self._ended = False
+        self._clock_pub = None
         if p.mode == "replay":
             from imu_array_ros.io.replay import Replay
 
@@ -69,6 +75,8 @@ class DriverNode(Node):
             self.source = Replay(p.bag, self.desc, rate=p.rate, loop=p.loop, topic_prefix=p.topic_prefix)
             self.link = None
             self.get_logger().info(f"replaying {p.bag}: {len(self.source.samples)} samples at rate {p.rate:g}")
+            if p.publish_clock:
+                self._clock_source()
         else:
             from imu_array_ros.io.openshoe.serial_link import SerialArrayLink
 
@@ -79,11 +87,29 @@ class DriverNode(Node):
             except ValueError as err:
                 raise ConfigError(f"parameter 'imu_mask': {err} (the IMUs of {p.array_config})") from None
             self.get_logger().info(f"opening {p.port} for {len(self.desc.names)} IMUs")
+        self.frames = StaticFramePublisher(self, p.frame_prefix) if p.publish_frames else None
+        if self.frames is not None:
+            self.frames.publish(self.desc)
         timer(self, p.poll_period, self._tick)
         timer(self, 1.0, self._diagnose)
 
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
+
+    def _clock_source(self) -> None:
+        """Publish /clock from the replay (``publish_clock``); the driver's own clock stays the system's."""
+        from rclpy.parameter import Parameter
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+
+        if self.get_parameter("use_sim_time").value:
+            self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
+            self.get_logger().info("use_sim_time ignored: this replay publishes /clock and runs on the system clock")
+        # reliable keep-last 1: every time source (best effort, depth 1 in rclpy and rclcpp) connects
+        self._clock_msg = Clock()
+        self._clock_pub = self.create_publisher(Clock, "/clock", QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        self._clock_ns = -1  # last published
+        self._clock_wall = 0.0
 
     def _tick(self) -> None:
         if self._waiting():
@@ -151,7 +177,27 @@ class DriverNode(Node):
             if p.exit_at_end and self._acknowledged():
                 self.finished = True
             return None
-        return src.due(self._now() - self._start, self._start if p.restamp else None)
+        elapsed = self._now() - self._start
+        samples = src.due(elapsed, self._start if p.restamp else None)
+        if self._clock_pub is not None:
+            self._publish_clock(elapsed, samples)
+        return samples
+
+    def _publish_clock(self, elapsed: int, samples: ImuSamples) -> None:
+        """/clock at the replay's time ``elapsed`` ns after its start (rate 0: the last stamp handed out), never
+        behind a stamp about to be published nor going back; sent with every batch, else at least every 10 ms."""
+        p, st = self.p, self.source.samples.stamps
+        now = -1
+        if p.rate > 0:  # recording ns since its first sample, within the recording unless it loops
+            local = elapsed * p.rate if p.loop else min(elapsed * p.rate, int(st[-1] - st[0]))
+            now = (self._start + int(local / p.rate)) if p.restamp else int(st[0]) + int(local)
+        t = max(now, int(samples.stamps.max()) if len(samples) else -1, self._clock_ns)
+        mono = time.monotonic()
+        if t < 0 or (not len(samples) and (t == self._clock_ns or mono - self._clock_wall < 0.01)):
+            return
+        self._clock_msg.clock.sec, self._clock_msg.clock.nanosec = divmod(t, 1_000_000_000)
+        self._clock_pub.publish(self._clock_msg)
+        self._clock_ns, self._clock_wall = t, mono
 
     def _acknowledged(self) -> bool:
         from rclpy.duration import Duration

@@ -78,6 +78,13 @@ DRIVER_PARAMS = _COMMON + (
           "anyway (logged); 0 = wait forever", 0.0, 3600.0),
     Param("exit_at_end", False, "replay: exit when the recording has been played (and acknowledged)"),
     Param("poll_period", 0.002, "seconds between reads of the port / replay steps", 0.0005, 1.0),
+    Param("publish_clock", True, "replay: publish /clock (rosgraph_msgs/Clock) with the time of the replayed stamps "
+          "(the recording's; with 'restamp' the publish time), paced with the replay and ahead of the samples of that "
+          "time, for nodes run with use_sim_time:=true (the driver itself stays on the system clock); ignored in "
+          "serial mode"),
+    Param("publish_frames", True, "publish the IMU frames of array_config on /tf_static at start (array frame_id -> "
+          "<frame_prefix><imu name>; needs tf2_msgs, a full ROS install); false when another node publishes them, "
+          "e.g. the fusion node with a calibration_file"),
 )
 
 FUSION_PARAMS = _COMMON + (
@@ -103,6 +110,9 @@ FUSION_PARAMS = _COMMON + (
           "with them from then on (published in /diagnostics); false: the description's biases throughout"),
     Param("timed_batch", 0.05, "time-aware fusion (timing terms or own stamps): least seconds of samples fused per "
           "call (a call costs ~10 ms for 32 IMUs); adds up to this to the latency", 0.0, 1.0),
+    Param("publish_frames", True, "publish the IMU frames of the description in use (calibration_file's when "
+          "present) on /tf_static at start and after every calibration reload (array frame_id -> <frame_prefix><imu "
+          "name>; needs tf2_msgs, a full ROS install)"),
 )
 
 CALIBRATION_PARAMS = _COMMON + (

@@ -1,0 +1,91 @@
+"""Simulated time over real DDS: the replay driver publishes /clock, and a node run with use_sim_time
+sees the recording's time while the replay runs, never behind the IMU messages it has received."""
+
+from __future__ import annotations
+
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from conftest import REPO
+
+BIN = Path(sys.executable).parent
+ARRAY8 = REPO / "config" / "mimu4444bt_corners.yaml"
+
+
+def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
+    import rclpy
+    from rclpy.experimental import EventsExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Imu
+
+    from imu_array_ros.io.rosbag.recording import imu_topic, write_imu_recording
+    from imu_array_ros.model.description import load_description
+    from imu_array_ros.nodes.runtime import qos
+    from imu_array_ros.simulation.simulator import simulate_twist
+
+    rng = np.random.default_rng(int(time.time()))
+    desc = load_description(ARRAY8)
+    start_ns = int(rng.integers(1_600_000_000, 2_000_000_000)) * 10**9 + int(rng.integers(0, 10**9))
+    samples, _ = simulate_twist(desc, 1.0, 200.0, rng, start_ns=start_ns)
+    bag = tmp_path / "rec.mcap"
+    write_imu_recording(bag, samples, desc)
+    first, last = int(samples.stamps[0]), int(samples.stamps[-1])
+
+    domain = 51 + os.getpid() % 9  # this helper's range of DDS domains
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        monkeypatch.setenv(key, env[key])
+    rclpy.init()
+    driver = None
+    try:
+        node = rclpy.create_node("sim_time_listener", parameter_overrides=[Parameter("use_sim_time", value=True)])
+        arrivals = []  # (message stamp, node clock at arrival)
+
+        def receive(payload: bytes) -> None:
+            sec, nsec = struct.unpack_from("<iI", payload, 4)  # header.stamp after the CDR encapsulation header
+            arrivals.append((sec * 10**9 + nsec, node.get_clock().now().nanoseconds))
+
+        for name in desc.names:
+            node.create_subscription(Imu, imu_topic(name), receive, qos(True, keep_all=True), raw=True)
+        ex = EventsExecutor()
+        ex.add_node(node)
+        # the driver waits for this node's subscriptions (wait_for_subscribers: 1 in replay), then plays 1 s of recording in 0.5 s
+        driver = subprocess.Popen([str(BIN / "driver_node"), "--ros-args", "-p", f"array_config:={ARRAY8}",
+                                   "-p", "mode:=replay", "-p", f"bag:={bag}", "-p", "rate:=2.0",
+                                   "-p", "use_sim_time:=true"],
+                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        clock = []  # the node's clock, read while it spins
+        want = len(samples) * len(desc.names)
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and driver.poll() is None and len(arrivals) < want:
+            ex.spin_once(timeout_sec=0.005)
+            clock.append(node.get_clock().now().nanoseconds)
+        driver.send_signal(signal.SIGINT)  # every message is in (or the time is up): no need to wait for the acks
+        out, err = driver.communicate(timeout=10)
+        node.destroy_node()
+    finally:
+        if driver is not None and driver.poll() is None:
+            driver.send_signal(signal.SIGINT)
+            driver.wait(10)
+        rclpy.try_shutdown()
+    assert driver.returncode == 0 and "Traceback" not in err and "200 samples (1600 messages) published" in err, err
+    # the driver was given use_sim_time too: it runs on the system clock anyway, and says so
+    assert "use_sim_time ignored" in err, err
+    got = np.array(arrivals, dtype=np.int64).reshape(-1, 2)
+    assert len(got) == want, (len(got), err)
+    ticking = np.array(clock, dtype=np.int64)
+    ticking = ticking[ticking != 0]  # 0: no /clock received yet
+    # the clock the node sees is the recording's: within its span, never going back, covering it
+    assert len(ticking) and ticking.min() >= first and ticking.max() <= last, (ticking.min() - first, last - ticking.max())
+    assert np.all(np.diff(ticking) >= 0)
+    assert ticking.max() - ticking.min() >= 0.9 * (last - first), (ticking.max() - ticking.min(), last - first)
+    # /clock goes out before the samples of its time: no message arrives ahead of the node's clock
+    ahead = got[:, 0] - got[:, 1]
+    assert ahead.max() <= 0, f"{np.sum(ahead > 0)} of {len(ahead)} messages ahead of the clock, by up to {ahead.max()} ns"
