@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -243,3 +244,42 @@ def test_cli_discover_with_the_users_simulation(capsys, recordings, tmp_path):
     assert data["localization_detail"]["source"].startswith("recording - simulated recording")
     located = {s for e in data["localization"] for s in e["sensors"][:1]}
     assert {"imu_6", "imu_3"} <= located
+
+
+def _pooled(effect, imus, values, std=1.0, scope="all shared"):
+    imus = tuple(imus)
+    v = np.asarray(values, dtype=float)
+    return SimpleNamespace(effect=effect, k=imus[0], sensor=f"imu_{imus[0] + 1}", imus=imus, scope=scope,
+                           values=v.mean(axis=0), std=np.full(v.shape[1], std), imu_values=v,
+                           imu_std=np.full(v.shape, std))
+
+
+def test_concealed_score_matches_pooled_findings_by_their_imu_set():
+    """A pooled finding is right only when its effect was injected on every IMU of its scope (matched by the
+    IMU set, not its first IMU); its per-IMU values are compared with each IMU's truth."""
+    names = tuple(f"imu_{k + 1}" for k in range(8))
+    truth = {("accelerometer_gain", k): np.full(3, 0.01 * (k + 1)) for k in (0, 2, 4, 6)}
+    built = SimpleNamespace(scenario=Scenario("top gain", "x", [(t, k) for t, k in truth]),
+                            nominal=SimpleNamespace(names=names), injected=truth, outside_sensors=[])
+
+    def run(*findings):
+        return score(built, SimpleNamespace(findings=list(findings), indistinguishable=[], unexplained=[]))
+
+    exact = [truth[("accelerometer_gain", k)] for k in (0, 2, 4, 6)]
+    r = run(_pooled("accelerometer_gain", (0, 2, 4, 6), exact, scope="top shared"))
+    assert r["correct"] and not r["false_findings"] and r["within_3sigma"], r
+    # the same first IMU, a wider scope: wrong (before: matched by imu_1 alone and counted right)
+    r = run(_pooled("accelerometer_gain", range(8), exact * 2))
+    assert not r["correct"] and r["false_findings"] == ["accelerometer_gain@all shared (" + ", ".join(names) + ")"]
+    # a narrower scope leaves IMUs missed
+    r = run(_pooled("accelerometer_gain", (0, 2), exact[:2], scope="pair"))
+    assert not r["correct"] and r["missed"] == ["accelerometer_gain@imu_5", "accelerometer_gain@imu_7"]
+    # per-IMU magnitudes: one IMU 5 std off fails the 3-sigma check
+    off = [v.copy() for v in exact]
+    off[2] = off[2] + 5.0
+    assert run(_pooled("accelerometer_gain", (0, 2, 4, 6), off, scope="top shared"))["within_3sigma"] is False
+    # one-IMU findings on each of them are right too
+    single = [SimpleNamespace(effect="accelerometer_gain", k=k, sensor=names[k], imus=(k,), scope="imu",
+                              values=truth[("accelerometer_gain", k)], std=np.ones(3), imu_values=None)
+              for k in (0, 2, 4, 6)]
+    assert run(*single)["correct"]

@@ -132,25 +132,48 @@ def build(sc: Scenario) -> Built:
     return Built(sc, samples, nominal, true_model, injected, outside_sensors)
 
 
+def _covered(f) -> tuple:
+    """The IMU indexes a finding (discover.Finding) claims its effect on: every IMU of a pooled scope."""
+    return tuple(getattr(f, "imus", ()) or (f.k,))
+
+
 def score(built: Built, d) -> dict:
     """How discovery ``d`` did on ``built``: correct (exactly the injected (term, IMU) pairs found, nothing
     else), false findings (findings not injected), magnitudes (max |estimate - truth| / std per finding),
     and for out-of-library effects: located (their IMUs among the unexplained entries) and not forced into a
-    term (no finding on them)."""
+    term (no finding on them).
+
+    A finding at a pooled scope (several IMUs) is matched by its whole IMU set: it is right only when the
+    effect was injected on every one of its IMUs (a scope wider than the truth is a false finding on the IMUs
+    it adds; one narrower leaves the others missed); its per-IMU values are compared with each IMU's truth."""
     sc = built.scenario
-    found = {(f.effect, f.k): f for f in d.findings}
+    names = built.nominal.names
     truth = set(built.injected)
+    found = {}  # (term, k) -> (values, std) of that IMU
+    false = []
+    for f in d.findings:
+        imus = _covered(f)
+        wrong = [k for k in imus if (f.effect, k) not in truth]
+        if wrong:
+            false.append(f"{f.effect}@{f.sensor}" if len(imus) == 1 else
+                         f"{f.effect}@{f.scope} ({', '.join(names[k] for k in imus)})")
+        for i, k in enumerate(imus):
+            if len(imus) == 1 or getattr(f, "imu_values", None) is None:
+                found[(f.effect, k)] = (f.values, f.std)
+            else:
+                found[(f.effect, k)] = (f.imu_values[i], f.imu_std[i])
     z = {}
     for key in truth & set(found):
-        f = found[key]
+        values, std = found[key]
         with np.errstate(invalid="ignore", divide="ignore"):
-            zz = np.abs(f.values - built.injected[key]) / f.std
-        z[f"{key[0]}@{built.nominal.names[key[1]]}"] = float(np.nanmax(zz)) if np.isfinite(zz).any() else None
-    false = sorted(f"{t}@{built.nominal.names[k]}" for (t, k) in set(found) - truth)
+            zz = np.abs(np.asarray(values) - built.injected[key]) / np.asarray(std)
+        z[f"{key[0]}@{names[key[1]]}"] = float(np.nanmax(zz)) if np.isfinite(zz).any() else None
+    false = sorted(false)
     out = {"scenario": sc.name, "kind": sc.kind, "array": sc.array, "injected":
            [f"{t}@{built.nominal.names[k]}" for (t, k) in sorted(truth)],
            "found": [f"{t}@{built.nominal.names[k]}" for (t, k) in sorted(found)],
-           "correct": set(found) == truth, "missed": sorted(f"{t}@{built.nominal.names[k]}" for (t, k) in truth - set(found)),
+           "correct": not false and set(found) == truth,
+           "missed": sorted(f"{t}@{built.nominal.names[k]}" for (t, k) in truth - set(found)),
            "false_findings": false, "max_abs_z": z,
            "within_3sigma": all(v is not None and v <= 3.0 for v in z.values()) if z else None,
            "indistinguishable": [e["effects"] for e in d.indistinguishable],
@@ -161,7 +184,7 @@ def score(built: Built, d) -> dict:
 
         def covers(e):  # the entry holds the affected IMUs (and, for a vibration, its frequency)
             return hit <= set(e["sensors"]) and all(e["band_hz"][0] <= f <= e["band_hz"][1] for f in freqs)
-        forced = {f.sensor for f in d.findings} & hit
+        forced = {names[k] for f in d.findings for k in _covered(f)} & hit
         out["outside_sensors"] = built.outside_sensors
         out["located"] = any(covers(e) for e in d.unexplained)
         # the affected IMUs carry most of the entry's excess (not always possible: a vibration at one corner of
