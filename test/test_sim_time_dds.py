@@ -3,6 +3,7 @@ sees the recording's time while the replay runs, never behind the IMU messages i
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import signal
 import struct
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from conftest import REPO
+from imu_array_ros.nodes.frames import NO_TF_MESSAGE
 
 BIN = Path(sys.executable).parent
 ARRAY8 = REPO / "config" / "mimu4444bt_corners.yaml"
@@ -78,6 +80,8 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
     assert driver.returncode == 0 and "Traceback" not in err and "200 samples (1600 messages) published" in err, err
     # the driver was given use_sim_time too: it runs on the system clock anyway, and says so
     assert "use_sim_time ignored" in err, err
+    if importlib.util.find_spec("tf2_msgs") is None:  # a PyPI-only ROS: the driver says once that it has no TF
+        assert err.count(NO_TF_MESSAGE) == 1, err
     got = np.array(arrivals, dtype=np.int64).reshape(-1, 2)
     assert len(got) == want, (len(got), err)
     ticking = np.array(clock, dtype=np.int64)
@@ -89,3 +93,47 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
     # /clock goes out before the samples of its time: no message arrives ahead of the node's clock
     ahead = got[:, 0] - got[:, 1]
     assert ahead.max() <= 0, f"{np.sum(ahead > 0)} of {len(ahead)} messages ahead of the clock, by up to {ahead.max()} ns"
+
+
+def test_replay_clock_is_between_the_samples_handed_out_and_those_to_come(tmp_path):
+    """Without DDS: at every step of a replay, the clock is not behind any sample handed out and not ahead
+    of any sample still to come (random step lengths, rates, loop and restamp)."""
+    from imu_array_ros.io.replay import Replay
+    from imu_array_ros.io.rosbag.recording import write_imu_recording
+    from imu_array_ros.model.description import load_description
+    from imu_array_ros.nodes.driver_node import replay_clock_ns
+    from imu_array_ros.simulation.simulator import simulate_twist
+
+    seed = int(time.time())
+    rng = np.random.default_rng(seed)
+    desc = load_description(ARRAY8)
+    start = int(rng.integers(1_600_000_000, 2_000_000_000)) * 10**9
+    samples, _ = simulate_twist(desc, 0.3, float(rng.choice([62.5, 200.0, 500.0])), rng, start_ns=start)
+    bag = tmp_path / "rec.mcap"
+    write_imu_recording(bag, samples, desc)
+    first, last = int(samples.stamps[0]), int(samples.stamps[-1])
+    for rate in (0.5, 1.0, float(rng.uniform(1.5, 20.0))):
+        for loop in (False, True):
+            for restamp in (None, int(rng.integers(10**18, 2 * 10**18))):
+                replay = Replay(bag, desc, rate=rate, loop=loop)
+                elapsed, handed, clocks = 0, [], []
+                span = (last - first) / rate * (2.5 if loop else 1.2)
+                while True:  # the last step at or past the span
+                    out = replay.due(elapsed, restamp)
+                    clock = replay_clock_ns(first, last, elapsed, rate, loop=loop, restamp_ns=restamp)
+                    handed.append(out.stamps)
+                    clocks.append(clock)
+                    if elapsed >= span:
+                        break
+                    elapsed += int(rng.exponential(6e6))
+                clocks = np.array(clocks)
+                assert np.all(np.diff(clocks) >= 0), (seed, rate, loop, restamp)
+                for k, st in enumerate(handed):
+                    if len(st):  # handed out at step k: at or before the clock of step k, after that of step k-1
+                        assert st.max() <= clocks[k] and (k == 0 or st.min() >= clocks[k - 1]), (seed, rate, loop)
+                if not loop:
+                    end = last if restamp is None else restamp + int((last - first) / rate)
+                    assert clocks.max() == end and sum(map(len, handed)) == len(samples), (seed, rate, restamp)
+                else:
+                    assert sum(map(len, handed)) > len(samples)
+    assert replay_clock_ns(first, last, 10**9, 0.0) == -1  # rate 0: the stamps handed out are the clock

@@ -39,7 +39,20 @@ from imu_array_ros.nodes.frames import StaticFramePublisher
 from imu_array_ros.nodes.parameters import DRIVER_PARAMS, NODE_OPTIONS, declare
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, qos, qos_events, run, timer
 
-__all__ = ["DriverNode", "main"]
+__all__ = ["DriverNode", "main", "replay_clock_ns"]
+
+
+def replay_clock_ns(first_ns: int, last_ns: int, elapsed_ns: int, rate: float, *, loop: bool = False,
+                    restamp_ns: int | None = None) -> int:
+    """The replay's time ``elapsed_ns`` after its start, for /clock: the recording's first stamp plus
+    ``elapsed * rate``, at most its last stamp unless it loops; restamped (``restamp_ns``: the start's
+    wall time), the publish time the samples are stamped with.  -1 for ``rate`` 0 (no time, as fast as
+    possible: the node uses the stamps handed out).  Every sample :class:`~imu_array_ros.io.replay.Replay`
+    hands out by then has a stamp at most this, every later one at least this."""
+    if rate <= 0:
+        return -1
+    local = elapsed_ns * rate if loop else min(elapsed_ns * rate, last_ns - first_ns)
+    return restamp_ns + int(local / rate) if restamp_ns is not None else first_ns + int(local)
 
 
 class DriverNode(Node):
@@ -187,10 +200,8 @@ class DriverNode(Node):
         """/clock at the replay's time ``elapsed`` ns after its start (rate 0: the last stamp handed out), never
         behind a stamp about to be published nor going back; sent with every batch, else at least every 10 ms."""
         p, st = self.p, self.source.samples.stamps
-        now = -1
-        if p.rate > 0:  # recording ns since its first sample, within the recording unless it loops
-            local = elapsed * p.rate if p.loop else min(elapsed * p.rate, int(st[-1] - st[0]))
-            now = (self._start + int(local / p.rate)) if p.restamp else int(st[0]) + int(local)
+        now = replay_clock_ns(int(st[0]), int(st[-1]), elapsed, p.rate, loop=p.loop,
+                              restamp_ns=self._start if p.restamp else None)
         t = max(now, int(samples.stamps.max()) if len(samples) else -1, self._clock_ns)
         mono = time.monotonic()
         if t < 0 or (not len(samples) and (t == self._clock_ns or mono - self._clock_wall < 0.01)):
