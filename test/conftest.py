@@ -76,3 +76,21 @@ def perturbed(desc, rng, scales=None):
     scales = DEFAULT_ERROR_SCALES if scales is None else scales
     model = perturb(SensorModel.from_description(desc), rng, scales)
     return model.to_description(desc, names=[n for n, s in scales.items() if s])
+
+
+# --------------------------------------------------------------------------- node processes over real DDS
+
+
+@pytest.fixture
+def dds(monkeypatch, tmp_path):
+    """:class:`dds_harness.DdsProcesses`: a DDS domain of this test's own (also for rclpy in the test
+    process), processes with their output in files, stopped and their shared-memory files removed at the end."""
+    from dds_harness import DdsProcesses
+
+    procs = DdsProcesses(tmp_path / "procs")
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        monkeypatch.setenv(key, procs.env[key])
+    try:
+        yield procs
+    finally:
+        procs.close()

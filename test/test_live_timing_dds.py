@@ -5,18 +5,12 @@ the reference IMU's stamps, estimates the stamp clocks live and publishes on tha
 
 from __future__ import annotations
 
-import os
 import re
-import signal
-import subprocess
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
-import pytest
-
 from conftest import REPO
+from dds_harness import BIN
 from imu_array_ros.io.pairing import ImuStream, pair_streams
 from imu_array_ros.io.rosbag.recording import write_imu_recording
 from imu_array_ros.model.description import load_description
@@ -24,49 +18,11 @@ from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.simulation.clocks import simulate_own_clocks
 from imu_array_ros.workflows.fusion import fuse_recording
 
-BIN = Path(sys.executable).parent
 CORNERS = REPO / "config" / "mimu4444bt_corners.yaml"
 SECONDS, RATE = 8.0, 250.0
 
 
-@pytest.fixture
-def ros_env(monkeypatch):
-    """A DDS domain of this test's own."""
-    domain = 100 + (os.getpid() * 13 + int(time.time() * 1000)) % 130
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONUNBUFFERED="1")
-    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
-        monkeypatch.setenv(key, env[key])
-    procs: list[subprocess.Popen] = []
-
-    def start(*cmd):
-        p = subprocess.Popen([str(c) for c in cmd], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        procs.append(p)
-        return p
-
-    yield start
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
-def _wait_line(proc, text, timeout=30.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        line = proc.stdout.readline()
-        if text in line:
-            return
-        if not line and proc.poll() is not None:
-            break
-    raise AssertionError(f"no {text!r} from {proc.args[:3]}")
-
-
-def test_own_stamp_replay_through_fusion_node_on_the_reference_grid(ros_env, tmp_path):
+def test_own_stamp_replay_through_fusion_node_on_the_reference_grid(dds, tmp_path):
     desc = load_description(CORNERS)
     rng = np.random.default_rng(2024)
     streams = simulate_own_clocks(SensorModel.from_description(desc), rng, SECONDS, RATE,
@@ -79,20 +35,21 @@ def test_own_stamp_replay_through_fusion_node_on_the_reference_grid(ros_env, tmp
     assert want.session is not None and want.session.estimated
     n = len(want.fused)
 
-    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={CORNERS}", "-p", "reliable:=true",
-                     "-p", "stamps:=own", "-p", "sync_timeout:=0.3", "-p", "session_window:=6.0",
-                     "-p", "session_interval:=2.0")
-    probe = ros_env(sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
-                    "--count", n, "--timeout", 60, "--reliable")
-    _wait_line(probe, "ready")
-    driver = ros_env(BIN / "driver_node", "--ros-args", "-p", f"array_config:={CORNERS}", "-p", "mode:=replay",
-                     "-p", f"bag:={bag}", "-p", "rate:=1.0", "-p", "reliable:=true", "-p", "wait_for_subscribers:=1",
-                     "-p", "exit_at_end:=true")
-    assert probe.wait(90) == 0, probe.stderr.read()
-    assert driver.wait(30) == 0, driver.stderr.read()
-    fusion.send_signal(signal.SIGINT)
-    _, err = fusion.communicate(timeout=15)
-    assert fusion.returncode == 0 and "Traceback" not in err and "[FATAL]" not in err, err
+    fusion = dds.start("fusion", BIN / "fusion_node", "--ros-args", "-p", f"array_config:={CORNERS}",
+                       "-p", "reliable:=true", "-p", "stamps:=own", "-p", "sync_timeout:=0.3",
+                       "-p", "session_window:=6.0", "-p", "session_interval:=2.0")
+    probe = dds.start("probe", sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
+                      "--count", n, "--timeout", 60, "--reliable")
+    probe.wait_line("ready")
+    driver = dds.start("driver", BIN / "driver_node", "--ros-args", "-p", f"array_config:={CORNERS}",
+                       "-p", "mode:=replay", "-p", f"bag:={bag}", "-p", "rate:=1.0", "-p", "reliable:=true",
+                       "-p", "wait_for_subscribers:=1", "-p", "exit_at_end:=true")
+    code, _, err = probe.finish(90)
+    assert code == 0, err
+    code, _, err = driver.finish(30)
+    assert code == 0, err
+    code, _, err = fusion.stop()
+    assert code == 0 and "Traceback" not in err and "[FATAL]" not in err, err
     got = np.load(tmp_path / "got.npz")
 
     # every sample on the reference IMU's grid, in order, none lost: the stamps offline fuse gives
@@ -118,10 +75,9 @@ def test_own_stamp_replay_through_fusion_node_on_the_reference_grid(ros_env, tmp
           f"{np.median(z):.3g}, 95th percentile {np.quantile(z, 0.95):.3g}, max {z.max():.3g}")
 
 
-def test_unknown_reference_imu_is_one_line(ros_env):
-    proc = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={CORNERS}", "-p", "stamps:=own",
-                   "-p", "reference_imu:=imu_99")
-    out, err = proc.communicate(timeout=30)
+def test_unknown_reference_imu_is_one_line(dds):
+    code, _, err = dds.start("fusion", BIN / "fusion_node", "--ros-args", "-p", f"array_config:={CORNERS}",
+                             "-p", "stamps:=own", "-p", "reference_imu:=imu_99").finish(60)
     lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert proc.returncode == 2 and len(lines) == 1, err
+    assert code == 2 and len(lines) == 1, err
     assert lines[0].startswith("fusion_node: error: parameter 'reference_imu'") and "imu_99" in lines[0], err

@@ -3,85 +3,39 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import ARRAY32, REPO
+from dds_harness import BIN, COME_UP_S
 from imu_array_ros.io.rosbag.recording import read_fused_recording
 from imu_array_ros.model.samples import ImuSamples
 
-BIN = Path(sys.executable).parent
 BAG = REPO / "bags" / "twist32_sample"
 
 
-@pytest.fixture
-def ros_env(monkeypatch):
-    """A DDS domain of this test's own; Fast DDS shared-memory files of killed processes removed."""
-    domain = 100 + (os.getpid() * 7 + int(time.time() * 1000)) % 130
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONUNBUFFERED="1")
-    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
-        monkeypatch.setenv(key, env[key])
-    procs: list[subprocess.Popen] = []
-
-    def start(*cmd, **kw):
-        p = subprocess.Popen([str(c) for c in cmd], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             text=True, **kw)
-        procs.append(p)
-        return p
-
-    yield start
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
-def _wait_line(proc, text, timeout=30.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        line = proc.stdout.readline()
-        if text in line:
-            return
-        if not line and proc.poll() is not None:
-            break
-    raise AssertionError(f"no {text!r} from {proc.args[:3]}: {proc.stderr.read() if proc.poll() is not None else ''}")
-
-
-def _stop(proc, timeout=15.0):
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=timeout)
-    return proc.returncode, out, err
-
-
-def test_replay_through_fusion_node_equals_offline_fuse(ros_env, tmp_path):
+def test_replay_through_fusion_node_equals_offline_fuse(dds, tmp_path):
     from imu_array_ros.cli import main as cli
 
     offline = tmp_path / "offline.mcap"
     assert cli(["fuse", str(BAG), "--array", str(ARRAY32), "--out", str(offline), "--quiet"]) == 0
     want = read_fused_recording(offline)
 
-    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "reliable:=true",
-                     "-p", "sync_timeout:=2.0")
-    probe = ros_env(sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
-                    "--count", len(want), "--timeout", 90, "--reliable")
-    _wait_line(probe, "ready")
-    driver = ros_env(BIN / "driver_node", "--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "mode:=replay",
-                     "-p", f"bag:={BAG}", "-p", "rate:=1.0", "-p", "reliable:=true", "-p", "wait_for_subscribers:=1",
-                     "-p", "exit_at_end:=true")
-    assert probe.wait(120) == 0, probe.stderr.read()
-    assert driver.wait(30) == 0, driver.stderr.read()
+    fusion = dds.start("fusion", BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY32}",
+                       "-p", "reliable:=true", "-p", "sync_timeout:=2.0")
+    probe = dds.start("probe", sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
+                      "--count", len(want), "--timeout", 90, "--reliable")
+    probe.wait_line("ready")
+    driver = dds.start("driver", BIN / "driver_node", "--ros-args", "-p", f"array_config:={ARRAY32}",
+                       "-p", "mode:=replay", "-p", f"bag:={BAG}", "-p", "rate:=1.0", "-p", "reliable:=true",
+                       "-p", "wait_for_subscribers:=1", "-p", "exit_at_end:=true")
+    code, _, err = probe.finish(120)
+    assert code == 0, err
+    code, _, err = driver.finish(30)
+    assert code == 0, err
     got = np.load(tmp_path / "got.npz")
     # every sample, in order, none lost; the numbers of `imu-array fuse` (up to rounding)
     np.testing.assert_array_equal(got["stamps"], want.stamps)
@@ -89,7 +43,7 @@ def test_replay_through_fusion_node_equals_offline_fuse(ros_env, tmp_path):
         np.testing.assert_allclose(got[name], getattr(want, name), rtol=1e-9, atol=1e-9)
     both = np.isfinite(got["covariance"]) & np.isfinite(want.covariance)
     np.testing.assert_allclose(got["covariance"][both], want.covariance[both], rtol=1e-9, atol=1e-15)
-    code, _, err = _stop(fusion)
+    code, _, err = fusion.stop()
     assert code == 0 and "Traceback" not in err and "[FATAL]" not in err, err
     diags = json.loads(str(got["diagnostics"]))
     assert any(k.startswith("imu_array_fusion") for k in diags), diags.keys()
@@ -106,15 +60,14 @@ def test_replay_through_fusion_node_equals_offline_fuse(ros_env, tmp_path):
      "/nonexistent.mcap"),
     ("driver_node", ["-p", f"array_config:={ARRAY32}", "-p", "imu_mask:=7"], "'imu_mask'"),
 ])
-def test_node_bad_parameters_one_line(ros_env, exe, args, fragment):
-    proc = ros_env(BIN / exe, "--ros-args", *args)
-    out, err = proc.communicate(timeout=30)
-    assert proc.returncode == 2, (out, err)
+def test_node_bad_parameters_one_line(dds, exe, args, fragment):
+    code, out, err = dds.start(exe, BIN / exe, "--ros-args", *args).finish(60)
+    assert code == 2, (out, err)
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"{exe}: error: ") and fragment in lines[0], err
 
 
-def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_path):
+def test_fusion_node_survives_bad_input_and_reloads_calibration(dds, tmp_path):
     """Bad messages of every kind are skipped and counted; publishing goes on; a new
     calibration file is picked up, a malformed one rejected with the old one kept."""
     import rclpy
@@ -131,8 +84,9 @@ def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_pat
     desc = load_description(ARRAY32)
     samples, _ = read_imu_recording(BAG, desc)
     cal = tmp_path / "cal.yaml"
-    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "reliable:=true",
-                     "-p", f"calibration_file:={cal}", "-p", "watch_period:=0.1", "-p", "sync_timeout:=0.5")
+    fusion = dds.start("fusion", BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY32}",
+                       "-p", "reliable:=true", "-p", f"calibration_file:={cal}", "-p", "watch_period:=0.1",
+                       "-p", "sync_timeout:=0.5")
     rclpy.init()
     try:
         node = rclpy.create_node("bad_input_source")
@@ -154,7 +108,7 @@ def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_pat
             return cond()
 
         assert spin_until(lambda: all(p.get_subscription_count() for p in pubs) and node.count_publishers(
-            "/imu_array/fused/imu")), "fusion node never subscribed"
+            "/imu_array/fused/imu"), COME_UP_S), ("fusion node never subscribed", fusion.err())
 
         def send(lo, hi, extra=()):
             """Samples lo..hi-1 at about 1 kHz, as a driver would (a burst of thousands of
@@ -173,18 +127,18 @@ def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_pat
         bad = [(pubs[3], nan[0].tobytes()), (pubs[4], wrong[0].tobytes()), (stranger, wrong[0].tobytes())]
         send(0, 100, bad)
         send(50, 60)  # old stamps again: backwards
-        assert spin_until(lambda: len(got_acc) >= 100), (len(got_acc), _stop(fusion))
+        assert spin_until(lambda: len(got_acc) >= 100), (len(got_acc), fusion.stop())
         # a calibration appears: positions moved by 1 mm
         moved = desc.with_imus([imu.__class__(**{**imu.__dict__, "position": imu.position + 0.001})
                                 for imu in desc.imus])
         save_description(moved, cal)
         time.sleep(0.6)
         send(100, 200)
-        assert spin_until(lambda: len(got_acc) >= 200), (len(got_acc), _stop(fusion))
+        assert spin_until(lambda: len(got_acc) >= 200), (len(got_acc), fusion.stop())
         cal.write_text("imus: [this is not a description\n")  # malformed: rejected, moved one kept
         time.sleep(0.6)
         send(200, 300)
-        assert spin_until(lambda: len(got_acc) >= 300), (len(got_acc), _stop(fusion))
+        assert spin_until(lambda: len(got_acc) >= 300), (len(got_acc), fusion.stop())
         fused = decode_fused(got_imu[:300], got_acc[:300])
         np.testing.assert_array_equal(fused.stamps, samples.stamps[:300])
         old, _ = build_fusion(desc).fuse(samples.select(slice(None, 100)))
@@ -195,7 +149,7 @@ def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_pat
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
-    code, _, err = _stop(fusion)
+    code, _, err = fusion.stop()
     assert code == 0, err
     for text in ("non finite", "wrong frame id", "backwards", "not_in_array", "reloaded calibration",
                  "calibration not reloaded"):
@@ -203,7 +157,7 @@ def test_fusion_node_survives_bad_input_and_reloads_calibration(ros_env, tmp_pat
     assert "Traceback" not in err and "[FATAL]" not in err
 
 
-def test_serial_chain_with_corruption_and_unplug(ros_env, tmp_path):
+def test_serial_chain_with_corruption_and_unplug(dds, tmp_path):
     """fake device (pty) -> driver_node (serial) -> fusion_node -> probe, with garbage, bit
     errors, dropped bytes and one unplug: every fused sample published is the fusion of a
     packet the device sent intact, corrupt frames are counted, the driver reconnects by itself."""
@@ -218,24 +172,29 @@ def test_serial_chain_with_corruption_and_unplug(ros_env, tmp_path):
     samples, _ = simulate_twist(desc, 8.0, 125.0, np.random.default_rng(7))
     # sync_timeout 2 s: on a loaded CI machine a topic can lag; a sample fused without an IMU is
     # correct but not comparable value for value with the complete fusion below
-    fusion = ros_env(BIN / "fusion_node", "--ros-args", "-p", f"array_config:={array}", "-p", "reliable:=true",
-                     "-p", "sync_timeout:=2.0")
-    probe = ros_env(sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
-                    "--timeout", 30, "--reliable")
-    _wait_line(probe, "ready")
-    with FakeArrayDevice.from_imu_samples(samples, link=tmp_path / "array-port", garbage_every=40,
+    fusion = dds.start("fusion", BIN / "fusion_node", "--ros-args", "-p", f"array_config:={array}",
+                       "-p", "reliable:=true", "-p", "sync_timeout:=2.0")
+    # the probe is stopped below (Ctrl-C), once the device has finished: no time limit of its own to outrun
+    probe = dds.start("probe", sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", tmp_path / "got.npz",
+                      "--timeout", 600, "--reliable")
+    probe.wait_line("ready")
+    # the driver first, on the port to be: the device's unplug is timed from its creation, so the device is
+    # created only once the driver has subscribers and tries the port (however long it took to come up)
+    port = tmp_path / "array-port"
+    driver = dds.start("driver", BIN / "driver_node", "--ros-args", "-p", f"array_config:={array}",
+                       "-p", "mode:=serial", "-p", f"port:={port}", "-p", "rate_divider:=4", "-p", "reliable:=true",
+                       "-p", "wait_for_subscribers:=1")
+    driver.wait_line(f"serial port {port}: cannot open", stream="err")
+    with FakeArrayDevice.from_imu_samples(samples, link=port, garbage_every=40,
                                           bit_error_rate=2e-5, drop_byte_rate=2e-5, unplug_at=4.5,
                                           unplug_duration=1.0, seed=3) as device:
-        driver = ros_env(BIN / "driver_node", "--ros-args", "-p", f"array_config:={array}", "-p", "mode:=serial",
-                         "-p", f"port:={device.port}", "-p", "rate_divider:=4", "-p", "reliable:=true",
-                         "-p", "wait_for_subscribers:=1")
-        assert device.wait_finished(timeout=40), "the driver stopped reading the port"
+        assert device.wait_finished(timeout=60), ("the driver stopped reading the port", driver.err())
         time.sleep(1.5)  # let the last samples through and one more diagnostics round
         record = device.record
-        code, _, driver_err = _stop(driver)
+        code, _, driver_err = driver.stop()
     assert code == 0 and "Traceback" not in driver_err and "[FATAL]" not in driver_err, driver_err
-    _stop(fusion)
-    assert _stop(probe)[0] == 0
+    fusion.stop()
+    assert probe.stop()[0] == 0
     got = np.load(tmp_path / "got.npz")
     # what fusing every intact packet gives, stream by stream
     intact = [record.sent_packets(s) for s in range(len(record.streams))]

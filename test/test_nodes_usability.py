@@ -2,25 +2,14 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import ARRAY32, REPO
-from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_PARAMS, unknown_parameters
-
-BIN = Path(sys.executable).parent
-
-
-def _env():
-    domain = 100 + (os.getpid() * 11 + int(time.time() * 1000)) % 130
-    return dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                PYTHONUNBUFFERED="1")
+from dds_harness import BIN
+from imu_array_ros.nodes.parameters import FUSION_PARAMS, unknown_parameters
 
 
 def test_unknown_parameter_names_and_their_nearest_known_name():
@@ -35,38 +24,24 @@ def test_unknown_parameter_names_and_their_nearest_known_name():
 @pytest.mark.parametrize("exe, typo, meant", [("fusion_node", "sync_timout", "sync_timeout"),
                                                ("driver_node", "poll_perod", "poll_period"),
                                                ("calibration_node", "windw", "window")])
-def test_misspelt_parameter_refused_by_name(exe, typo, meant, tmp_path):
+def test_misspelt_parameter_refused_by_name(dds, exe, typo, meant, tmp_path):
     args = ["-p", f"array_config:={ARRAY32}", "-p", f"{typo}:=2.0", "-p", "use_sim_time:=false"]
     if exe == "calibration_node":
         args += ["-p", f"output_file:={tmp_path}/cal.yaml"]
-    proc = subprocess.run([str(BIN / exe), "--ros-args", *args], capture_output=True, text=True, timeout=60,
-                          env=_env())
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert proc.returncode == 2, proc.stderr
+    code, _, err = dds.start(exe, BIN / exe, "--ros-args", *args).finish(60)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2, err
     assert lines == [f"{exe}: error: unknown parameter '{typo}' (did you mean '{meant}'?)"], lines
 
 
-def test_known_parameters_and_ros_own_ones_still_start(tmp_path):
+def test_known_parameters_and_ros_own_ones_still_start(dds):
     """A node given only known names (and use_sim_time) runs; the value given is the value used."""
-    proc = subprocess.Popen([str(BIN / "driver_node"), "--ros-args", "-p", f"array_config:={ARRAY32}",
-                             "-p", "port:=/dev/ttyNOPE_issue24", "-p", "use_sim_time:=false",
-                             "-p", "poll_period:=0.01"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
-    start = time.monotonic()
-    lines = []
-    try:
-        while time.monotonic() - start < 40:
-            line = proc.stderr.readline()
-            if not line:
-                break
-            lines.append(line)
-            if "cannot open" in line:
-                break
-    finally:
-        proc.send_signal(2)
-        out, err = proc.communicate(timeout=20)
-    lines += err.splitlines()
-    text = "".join(lines)
+    proc = dds.start("driver", BIN / "driver_node", "--ros-args", "-p", f"array_config:={ARRAY32}",
+                     "-p", "port:=/dev/ttyNOPE_issue24", "-p", "use_sim_time:=false", "-p", "poll_period:=0.01")
+    proc.wait_line("cannot open", stream="err")
+    code, _, err = proc.stop(20)
+    lines = err.splitlines()
+    text = "\n".join(lines)
     opened = next(i for i, ln in enumerate(lines) if "opening /dev/ttyNOPE_issue24" in ln)
     error = next(i for i, ln in enumerate(lines) if "cannot open" in ln)
     # the console names the port and the problem, and says it within 2 s of opening it
@@ -74,7 +49,7 @@ def test_known_parameters_and_ros_own_ones_still_start(tmp_path):
     assert "/dev/ttyNOPE_issue24" in lines[error] and "No such file" in lines[error], text
     assert t[1] - t[0] < 2.0, t
     assert "exiting after" in text and "0 samples (0 messages) published" in text, text
-    assert proc.returncode == 0 and "Traceback" not in text
+    assert code == 0 and "Traceback" not in text
 
 
 def test_replay_latency_is_not_reported_against_the_wall_clock():
@@ -135,13 +110,13 @@ def test_fake_device_speed_4_gives_increasing_stamps_near_host_time(tmp_path):
     assert np.any(np.diff(bad) <= 0), "the unscaled device clock no longer steps stamps back: drop this contrast"
 
 
-def test_default_replay_into_the_fusion_node_fuses_every_sample(tmp_path):
+def test_default_replay_into_the_fusion_node_fuses_every_sample(dds, tmp_path):
     """The README's live example with defaults only (issue 24: 10-22 % before): the fusion node and the
     replay started one right after the other; >= 99 % of the samples fused complete (all 32 IMUs),
     the replay's end and the totals said on the console."""
     from benchmarks.bench_default_replay import run_once
 
-    domain = 100 + (os.getpid() * 13 + int(time.time() * 1000)) % 130
+    domain = dds.domain
     r = run_once(domain, tmp_path, 1000)
     logs = {k: (tmp_path / f"{k}_{domain}.log").read_text() for k in ("fusion", "driver")}
     assert r["finished"] and r["complete"] >= 990, (r, logs)

@@ -3,51 +3,20 @@ localhost only): every message, each with its own recorded stamp and values, in 
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-import pytest
 
 from imu_array_ros.io.messages import decode_raw_imu
 from imu_array_ros.io.rosbag.mcap_writer import write_recording
 from imu_array_ros.model.description import save_description
 from imu_array_ros.model.layouts import planar_square4
+from dds_harness import BIN, COME_UP_S
 from test_pairing import channels, own_clock_streams
 
-BIN = Path(sys.executable).parent
 
 
-@pytest.fixture
-def ros_env(monkeypatch):
-    domain = 100 + (os.getpid() * 11 + int(time.time() * 1000)) % 130
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONUNBUFFERED="1")
-    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
-        monkeypatch.setenv(key, env[key])
-    procs: list[subprocess.Popen] = []
-
-    def start(*cmd):
-        p = subprocess.Popen([str(c) for c in cmd], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        procs.append(p)
-        return p
-
-    yield start
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
-def test_replay_republishes_every_message_with_its_own_stamp(ros_env, tmp_path):
+def test_replay_republishes_every_message_with_its_own_stamp(dds, tmp_path):
     import rclpy
     from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import Imu
@@ -68,13 +37,18 @@ def test_replay_republishes_every_message_with_its_own_stamp(ros_env, tmp_path):
             node.create_subscription(Imu, imu_topic(name), got[k].append, qos(True, True), raw=True)
         ex = EventsExecutor()
         ex.add_node(node)
-        driver = ros_env(BIN / "driver_node", "--ros-args", "-p", f"array_config:={tmp_path / 'array.yaml'}",
-                         "-p", "mode:=replay", "-p", f"bag:={tmp_path / 'own.mcap'}", "-p", "rate:=0.0",
-                         "-p", "wait_for_subscribers:=1", "-p", "exit_at_end:=true")
-        end = time.monotonic() + 60
+        driver = dds.start("driver", BIN / "driver_node", "--ros-args",
+                           "-p", f"array_config:={tmp_path / 'array.yaml'}", "-p", "mode:=replay",
+                           "-p", f"bag:={tmp_path / 'own.mcap'}", "-p", "rate:=0.0",
+                           "-p", "wait_for_subscribers:=1", "-p", "exit_at_end:=true")
+        end = time.monotonic() + COME_UP_S
+        while time.monotonic() < end and sum(map(len, got)) < total and driver.poll() is None:
+            ex.spin_once(timeout_sec=0.02)
+        end = time.monotonic() + 5  # what is still on its way when the driver has ended
         while time.monotonic() < end and sum(map(len, got)) < total:
             ex.spin_once(timeout_sec=0.02)
-        assert driver.wait(30) == 0, driver.stderr.read()
+        code, _, err = driver.finish(30)
+        assert code == 0, err
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
