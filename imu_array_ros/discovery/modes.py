@@ -43,12 +43,14 @@ is present (:func:`~imu_array_ros.discovery.modeshape.presence`) and the
 empirical model with its held-out gain
 (:func:`~imu_array_ros.discovery.modeshape.heldout_model`).
 
-A line the motion itself carries (hand twisting is a sum of sinusoids; a
-misfit of a library term then leaves lines in the residual at the motion's
-frequencies) is not a mode: when the fitted motion's in-band content exceeds
-``MOTION_FACTOR`` x what the mode could leak into it, the line is kept in
-``motion_lines`` (a misfit that follows the motion, for the library terms) and
-not reported as a mode.
+A line that follows the motion (hand twisting is a sum of sinusoids; a misfit
+of a library term then leaves lines in the residual at the motion's
+frequencies) is not a mode: when the residual's linear relation to the motion
+features, fitted outside the band, predicts more than ``MOTION_SHARE`` of the
+in-band power, the line is kept in ``motion_lines`` (a misfit for the library
+terms) and not reported as a mode.  When the motion has no content outside the
+band (a single sinusoid) the relation cannot be learnt and the line is reported
+as a mode, its ``motion.explained_share`` low.
 """
 
 from __future__ import annotations
@@ -77,8 +79,8 @@ GUARD, HALF_WINDOW = 3, 24
 FLOOR_EFFICIENCY = 0.5 * 0.64
 #: at most this many modes per recording (the strongest)
 MAX_MODES = 8
-#: the motion carries the line when its in-band content exceeds this many times the mode's possible leak
-MOTION_FACTOR = 3.0
+#: the line follows the motion when the out-of-band relation to the motion predicts this share of its power
+MOTION_SHARE = 0.5
 
 
 def mode_segment(n: int, fs: float) -> int:
@@ -271,7 +273,6 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
     full_p[chan_ok], full_floor = p, np.full((k * 6, len(freqs)), np.nan)
     full_floor[chan_ok] = floor
     total_excess = float(np.nansum(np.clip(p - floor, 0, None)[:, tested]))
-    mline = _motion_lines(motion, fs, nper, nu, nu_floor) if motion is not None else None
     modes, motion_lines = [], []
     for pval, lo, hi, pk, test in cands[:MAX_MODES]:
         band = (max(0.0, float(freqs[lo] - df / 2)), min(fs / 2, float(freqs[hi] + df / 2)))
@@ -282,7 +283,7 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
         if not mode.channels:
             continue
         _finish(mode, x, valid.reshape(n, k * 6), full_floor[:, pk], fs, positions, rotations, std, still, motion,
-                heldout, None if mline is None else mline[:, lo:hi + 1].any(axis=1))
+                heldout)
         (motion_lines if mode.follows_motion else modes).append(mode)
     return ModeSearch(freqs, pooled, float(pooled_thr), cmax, chan_thr, tested, nu, alpha, modes, motion_lines,
                       None if positions is None else np.asarray(positions, dtype=float))
@@ -330,16 +331,7 @@ def _motion_features(motion: np.ndarray) -> np.ndarray:
     return np.concatenate([mz, w[:, [0, 1, 2, 0, 0, 1]] * w[:, [0, 1, 2, 1, 2, 2]]], axis=1)
 
 
-def _motion_lines(motion, fs, nper, nu, nu_floor) -> np.ndarray:
-    """(15, F) bool: bins where a motion feature has a line of its own (PSD / local floor beyond F at 1 %)."""
-    feats = _motion_features(motion)
-    _, p = relative_psd(feats, fs, nperseg=nper)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.nan_to_num(p / _local_floor(p, nu)) > stats.f.isf(0.01, nu, nu_floor)
-
-
-def _finish(mode: Mode, x, valid, floor_pk, fs, positions, rotations, std, still, motion, heldout: bool,
-            motion_line=None) -> None:
+def _finish(mode: Mode, x, valid, floor_pk, fs, positions, rotations, std, still, motion, heldout: bool) -> None:
     """SI amplitudes, the motion-line check, shape, presence and held-out model of ``mode``."""
     n = len(x)
     k = mode.amplitude.shape[0]
@@ -348,57 +340,33 @@ def _finish(mode: Mode, x, valid, floor_pk, fs, positions, rotations, std, still
     cols = [kk * 6 + a for kk, a in mode.channels]
     y = bandpass(np.where(valid[:, cols], np.nan_to_num(x[:, cols]), 0.0), fs, mode.band_hz)
     if motion is not None:
-        mode.motion = _motion_check(mode, motion, fs, positions, std, motion_line)
+        mode.motion = _motion_check(mode, x, valid[:, cols], cols, y, motion, fs)
     mode.shape = describe_shape(mode, positions, rotations)
     mode.presence = presence(y, valid[:, cols], floor_pk[cols], fs, mode.band_hz, still)
     if heldout:
         mode.model = heldout_model(np.nan_to_num(x[:, cols]), y, valid[:, cols], fs, n)
 
 
-def _motion_check(mode: Mode, motion, fs, positions, std, motion_line) -> dict:
-    """Does the fitted motion carry a line in the band far stronger than the mode could leak into it?
-
-    Per sample the ML motion takes omega from the gyroscopes (an accelerometer mode reaches it only through
-    the centripetal term, weighted by rho = (2 |omega| arm sigma_gyro / sigma_acc)^2 against the gyroscopes),
-    omega_dot and s from the accelerometers.  Leak bounds: s <= the largest accelerometer amplitude a;
-    omega <= the largest gyroscope amplitude + a min(1, rho) / (2 |omega| arm_min); the products
-    omega_i omega_j <= 2 |omega| (omega leak) + its square.  The motion carries the line when s, omega or the
-    products have a line of their own in the band (motion_line: (15,) bool per feature) whose in-band RMS
-    exceeds MOTION_FACTOR x its bound (broadband motion is not a line)."""
+def _motion_check(mode: Mode, x, valid, cols, y, motion, fs) -> dict:
+    """Does a misfit that follows the motion make the line?  Per channel of the mode, the residual is regressed
+    on the motion features (omega, omega_dot, s, omega_i omega_j and a constant) *outside* the band (the
+    relation a library-term misfit has at every frequency), and that regression predicts the in-band residual
+    y.  The line follows the motion when the prediction holds more than MOTION_SHARE of the in-band power
+    (a board mode has no such relation: the motion it leaks into does not carry it outside its band)."""
     m = np.asarray(motion, dtype=float)
-    ok = np.isfinite(m).all(axis=1)
-    if not ok.any() or not np.isfinite(mode.amplitude_si).any():
-        return {"checked": False, "follows_motion": False, "reason": "no motion or no noise stds"}
+    ok = np.isfinite(m).all(axis=1) & valid.all(axis=1)
+    if ok.sum() < 64:
+        return {"checked": False, "follows_motion": False, "reason": "too few samples with a motion"}
     feats = _motion_features(m)
-    w = feats[:, 0:3]
-    mb = bandpass(feats, fs, mode.band_hz)[ok]
-    line = np.ones(15, dtype=bool) if motion_line is None else np.asarray(motion_line, dtype=bool)
-
-    def rms(cols):
-        sel = np.arange(15)[cols][line[cols]]  # only the features with a line of their own in the band
-        return float(np.sqrt(np.mean(np.sum(mb[:, sel] ** 2, axis=1)))) if len(sel) else 0.0
-
-    w_rms, s_rms, c_rms = rms(slice(0, 3)), rms(slice(6, 9)), rms(slice(9, 15))
-    omega = max(float(np.sqrt(np.mean(np.sum(w[ok] ** 2, axis=1)))), 1e-3)
-    amp = np.nan_to_num(mode.amplitude_si)
-    acc = float(np.linalg.norm(amp[:, :3], axis=1).max())
-    gyr = float(np.linalg.norm(amp[:, 3:], axis=1).max())
-    arm_max, arm_min = 0.05, 0.005
-    if positions is not None:
-        d = np.linalg.norm(np.asarray(positions, float) - np.mean(positions, axis=0), axis=1)
-        arm_max = float(max(d.max(), 1e-3))
-        arm_min = float(max(d[d > 1e-6].min() if (d > 1e-6).any() else 1e-3, 1e-3))
-    rho = 1.0
-    if std is not None:
-        sd = np.asarray(std, dtype=float).reshape(-1, 6)
-        sa, sg = np.nanmin(sd[:, :3]), np.nanmax(sd[:, 3:]) if np.isfinite(sd[:, 3:]).any() else np.nan
-        if np.isfinite(sa) and np.isfinite(sg) and sa > 0:
-            rho = min(1.0, (2.0 * omega * arm_max * sg / sa) ** 2)
-    w_leak = gyr + acc * rho / (2.0 * omega * arm_min)
-    c_leak = 2.0 * omega * w_leak + w_leak ** 2
-    follows = bool(s_rms > MOTION_FACTOR * acc or w_rms > MOTION_FACTOR * w_leak or c_rms > MOTION_FACTOR * c_leak)
-    return {"checked": True, "follows_motion": follows, "omega_in_band_rms": w_rms, "s_in_band_rms": s_rms,
-            "omega_products_in_band_rms": c_rms, "mode_acc_amplitude": acc, "mode_gyro_amplitude": gyr,
-            "omega_leak_bound": w_leak, "products_leak_bound": c_leak,
-            "rule": f"the line follows the motion when the fitted motion's in-band RMS exceeds {MOTION_FACTOR:g} x "
-                    f"what the mode could leak into it"}
+    feats = np.concatenate([feats, np.ones((len(feats), 1))], axis=1)
+    fb = bandpass(feats, fs, mode.band_hz)
+    xo = (np.nan_to_num(x[:, cols]) - y)[ok]
+    fo = (feats - fb)[ok]
+    scale = np.maximum(np.sqrt(np.mean(fo ** 2, axis=0)), 1e-12)
+    beta = np.linalg.lstsq(fo / scale, xo, rcond=None)[0]
+    pred = (fb[ok] / scale) @ beta
+    power = float(np.sum(y[ok] ** 2))
+    share = 1.0 - float(np.sum((y[ok] - pred) ** 2)) / power if power > 0 else 0.0
+    return {"checked": True, "follows_motion": bool(share > MOTION_SHARE), "explained_share": share,
+            "rule": f"the line follows the motion when the residual's relation to the motion features outside the "
+                    f"band predicts more than {MOTION_SHARE:.0%} of its in-band power"}

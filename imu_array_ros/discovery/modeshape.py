@@ -2,7 +2,7 @@
 
 Helpers of :mod:`~imu_array_ros.discovery.modes`:
 
-* :func:`bandpass`: zero-phase Butterworth band-pass (order 4, second-order sections) of the columns;
+* :func:`bandpass`: zero-phase band-limiting of the columns in the frequency domain;
 * :func:`describe_shape`: the mode's amplitude across the array fitted by simple spatial patterns;
 * :func:`presence`: the share of time blocks where the line is present, in still and moving blocks, the regime;
 * :func:`heldout_model`: the empirical model -- one narrowband process seen by every channel of the mode
@@ -23,34 +23,34 @@ BLOCK_S = 2.0
 SHAPE_R2 = 0.8
 #: per-block false-alarm level of "present"
 PRESENCE_LEVEL = 0.01
-_ORDER = 4
+#: width of the band edges of the band-limiting (Hz)
+EDGE_HZ = 0.1
 
 
-def _sos(fs: float, band) -> np.ndarray:
-    nyq = fs / 2
-    lo, hi = float(band[0]), float(band[1])
-    lo = max(lo, 0.0)
-    hi = min(hi, 0.98 * nyq)
-    if hi - lo < 0.02 * nyq:  # keep the filter well conditioned
-        c = 0.5 * (lo + hi)
-        lo, hi = max(c - 0.01 * nyq, 0.0), min(c + 0.01 * nyq, 0.98 * nyq)
-    if lo <= 0.005 * nyq:
-        return signal.butter(_ORDER, hi, btype="lowpass", fs=fs, output="sos")
-    return signal.butter(_ORDER, [lo, hi], btype="bandpass", fs=fs, output="sos")
+def _gain(n: int, fs: float, band) -> np.ndarray:
+    """(n // 2 + 1,) real gain of :func:`bandpass` on the rFFT bins: 1 in the band, raised-cosine edges of
+    EDGE_HZ (at least two FFT bins) outside it."""
+    f = np.fft.rfftfreq(n, 1.0 / fs)
+    lo, hi = max(float(band[0]), 0.0), min(float(band[1]), fs / 2)
+    w = max(EDGE_HZ, 2.0 * fs / max(n, 1))
+    dist = np.maximum(lo - f, f - hi)
+    return np.where(dist <= 0, 1.0, np.where(dist < w, 0.5 * (1.0 + np.cos(np.pi * dist / w)), 0.0))
 
 
 def bandpass(y: np.ndarray, fs: float, band) -> np.ndarray:
-    """Zero-phase band-pass of y (N, ...) along axis 0 to ``band`` (lo, hi) Hz (NaN must be zeroed first)."""
+    """y (N, ...) band-limited to ``band`` (lo, hi) Hz along axis 0 (NaN must be zeroed first): zero phase, in
+    the frequency domain (rFFT x :func:`_gain`), exact however narrow the band is against the rate."""
     y = np.asarray(y, dtype=float)
-    if len(y) < 3 * (2 * _ORDER + 1) * 3:
+    n = len(y)
+    if n < 8:
         return np.zeros_like(y)
-    return signal.sosfiltfilt(_sos(fs, band), y, axis=0)
+    g = _gain(n, fs, band).reshape((-1,) + (1,) * (y.ndim - 1))
+    return np.fft.irfft(np.fft.rfft(y, axis=0) * g, n, axis=0)
 
 
-def noise_bandwidth(fs: float, band) -> float:
-    """Equivalent noise bandwidth (Hz) of :func:`bandpass` (filtfilt: |H|^4)."""
-    w, h = signal.sosfreqz(_sos(fs, band), worN=8192, fs=fs)
-    return float(np.trapezoid(np.abs(h) ** 4, w)) if hasattr(np, "trapezoid") else float(np.trapz(np.abs(h) ** 4, w))
+def noise_bandwidth(n: int, fs: float, band) -> float:
+    """Equivalent noise bandwidth (Hz) of :func:`bandpass` on n samples: sum of the squared gain x fs / n."""
+    return float(np.sum(_gain(n, fs, band) ** 2) * fs / n)
 
 
 def _blocks(n: int, fs: float) -> np.ndarray:
@@ -67,7 +67,7 @@ def presence(y: np.ndarray, valid: np.ndarray, floor: np.ndarray, fs: float, ban
     n, c = y.shape
     blocks = _blocks(n, fs)
     nb = int(blocks[-1]) + 1 if n else 0
-    enbw = noise_bandwidth(fs, band)
+    enbw = noise_bandwidth(n, fs, band)
     expect_per = np.nan_to_num(floor, nan=1.0) * enbw / (fs / 2)                  # (C,) variance per sample
     y2 = np.where(valid, y, 0.0) ** 2 / np.where(expect_per > 0, expect_per, 1.0)[None]
     obs = np.bincount(blocks, weights=y2.sum(axis=1), minlength=nb)
@@ -105,7 +105,7 @@ def describe_shape(mode, positions, rotations) -> dict:
     rotated to the array frame (needs rotations; else the sensor frames), projected on its dominant direction
     and phase -> a signed scalar s_k; fitted by least squares with uniform (1), distance from the centre (|p|),
     rigid / affine (1, x, y, z) and quadratic plate (1, x, y, x^2, xy, y^2) patterns (only patterns with fewer
-    parameters than IMUs - 1); R^2 of each (share of sum s_k^2 explained), "best": among those reaching
+    parameters than IMUs - 2); R^2 of each (share of sum s_k^2 explained), "best": among those reaching
     SHAPE_R2 the one of least AICc (K log(RSS / K) + 2 p + 2 p (p + 1) / (K - p - 1)), else "irregular"."""
     amp = np.nan_to_num(mode.amplitude_si if np.isfinite(mode.amplitude_si[:, :3]).any() else mode.amplitude)
     z = amp * np.exp(1j * np.nan_to_num(mode.phase))
@@ -135,7 +135,7 @@ def describe_shape(mode, positions, rotations) -> dict:
     for name, cols in pats:
         a = np.column_stack(cols)
         rank = int(np.linalg.matrix_rank(a))
-        if rank >= k - 1 or ss0 <= 0:
+        if rank > k - 3 or ss0 <= 0:
             continue
         coef = np.linalg.lstsq(a, s, rcond=None)[0]
         res = float(np.sum((s - a @ coef) ** 2))

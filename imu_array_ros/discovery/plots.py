@@ -379,8 +379,8 @@ def plot_mode(mode: dict, names: Sequence[str], positions, freqs, pooled, thresh
             b.legend(fontsize=8)
         else:
             _no_data(b, "no spectrum")
-        b.set_title(f"line statistic (p = {mode['p_value']:.2g}, present in "
-                    f"{(mode.get('presence') or {}).get('fraction_present', float('nan')):.0%} of the time blocks)",
+        b.set_title(f"line statistic: p = {mode['p_value']:.2g}, present in "
+                    f"{(mode.get('presence') or {}).get('fraction_present', float('nan')):.0%} of the blocks",
                     fontsize=10)
         save_png(fig, path, _DPI, close=False)
     finally:
