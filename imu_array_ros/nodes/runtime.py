@@ -68,10 +68,17 @@ class RawSubscriptions:
         self.subs = [self._subscribe(k, True) for k in range(len(self.topics))]
 
     def _subscribe(self, k: int, reliable: bool):
-        hint = self.hint if not self.adaptive else "the node switches to best effort when it sees the publisher"
+        if self.adaptive and reliable:
+            # no event handlers: a best-effort publisher is what makes adapt() switch this subscription (said
+            # then), and an event still queued for it when adapt() destroys it would raise InvalidHandle in
+            # the executor (rclpy's EventsExecutor takes the event of a destroyed handler)
+            from rclpy.event_handler import SubscriptionEventCallbacks
+
+            events = SubscriptionEventCallbacks(use_default_callbacks=False)
+        else:
+            events = qos_events(self.node, "subscription", self.hint, self.topics[k])
         return self.node.create_subscription(self.msg_type, self.topics[k], self.queue.receiver(k),
-                                             raw_subscription_qos(reliable), raw=True,
-                                             event_callbacks=qos_events(self.node, "subscription", hint))
+                                             raw_subscription_qos(reliable), raw=True, event_callbacks=events)
 
     def adapt(self) -> None:
         """Switch to best effort every reliable topic that has a best-effort publisher (adaptive only)."""
@@ -99,9 +106,10 @@ def output_qos():
     return qos(True)
 
 
-def qos_events(node, kind: str, hint: str):
-    """Event callbacks of a publisher (``kind`` 'publisher') or subscription ('subscription') that log,
-    at most every 10 s, a peer whose QoS cannot connect: the topic, the policy, and ``hint`` (the fix)."""
+def qos_events(node, kind: str, hint: str, topic: str | None = None):
+    """Event callbacks of a publisher (``kind`` 'publisher') or subscription ('subscription') on ``topic`` that
+    log, at most every 10 s (one line for all of a node's publishers or subscriptions), a peer whose QoS cannot
+    connect: the topic, the policy, and ``hint`` (the fix)."""
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
     from rclpy.qos import QoSPolicyKind
 
@@ -113,7 +121,8 @@ def qos_events(node, kind: str, hint: str):
         except ValueError:
             policy = str(event.last_policy_kind)
         peer = "subscriber" if kind == "publisher" else "publisher"
-        logger.warning(f"a {peer} with incompatible QoS ({policy}) cannot connect to this {kind} "
+        where = f" on {topic}" if topic else ""
+        logger.warning(f"a {peer} with incompatible QoS ({policy}) cannot connect to this {kind}{where} "
                        f"({event.total_count} so far); no messages pass between them: {hint}",
                        throttle_duration_sec=10.0)
 
