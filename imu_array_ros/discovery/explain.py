@@ -197,7 +197,7 @@ def _candidate(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.n
     if Q is None:
         return None
     q = Q.shape[1]
-    gr, Sr = gb @ Q, np.einsum("ia,bij,jc->bac", Q, Sb, Q)  # per block, reduced coordinates
+    gr, Sr = gb @ Q, Q.T @ Sb @ Q  # per block, reduced coordinates
     g_, S_ = gr.sum(axis=0), Sr.sum(axis=0)
     z = np.linalg.solve(S_, g_)
     stat = float(g_ @ z)
@@ -205,7 +205,7 @@ def _candidate(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.n
     lrt_p = float(scipy.stats.chi2.sf(stat, q))
     log_p = _chi2_logsf(stat, q)
     # block-robust (sandwich) test: Hotelling's T^2 of the block scores around the fit
-    u = gr - np.einsum("bij,j->bi", Sr, z)
+    u = gr - Sr @ z
     b = len(gb)
     if b > q + 1:
         v = u.T @ u

@@ -121,8 +121,8 @@ def _project(g, S, X, gF, SFF, W):
     """Per block: score and information of columns with the given parameters F profiled out; g (B, d), S
     (B, d, d), X (B, F, d) their cross information, gF (B, F), SFF (B, F, F), W: pinv of sum SFF."""
     A = X.sum(axis=0).T @ W  # (d, F): regression of the candidate's columns on F (total information)
-    AX = np.einsum("df,bfe->bde", A, X)
-    S2 = S - AX - AX.transpose(0, 2, 1) + np.einsum("df,bfh,eh->bde", A, SFF, A)
+    AX = A @ X
+    S2 = S - AX - AX.transpose(0, 2, 1) + A @ SFF @ A.T
     return g - gF @ A.T, S2
 
 

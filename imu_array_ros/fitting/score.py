@@ -97,19 +97,18 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
     given = np.asarray(given, dtype=np.int64).reshape(-1, 2)
     s_given = np.zeros((nb, len(given), k, p))
     mask = np.zeros(prob.y.shape, dtype=bool)
-    edges = np.flatnonzero(np.diff(blocks)) + 1
-    for b, (lo0, hi0) in zip(blocks[np.r_[0, edges]], zip(np.r_[0, edges], np.r_[edges, prob.n])):
-        for lo in range(lo0, hi0, prob.chunk):
-            hi = min(lo + prob.chunk, hi0)
-            jac = model.jacobians(prob.context(model, z, derivs, lo, hi), terms)
-            linv, ok = factor(gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi))))
-            w = prob.w[lo:hi] * ok[:, None, None]  # a sample that does not identify its motion tells nothing
-            r = w * (prob.y[lo:hi] - jac.predicted)
-            jx = prob.motion_jacobian(jac.motion, w, z, slice(lo, hi))
-            h = np.einsum("nij,nkrj,nkr->ni", linv, jx, r, optimize=True)
-            jt = prob.parameter_jacobian(jac, w)
-            jk = per_imu(jt)
-            mk, gk = g_per_imu(jx, linv, jt)  # (n, K, 6, 9): rows (L^-1 phi)^T; (n, K, 9, P) G_n,k
+    for lo, hi, pieces in _chunks(blocks, prob.chunk):
+        # per-sample quantities of the whole chunk at once (one Jacobian call), then per-block sums
+        jac = model.jacobians(prob.context(model, z, derivs, lo, hi), terms)
+        linv, ok = factor(gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi))))
+        w = prob.w[lo:hi] * ok[:, None, None]  # a sample that does not identify its motion tells nothing
+        r = w * (prob.y[lo:hi] - jac.predicted)
+        jx = prob.motion_jacobian(jac.motion, w, z, slice(lo, hi))
+        h = np.einsum("nij,nkrj,nkr->ni", linv, jx, r, optimize=True)
+        jt = prob.parameter_jacobian(jac, w)
+        mk, gk_all = g_per_imu(jx, linv, jt)  # (n, K, 6, 9): rows (L^-1 phi)^T; (n, K, 9, P) G_n,k
+        for b, a, e in pieces:
+            jk, gk, rb = per_imu(jt[a:e]), gk_all[a:e], r[a:e]
             gs = gk.transpose(1, 0, 2, 3).reshape(k, -1, p)
             ck = np.matmul(jk.transpose(0, 2, 1), jk)
             S[b] += ck - np.matmul(gs.transpose(0, 2, 1), gs)
@@ -118,18 +117,37 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
                 s_groups[b, i] += ck[gr].sum(axis=0) - gg.T @ gg
             for t, out in cross.items():
                 c = slice(offs[t], offs[t] + REGISTRY[t].dim())
-                out[b] -= np.einsum("nkip,nliq->klpq", gk[..., c], gk[..., c], optimize=True)
+                gc = gk[..., c].transpose(1, 0, 2, 3).reshape(k, -1, c.stop - c.start)  # (K, n 9, p)
+                out[b] -= np.matmul(gc.transpose(0, 2, 1)[:, None], gc[None])
                 out[b, np.arange(k), np.arange(k)] += ck[:, c, c]
             if len(given):
-                s_given[b] -= np.einsum("fni,nkip->fkp", gk[:, given[:, 0], :, given[:, 1]], gk, optimize=True)
+                gf = gk[:, given[:, 0], :, given[:, 1]]  # (F, n, 9)
+                s_given[b] -= np.matmul(gf.reshape(len(given), -1)[None], gs).transpose(1, 0, 2)
                 s_given[b, np.arange(len(given)), given[:, 0]] += ck[given[:, 0], given[:, 1]]
-            g[b] += (np.matmul(jk.transpose(0, 2, 1), r.transpose(1, 0, 2).reshape(k, -1, 1))[..., 0]
-                     - np.einsum("nkip,ni->kp", gk, h))
-            valid = prob.valid[lo:hi] & ok[:, None, None]
-            mask[lo:hi] = valid
-            res[lo:hi] = np.where(valid, r, np.nan)
-            expected[lo:hi] = np.where(valid, 1.0 - np.sum(mk * mk, axis=3), np.nan)
-            cost += 0.5 * float(np.sum(r * r))
+            g[b] += (np.matmul(jk.transpose(0, 2, 1), rb.transpose(1, 0, 2).reshape(k, -1, 1))[..., 0]
+                     - np.einsum("nkip,ni->kp", gk, h[a:e]))
+        valid = prob.valid[lo:hi] & ok[:, None, None]
+        mask[lo:hi] = valid
+        res[lo:hi] = np.where(valid, r, np.nan)
+        expected[lo:hi] = np.where(valid, 1.0 - np.sum(mk * mk, axis=3), np.nan)
+        cost += 0.5 * float(np.sum(r * r))
     return ScoreBlocks(terms, prob.offsets, g, S, np.bincount(blocks, minlength=nb), res, expected, cost,
                        prob.loglik(cost, mask), int(mask.sum()), s_groups if groups else None, cross,
                        given if len(given) else None, s_given if len(given) else None)
+
+
+def _chunks(blocks: np.ndarray, chunk: int):
+    """(lo, hi, [(block, a, e)]) spans of at most ``chunk`` samples made of whole blocks (a block longer than
+    ``chunk`` split), with the block of every piece and its sample range relative to lo."""
+    edges = np.flatnonzero(np.diff(blocks)) + 1
+    starts, ends = np.r_[0, edges], np.r_[edges, len(blocks)]
+    lo, pieces = 0, []
+    for b, s0, e0 in zip(blocks[starts].tolist(), starts.tolist(), ends.tolist()):
+        for s in range(s0, e0, chunk):
+            e = min(s + chunk, e0)
+            if pieces and e - lo > chunk:
+                yield lo, s, pieces
+                lo, pieces = s, []
+            pieces.append((b, s - lo, e - lo))
+    if pieces:
+        yield lo, len(blocks), pieces
