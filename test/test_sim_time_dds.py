@@ -58,7 +58,8 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
             node.create_subscription(Imu, imu_topic(name), receive, qos(True, keep_all=True), raw=True)
         ex = EventsExecutor()
         ex.add_node(node)
-        # the driver waits for this node's subscriptions (wait_for_subscribers: 1 in replay), then plays 1 s of recording in 0.5 s
+        # the driver waits for this node's subscriptions (wait_for_subscribers: 1 in replay), then plays 1 s of
+        # recording in 0.5 s
         driver = subprocess.Popen([str(BIN / "driver_node"), "--ros-args", "-p", f"array_config:={ARRAY8}",
                                    "-p", "mode:=replay", "-p", f"bag:={bag}", "-p", "rate:=2.0",
                                    "-p", "use_sim_time:=true"],
@@ -87,12 +88,14 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
     ticking = np.array(clock, dtype=np.int64)
     ticking = ticking[ticking != 0]  # 0: no /clock received yet
     # the clock the node sees is the recording's: within its span, never going back, covering it
-    assert len(ticking) and ticking.min() >= first and ticking.max() <= last, (ticking.min() - first, last - ticking.max())
+    assert len(ticking) and ticking.min() >= first and ticking.max() <= last, (ticking.min() - first,
+                                                                               last - ticking.max())
     assert np.all(np.diff(ticking) >= 0)
     assert ticking.max() - ticking.min() >= 0.9 * (last - first), (ticking.max() - ticking.min(), last - first)
     # /clock goes out before the samples of its time: no message arrives ahead of the node's clock
     ahead = got[:, 0] - got[:, 1]
-    assert ahead.max() <= 0, f"{np.sum(ahead > 0)} of {len(ahead)} messages ahead of the clock, by up to {ahead.max()} ns"
+    assert ahead.max() <= 0, (f"{np.sum(ahead > 0)} of {len(ahead)} messages ahead of the clock, "
+                              f"by up to {ahead.max()} ns")
 
 
 def test_replay_clock_is_between_the_samples_handed_out_and_those_to_come(tmp_path):

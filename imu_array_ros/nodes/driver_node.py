@@ -120,7 +120,8 @@ class DriverNode(Node):
             self.get_logger().info("use_sim_time ignored: this replay publishes /clock and runs on the system clock")
         # reliable keep-last 1: every time source (best effort, depth 1 in rclpy and rclcpp) connects
         self._clock_msg = Clock()
-        self._clock_pub = self.create_publisher(Clock, "/clock", QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        self._clock_pub = self.create_publisher(Clock, "/clock",
+                                                QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
         self._clock_ns = -1  # last published
         self._clock_wall = 0.0
 
