@@ -7,8 +7,11 @@ ratios and phases: the mode shape.  :func:`detect_modes` finds such lines.
 
 **Spectra.** Welch (Hann, 50 % overlap) of every channel (IMU x axis) as a
 relative PSD (:func:`~imu_array_ros.discovery.spectra.relative_psd`: white noise
-of variance v gives v), with a segment length giving about ``RESOLUTION_HZ``
-bins (at least 8 segments).  Each channel's **local floor** is the larger of two
+of variance v gives v), at two resolutions: segment lengths giving bins of
+about each of ``RESOLUTIONS_HZ`` (0.25 Hz for lines and low frequencies, 1 Hz
+for resonances a few tenths of a Hz to 2 Hz wide; at least 8 segments), each
+searched at alpha / 2; a line found at both is reported once (the smaller p).
+Each channel's **local floor** is the larger of two
 running medians of its PSD, over the bins below and over the bins above the
 bin tested (``HALF_WINDOW`` bins each side, the ``GUARD`` bins next to it left
 out), divided by the median of chi^2_nu / nu: a line must stand out of both
@@ -21,13 +24,15 @@ end) raises the floor with the PSD and is no line.
   (the fitted motion couples the IMUs), so its null law is taken as a scaled
   chi-square whose mean and variance are those of the statistic over the bins
   tested (sigma-clipped, so lines do not inflate them): Satterthwaite's
-  moment match; tested at ``alpha / 2`` Bonferroni over the bins;
+  moment match; tested at ``alpha / 4`` Bonferroni over the bins;
 * *per channel*: PSD / floor against F(nu, nu_floor), nu = 2 L / 1.056 Welch's
   equivalent degrees of freedom of L segments, nu_floor those of the floor
   estimate (median of HALF_WINDOW - GUARD bins, adjacent bins correlated:
-  ``FLOOR_EFFICIENCY``; the larger of two medians only raises the floor); at ``alpha / 2`` Bonferroni over bins x channels.
+  ``FLOOR_EFFICIENCY``; the larger of two medians only raises the floor); at
+  ``alpha / 4`` Bonferroni over bins x channels.
 
-Family-wise false-alarm rate of the detector on a recording: <= ``alpha``
+Family-wise false-alarm rate of the detector on a recording: <= ``alpha`` (each
+resolution alpha / 2, each of its two tests alpha / 4)
 (:data:`MODE_ALPHA`), measured on null recordings by
 ``benchmarks/discovery_modes.py``.
 
@@ -65,14 +70,15 @@ from imu_array_ros.discovery.spectra import relative_psd
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.jsontools import json_safe
 
-__all__ = ["MODE_ALPHA", "MIN_FREQ_HZ", "RESOLUTION_HZ", "Mode", "ModeSearch", "detect_modes", "mode_segment"]
+__all__ = ["MODE_ALPHA", "MIN_FREQ_HZ", "RESOLUTIONS_HZ", "Mode", "ModeSearch", "detect_modes", "mode_segment"]
 
 #: family-wise false-alarm rate of the mode detector per recording
 MODE_ALPHA = 0.01
 #: lowest frequency tested (below it a mode cannot be told from drift and the motion)
 MIN_FREQ_HZ = 0.5
-#: target bin width of the spectra
-RESOLUTION_HZ = 0.5
+#: target bin widths of the spectra: a fine one (lines, low frequencies) and a coarse one (resonances a few
+#: bins wide), each searched at alpha / 2
+RESOLUTIONS_HZ = (0.25, 1.0)
 #: bins either side of the tested one left out of its floor / used for it
 GUARD, HALF_WINDOW = 3, 24
 #: effective share of the floor's bins (adjacent Hann bins are correlated; the median is 64 % efficient)
@@ -83,9 +89,10 @@ MAX_MODES = 8
 MOTION_SHARE = 0.5
 
 
-def mode_segment(n: int, fs: float) -> int:
-    """Welch segment length: the power of 2 giving bins of about RESOLUTION_HZ, at most n / 4 (>= 7 segments)."""
-    want = 2 ** int(np.ceil(np.log2(max(fs / RESOLUTION_HZ, 16.0))))
+def mode_segment(n: int, fs: float, resolution_hz: float = 0.25) -> int:
+    """Welch segment length: the power of 2 giving bins of about ``resolution_hz``, at most n / 4 (>= 7
+    segments)."""
+    want = 2 ** int(np.ceil(np.log2(max(fs / resolution_hz, 16.0))))
     cap = 2 ** int(np.floor(np.log2(max(n / 4.0, 16.0))))
     return int(max(32, min(want, cap)))
 
@@ -151,8 +158,9 @@ class Mode:
 
 @dataclass
 class ModeSearch:
-    """Everything the detector computed: freqs (F,), pooled (F,) statistic and its threshold, channel_max (F,)
-    (largest PSD / floor over channels) and its threshold, tested (F,) bool, nu, modes, motion_lines,
+    """What the detector computed (the finest resolution's spectra): freqs (F,), pooled (F,) statistic and its
+    threshold, channel_max (F,) (largest PSD / floor over channels) and its threshold, tested (F,) bool, nu,
+    modes, motion_lines,
     positions (K, 3) m of the IMUs (None when not given)."""
 
     freqs: np.ndarray
@@ -172,9 +180,9 @@ class ModeSearch:
                           "resolution_hz": float(self.freqs[1] - self.freqs[0]) if len(self.freqs) > 1 else None,
                           "pooled_threshold": self.pooled_threshold, "channel_threshold": self.channel_threshold,
                           "welch_dof": self.nu, "modes": len(self.modes), "motion_lines": len(self.motion_lines),
-                          "false_alarm_rate": f"family-wise <= {self.alpha:g} per recording (pooled test at "
-                                              f"{self.alpha / 2:g} over the bins, per-channel test at "
-                                              f"{self.alpha / 2:g} over bins x channels, Bonferroni)"})
+                          "false_alarm_rate": f"family-wise <= {self.alpha:g} per recording (two resolutions, "
+                                              f"each with a pooled test over the bins and a per-channel test over "
+                                              f"bins x channels at {self.alpha / 4:g}, Bonferroni)"})
 
 
 def _local_floor(p: np.ndarray, nu: float) -> np.ndarray:
@@ -219,6 +227,40 @@ def _runs(hit: np.ndarray, gap: int = 2) -> list[tuple[int, int]]:
     return out
 
 
+def _scan(x, chan_ok, fs, nper, alpha) -> dict | None:
+    """One resolution: spectra, floors, both tests at alpha / 2 each, candidate runs (p, lo, hi, peak, test)."""
+    n = len(x)
+    segments = 1 + (n - nper) // (nper // 2)
+    nu = 2.0 * segments / 1.056
+    freqs, p = relative_psd(x[:, chan_ok], fs, nperseg=nper)        # (C, F)
+    if len(freqs) < 2 * HALF_WINDOW:
+        return None
+    floor = _local_floor(p, nu)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = p / floor
+    df = freqs[1] - freqs[0]
+    tested = (freqs >= max(MIN_FREQ_HZ, 2 * df)) & (freqs < fs / 2 - 0.5 * df)
+    nb, c = int(tested.sum()), int(chan_ok.sum())
+    if nb == 0:
+        return None
+    pooled = np.nanmean(ratio, axis=0)
+    mu, sd = _clipped_moments(pooled[tested])
+    m_eff = 2.0 * mu * mu / max(sd * sd, 1e-12)
+    pooled_thr = mu * stats.chi2.isf(alpha / 2 / nb, m_eff) / m_eff
+    nu_floor = nu * (HALF_WINDOW - GUARD) * FLOOR_EFFICIENCY
+    chan_thr = float(stats.f.isf(alpha / 2 / (nb * c), nu, nu_floor))
+    cmax = np.nanmax(ratio, axis=0)
+    cands = []
+    for lo, hi in _runs(tested & ((pooled > pooled_thr) | (cmax > chan_thr))):
+        sl = slice(lo, hi + 1)
+        pk = lo + int(np.nanargmax(pooled[sl] / pooled_thr + cmax[sl] / chan_thr))
+        p_pool = min(1.0, stats.chi2.sf(pooled[pk] / mu * m_eff, m_eff) * 2 * nb)
+        p_chan = min(1.0, stats.f.sf(cmax[pk], nu, nu_floor) * 2 * nb * c)
+        cands.append((min(p_pool, p_chan), lo, hi, pk, "pooled" if p_pool <= p_chan else "channel"))
+    return {"nper": nper, "nu": nu, "freqs": freqs, "p": p, "floor": floor, "tested": tested, "pooled": pooled,
+            "pooled_thr": float(pooled_thr), "cmax": cmax, "chan_thr": chan_thr, "cands": cands}
+
+
 def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None = None,
                  positions: np.ndarray | None = None, rotations: np.ndarray | None = None,
                  std: np.ndarray | None = None, still: np.ndarray | None = None, motion: np.ndarray | None = None,
@@ -233,60 +275,41 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
     n, k = r.shape[:2]
     valid = np.isfinite(r) if valid is None else (np.asarray(valid, dtype=bool) & np.isfinite(r))
     x = np.where(valid, r, np.nan).reshape(n, k * 6)
-    chan_ok = valid.reshape(n, k * 6).mean(axis=0) > 0.5
+    vx = valid.reshape(n, k * 6)
+    chan_ok = vx.mean(axis=0) > 0.5
     empty = ModeSearch(np.zeros(0), np.zeros(0), np.inf, np.zeros(0), np.inf, np.zeros(0, bool), 0.0, alpha, [], [])
     if n < 256 or not np.isfinite(fs) or fs <= 0 or not chan_ok.any():
         return empty
-    nper = mode_segment(n, fs)
-    segments = 1 + (n - nper) // (nper // 2)
-    nu = 2.0 * segments / 1.056
-    freqs, p = relative_psd(x[:, chan_ok], fs, nperseg=nper)        # (C, F)
-    if len(freqs) < 2 * HALF_WINDOW:
+    npers = sorted({mode_segment(n, fs, res) for res in RESOLUTIONS_HZ}, reverse=True)
+    scans = [sc for sc in (_scan(x, chan_ok, fs, nper, alpha / len(npers)) for nper in npers) if sc is not None]
+    if not scans:
         return empty
-    floor = _local_floor(p, nu)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = p / floor
-    df = freqs[1] - freqs[0]
-    tested = (freqs >= max(MIN_FREQ_HZ, 2 * df)) & (freqs < fs / 2 - 0.5 * df)
-    nb, c = int(tested.sum()), int(chan_ok.sum())
-    if nb == 0:
-        return empty
-    pooled = np.nanmean(ratio, axis=0)
-    mu, sd = _clipped_moments(pooled[tested])
-    m_eff = 2.0 * mu * mu / max(sd * sd, 1e-12)
-    pooled_thr = mu * stats.chi2.isf(alpha / 2 / nb, m_eff) / m_eff
-    nu_floor = nu * (HALF_WINDOW - GUARD) * FLOOR_EFFICIENCY
-    chan_thr = float(stats.f.isf(alpha / 2 / (nb * c), nu, nu_floor))
-    cmax = np.nanmax(ratio, axis=0)
-    hit = tested & ((pooled > pooled_thr) | (cmax > chan_thr))
-    runs = _runs(hit)
-    # strongest first: by the smaller p-value of the two tests at the run's peak
-    cands = []
-    for lo, hi in runs:
-        sl = slice(lo, hi + 1)
-        pk = lo + int(np.nanargmax(pooled[sl] / pooled_thr + cmax[sl] / chan_thr))
-        p_pool = min(1.0, stats.chi2.sf(pooled[pk] / mu * m_eff, m_eff) * 2 * nb)
-        p_chan = min(1.0, stats.f.sf(cmax[pk], nu, nu_floor) * 2 * nb * c)
-        cands.append((min(p_pool, p_chan), lo, hi, pk, "pooled" if p_pool <= p_chan else "channel"))
-    cands.sort()
-    full_p = np.full((k * 6, len(freqs)), np.nan)
-    full_p[chan_ok], full_floor = p, np.full((k * 6, len(freqs)), np.nan)
-    full_floor[chan_ok] = floor
-    total_excess = float(np.nansum(np.clip(p - floor, 0, None)[:, tested]))
-    modes, motion_lines = [], []
-    for pval, lo, hi, pk, test in cands[:MAX_MODES]:
+    cands = sorted((c + (i,) for i, sc in enumerate(scans) for c in sc["cands"]), key=lambda c: c[0])
+    modes, motion_lines, taken = [], [], []
+    for pval, lo, hi, pk, test, i in cands:
+        if len(modes) + len(motion_lines) >= MAX_MODES:
+            break
+        sc = scans[i]
+        freqs, df = sc["freqs"], sc["freqs"][1] - sc["freqs"][0]
         band = (max(0.0, float(freqs[lo] - df / 2)), min(fs / 2, float(freqs[hi] + df / 2)))
-        mode = _describe(x, valid.reshape(n, k * 6), full_p, full_floor, freqs, lo, hi, pk, band, fs, nper, nu, alpha,
-                         k, pval, test)
-        mode.share_of_excess = float(np.nansum(np.clip(p - floor, 0, None)[:, lo:hi + 1])) / total_excess \
-            if total_excess > 0 else 0.0
+        if any(band[0] < b[1] and b[0] < band[1] for b in taken):  # the same line at the other resolution
+            continue
+        full_p = np.full((k * 6, len(freqs)), np.nan)
+        full_floor = np.full((k * 6, len(freqs)), np.nan)
+        full_p[chan_ok], full_floor[chan_ok] = sc["p"], sc["floor"]
+        mode = _describe(x, vx, full_p, full_floor, freqs, lo, hi, pk, band, fs, sc["nper"], sc["nu"], alpha,
+                         k, pval, f"{test}, {df:.2g} Hz bins")
+        excess = np.clip(sc["p"] - sc["floor"], 0, None)
+        total = float(np.nansum(excess[:, sc["tested"]]))
+        mode.share_of_excess = float(np.nansum(excess[:, lo:hi + 1])) / total if total > 0 else 0.0
         if not mode.channels:
             continue
-        _finish(mode, x, valid.reshape(n, k * 6), full_floor[:, pk], fs, positions, rotations, std, still, motion,
-                heldout)
+        taken.append(band)
+        _finish(mode, x, vx, full_floor[:, pk], fs, positions, rotations, std, still, motion, heldout)
         (motion_lines if mode.follows_motion else modes).append(mode)
-    return ModeSearch(freqs, pooled, float(pooled_thr), cmax, chan_thr, tested, nu, alpha, modes, motion_lines,
-                      None if positions is None else np.asarray(positions, dtype=float))
+    f = scans[0]
+    return ModeSearch(f["freqs"], f["pooled"], f["pooled_thr"], f["cmax"], f["chan_thr"], f["tested"], f["nu"],
+                      alpha, modes, motion_lines, None if positions is None else np.asarray(positions, dtype=float))
 
 
 def _describe(x, valid, p, floor, freqs, lo, hi, pk, band, fs, nper, nu, alpha, k, pval, test) -> Mode:
