@@ -161,3 +161,51 @@ def test_no_clock_no_finding(nominal, seed):
     t = timing_stage(s, nominal)
     assert t.tested and not t.findings and t.model is nominal
     assert max(float(v.max()) for v in t.snr.values()) < 8.0
+
+
+def _fake_fit(nominal, bias_z, drift_z, std=1e-4):
+    """A joint exact fit (FitResult-like) of gyroscope_bias and bias_drift on imu_1: values bias_z and drift_z
+    CRB std from the nominal, independent parameters."""
+    theta = np.r_[np.full(3, bias_z * std), np.full(6, drift_z * std)]
+    gb, dr = nominal.terms["gyroscope_bias"].values.copy(), nominal.terms["bias_drift"].values.copy()
+    gb[0], dr[0] = theta[:3], theta[3:]
+    sd = {"gyroscope_bias": np.full((8, 3), np.nan), "bias_drift": np.full((8, 6), np.nan)}
+    sd["gyroscope_bias"][0], sd["bias_drift"][0] = std, std
+    return SimpleNamespace(free=("gyroscope_bias", "bias_drift"), imus=("imu_1",), theta=theta,
+                           covariance=np.eye(9) * std ** 2, model=nominal.with_terms(gyroscope_bias=gb, bias_drift=dr),
+                           std=sd, motion=np.zeros((4, 9)))
+
+
+def _fake_finding(effect, step):
+    return SimpleNamespace(effect=effect, k=0, imus=(0,), scope="imu", step=step, sensor="imu_1",
+                           candidate=SimpleNamespace(sensors=("imu_1",), accepted=True, note=""),
+                           values=None, std=None)
+
+
+def test_backward_elimination_drops_a_finding_the_others_make_redundant(nominal, monkeypatch):
+    """A bias found first, then its drift: at the joint fit the bias is 0.5 std from the start (p ~ 0.9 on 3
+    dof) and is dropped (reported, the others refitted without it); the drift (20 std) stays.  A bias still
+    significant given the drift (8 std) is kept and nothing is refitted."""
+    from imu_array_ros.discovery import eliminate
+
+    calls = []
+
+    def refit(samples, model, free, **kw):
+        calls.append((list(free), kw["only"]))
+        assert np.all(model.terms["gyroscope_bias"].values[0] == nominal.terms["gyroscope_bias"].values[0])
+        return _fake_fit(nominal, 0.0, 20.0)
+
+    monkeypatch.setattr(eliminate, "fit_terms", refit)
+    levels = [1e-3, 1e-3]
+    found = [_fake_finding("gyroscope_bias", 1), _fake_finding("bias_drift", 2)]
+    kept, dropped, _, model, _ = eliminate.backward_eliminate(None, nominal, found, _fake_fit(nominal, 0.5, 20.0),
+                                                              np.zeros((4, 9)), levels, 0.01)
+    assert [f.effect for f in kept] == ["bias_drift"]
+    assert [r["effect"] for r in dropped] == ["gyroscope_bias"] and dropped[0]["p"] > 0.5
+    assert "given the other findings" in dropped[0]["reason"] and not found[0].candidate.accepted
+    assert calls == [(["bias_drift"], {"bias_drift": [0]})]
+    np.testing.assert_allclose(kept[0].values, 20.0 * 1e-4)
+    found = [_fake_finding("gyroscope_bias", 1), _fake_finding("bias_drift", 2)]
+    kept, dropped, _, _, _ = eliminate.backward_eliminate(None, nominal, found, _fake_fit(nominal, 8.0, 20.0),
+                                                          np.zeros((4, 9)), levels, 0.01)
+    assert len(kept) == 2 and not dropped and len(calls) == 1

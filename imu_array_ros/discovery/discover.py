@@ -34,25 +34,23 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.stats
 
 from imu_array_ros.discovery.blocks import short_recording_options, time_blocks
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
-from imu_array_ros.discovery.confirm import confirm, only_imus, update_finding
+from imu_array_ros.discovery.confirm import confirm, update_finding
+from imu_array_ros.discovery.eliminate import backward_eliminate
+from imu_array_ros.discovery.heldout import heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
 from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.fitting.engine import fit_motion, fit_terms, score_blocks
+from imu_array_ros.fitting.engine import fit_motion, score_blocks
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, candidate_names, term_names
 
 __all__ = ["DiscoveryOptions", "Discovery", "Finding", "discover", "fit_summary"]
 
-#: held-out scale of the readings' sigma: samples of held-out blocks keep their motion but give the parameters
-#: 1e-8 of their information
-HELDOUT_SCALE = 1e4
 #: near saturation: |reading| above this share of the clip level
 NEAR_SATURATION = 0.9
 
@@ -319,6 +317,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     t1 = time.perf_counter()
     all_candidates, indist, rejected, levels = [], [], [], []
     accepted: dict[tuple, Finding] = {}
+    fit = None  # the last joint exact fit of every finding
     excluded, retry = set(), set()  # (term, k) / Candidate.key: for good; not confirmed: until the next finding
     scopes, tied = scopes_for(model.n_imus, geometry_groups(model.positions, model.rotations))
     own = terms if model.n_imus <= OWN_MAX_IMUS else ()
@@ -377,6 +376,18 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         sb = score_given(samples, current, terms, motion, blocks, tied, [(f.effect, f.imus) for f in accepted.values()],
                          own_terms=own)
     findings = sorted(accepted.values(), key=lambda f: f.step)
+    if len(findings) > 1:  # every finding re-tested given all the others (.eliminate)
+        say(f"backward: re-testing each of the {len(findings)} findings given the others")
+        findings, dropped, _, current, motion = backward_eliminate(samples, model, findings, fit, motion, levels,
+                                                                   opts.alpha, say)
+        if dropped:
+            rejected += dropped
+            gone = "; ".join(f"{r['effect']} on {', '.join(r['sensors'])}" for r in dropped)
+            notes.append(f"backward elimination dropped {gone}: no longer significant given the other findings "
+                         f"(see rejected)")
+            motion, _, _ = fit_motion(samples, current, motion)
+            sb = score_given(samples, current, terms, motion, blocks, tied,
+                             [(f.effect, f.imus) for f in findings], own_terms=own)
     timings["explain"] = time.perf_counter() - t1
 
     # 5-6. after, unexplained, held out
@@ -391,7 +402,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     heldout = {}
     if opts.heldout and findings:
         say("held-out blocks: refitting the findings on half of the blocks, scoring on the other half")
-        heldout = _heldout(samples, model, findings, blocks, base_motion, base_r)
+        heldout = heldout_gain(samples, model, findings, blocks, base_motion, base_r)
     validation = []
     for label, other in validate:
         say(f"validating on {label}")
@@ -412,36 +423,6 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
 
 def _fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(new), new, old)
-
-
-def _heldout(samples, model: SensorModel, findings, blocks, base_motion, base_r) -> dict:
-    """The findings refitted on even blocks scored on odd ones and vice versa (exact, motion re-estimated):
-    log-likelihood of the held-out samples with and without them.  base_motion, base_r: the ML motion and
-    normalised residuals of the recording under ``model`` (the baseline of step 1)."""
-    only = only_imus([(f.effect, f.imus) for f in findings])
-    imus = sorted({k for ks in only.values() for k in ks})
-    half = (blocks % 2).astype(bool)
-    gain, nis_b, nis_a, n_h = 0.0, [], [], 0
-    for held in (half, ~half):
-        sigma = np.broadcast_to(model.std, (len(blocks),) + model.std.shape).copy()
-        sigma[held] *= HELDOUT_SCALE
-        try:
-            fit = fit_terms(samples, model, list(only), imus=imus, only=only,
-                            sigma=sigma, motion0=base_motion, max_iterations=30)
-        except CalibrationError as err:
-            return {"error": str(err)}
-        _, _, r = fit_motion(samples, fit.model, _fill(fit.motion, base_motion))
-        a = np.nan_to_num(r[held]) ** 2
-        b = np.nan_to_num(base_r[held]) ** 2
-        gain += 0.5 * float(b.sum() - a.sum())
-        n_h += int(held.sum())
-        nis_b.append(b.sum())
-        nis_a.append(a.sum())
-    return {"delta_loglik": gain, "samples": n_h, "sum_r2_before": float(sum(nis_b)),
-            "sum_r2_after": float(sum(nis_a)),
-            "ratio_after_before": float(sum(nis_a) / sum(nis_b)) if sum(nis_b) > 0 else None,
-            "method": "findings refitted on the even time blocks, scored on the odd ones, and vice versa; "
-                      "the motion re-estimated in both"}
 
 
 def _validate(label, other, model: SensorModel, found: SensorModel, still_threshold) -> dict:
