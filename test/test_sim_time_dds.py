@@ -44,8 +44,12 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
         monkeypatch.setenv(key, env[key])
+    # started first (it starts up while this process does); it waits for the subscriptions below
+    # (wait_for_subscribers: 1 in replay), then plays 1 s of recording in 0.5 s
+    driver = subprocess.Popen([str(BIN / "driver_node"), "--ros-args", "-p", f"array_config:={ARRAY8}",
+                               "-p", "mode:=replay", "-p", f"bag:={bag}", "-p", "rate:=2.0", "-p", "use_sim_time:=true"],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     rclpy.init()
-    driver = None
     try:
         node = rclpy.create_node("sim_time_listener", parameter_overrides=[Parameter("use_sim_time", value=True)])
         arrivals = []  # (message stamp, node clock at arrival)
@@ -58,12 +62,6 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
             node.create_subscription(Imu, imu_topic(name), receive, qos(True, keep_all=True), raw=True)
         ex = EventsExecutor()
         ex.add_node(node)
-        # the driver waits for this node's subscriptions (wait_for_subscribers: 1 in replay), then plays 1 s of
-        # recording in 0.5 s
-        driver = subprocess.Popen([str(BIN / "driver_node"), "--ros-args", "-p", f"array_config:={ARRAY8}",
-                                   "-p", "mode:=replay", "-p", f"bag:={bag}", "-p", "rate:=2.0",
-                                   "-p", "use_sim_time:=true"],
-                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         clock = []  # the node's clock, read while it spins
         want = len(samples) * len(desc.names)
         end = time.monotonic() + 20.0
@@ -74,7 +72,7 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
         out, err = driver.communicate(timeout=10)
         node.destroy_node()
     finally:
-        if driver is not None and driver.poll() is None:
+        if driver.poll() is None:
             driver.send_signal(signal.SIGINT)
             driver.wait(10)
         rclpy.try_shutdown()
