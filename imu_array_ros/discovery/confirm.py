@@ -56,7 +56,7 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     imus = sorted({k for ks in only.values() for k in ks})
     try:
         fit = fit_terms(samples, current, list(only), imus=imus,
-                        only=only, motion0=motion, max_iterations=30)
+                        only=only, motion0=motion, max_iterations=30, sandwich=False)  # CRB only: no sandwich pass
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
     delta = fit.loglik_after - fit.loglik_before

@@ -112,7 +112,8 @@ def backward_eliminate(samples, start: SensorModel, findings: list, fit, motion,
         only = only_imus([(g.effect, g.imus) for g in kept])
         imus = sorted({k for ks in only.values() for k in ks})
         try:
-            fit = fit_terms(samples, base, list(only), imus=imus, only=only, motion0=motion, max_iterations=30)
+            fit = fit_terms(samples, base, list(only), imus=imus, only=only, motion0=motion, max_iterations=30,
+                            sandwich=False)
         except CalibrationError as err:  # keep the forward result rather than fail the whole discovery
             kept.append(f)
             dropped.pop()

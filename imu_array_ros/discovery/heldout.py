@@ -29,7 +29,7 @@ def heldout_gain(samples, model: SensorModel, findings, blocks, base_motion, bas
         sigma[held] *= HELDOUT_SCALE
         try:
             fit = fit_terms(samples, model, list(only), imus=imus, only=only,
-                            sigma=sigma, motion0=base_motion, max_iterations=30)
+                            sigma=sigma, motion0=base_motion, max_iterations=30, sandwich=False)
         except CalibrationError as err:
             return {"error": str(err)}
         _, _, r = fit_motion(samples, fit.model, np.where(np.isfinite(fit.motion), fit.motion, base_motion))
