@@ -4,24 +4,19 @@ sees the recording's time while the replay runs, never behind the IMU messages i
 from __future__ import annotations
 
 import importlib.util
-import os
-import signal
 import struct
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from conftest import REPO
+from dds_harness import BIN
 from imu_array_ros.nodes.frames import NO_TF_MESSAGE
 
-BIN = Path(sys.executable).parent
 ARRAY8 = REPO / "config" / "mimu4444bt_corners.yaml"
 
 
-def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
+def test_use_sim_time_node_sees_the_recording_time(dds, tmp_path):
     import rclpy
     from rclpy.experimental import EventsExecutor
     from rclpy.parameter import Parameter
@@ -40,15 +35,10 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
     write_imu_recording(bag, samples, desc)
     first, last = int(samples.stamps[0]), int(samples.stamps[-1])
 
-    domain = 51 + os.getpid() % 9  # this helper's range of DDS domains
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
-    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
-        monkeypatch.setenv(key, env[key])
     # started first (it starts up while this process does); it waits for the subscriptions below
     # (wait_for_subscribers: 1 in replay), then plays 1 s of recording in 0.5 s
-    driver = subprocess.Popen([str(BIN / "driver_node"), "--ros-args", "-p", f"array_config:={ARRAY8}",
-                               "-p", "mode:=replay", "-p", f"bag:={bag}", "-p", "rate:=2.0", "-p", "use_sim_time:=true"],
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    driver = dds.start("driver", BIN / "driver_node", "--ros-args", "-p", f"array_config:={ARRAY8}", "-p",
+                       "mode:=replay", "-p", f"bag:={bag}", "-p", "rate:=2.0", "-p", "use_sim_time:=true")
     rclpy.init()
     try:
         node = rclpy.create_node("sim_time_listener", parameter_overrides=[Parameter("use_sim_time", value=True)])
@@ -68,13 +58,9 @@ def test_use_sim_time_node_sees_the_recording_time(tmp_path, monkeypatch):
         while time.monotonic() < end and driver.poll() is None and len(arrivals) < want:
             ex.spin_once(timeout_sec=0.005)
             clock.append(node.get_clock().now().nanoseconds)
-        driver.send_signal(signal.SIGINT)  # every message is in (or the time is up): no need to wait for the acks
-        out, err = driver.communicate(timeout=10)
+        _, _, err = driver.stop()  # every message is in (or the time is up): no need to wait for the acks
         node.destroy_node()
     finally:
-        if driver.poll() is None:
-            driver.send_signal(signal.SIGINT)
-            driver.wait(10)
         rclpy.try_shutdown()
     assert driver.returncode == 0 and "Traceback" not in err and "200 samples (1600 messages) published" in err, err
     # the driver was given use_sim_time too: it runs on the system clock anyway, and says so
