@@ -6,7 +6,18 @@ publishes ``<topic_prefix>/fused/imu`` (Imu) and ``<topic_prefix>/fused/accel``
 (AccelWithCovarianceStamped), exactly as ``imu-array fuse`` writes them, and
 ``/diagnostics``.  Parameters: :data:`imu_array_ros.nodes.parameters.FUSION_PARAMS`.
 All the work is :class:`imu_array_ros.fusion.live.LiveFusion`; the
-subscriptions take the serialized messages (``raw=True``) and only queue them.
+subscriptions take the serialized messages (``raw=True``) and queue them.
+
+Fusion is event-driven: the callback of the message that completes an array sample
+(every IMU's message of its stamp arrived; :class:`~imu_array_ros.fusion.live.CompletionQueue`,
+a dictionary look-up per message, no decoding) decodes, assembles, fuses and publishes
+everything queued, at once.  When messages back up (the samples' lag grows by over 20 ms:
+:class:`~imu_array_ros.fusion.live.BacklogGate`) completed samples wait for up to 8 and
+are fused in one call.  The ``period`` timer only sweeps: samples left waiting by the
+gate when no sample completed during a period, and, when no sample has completed for ``sync_timeout``, the samples whose timeout
+has passed (an IMU silent or lost).  The diagnostics (NIS ratio, rates, latency quantiles; 1 Hz) take a
+cheap copy on this thread, are computed in a worker thread and published by a 20 Hz
+timer, which also polls the session-state and bias trackers (not per fused sample).
 
 QoS: the raw subscriptions are reliable keep-all, and a topic switches to best effort
 (keeping the last 1000) when a best-effort publisher appears on it
@@ -35,6 +46,9 @@ than 3 sigma is logged.
 from __future__ import annotations
 
 import os
+import sys
+import threading
+import time
 from pathlib import Path
 
 from geometry_msgs.msg import AccelWithCovarianceStamped
@@ -42,11 +56,11 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from imu_array_ros.errors import ConfigError, ImuArrayError
-from imu_array_ros.fusion.live import LiveFusion
+from imu_array_ros.fusion.live import BacklogGate, CompletionQueue, LiveFusion, stamp_ns, summarize
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_OPTIONS, declare
-from imu_array_ros.nodes.runtime import (OK, WARN, DiagnosticsPublisher, RawQueue, RawSubscriptions, output_qos,
-                                         qos_events, run, timer)
+from imu_array_ros.nodes.runtime import (OK, WARN, DiagnosticsPublisher, RawSubscriptions, output_qos, qos_events,
+                                         run, timer)
 from imu_array_ros.workflows import load_array
 from imu_array_ros.workflows.live_session import MIN_MOVING_S, BiasSessionTracker, SessionTracker, has_sample_clocks
 
@@ -58,6 +72,11 @@ SYNC_TIMEOUT_RELIABLE_S, SYNC_TIMEOUT_BEST_EFFORT_S = 5.0, 0.05
 NIS_WARN_RATIO = 3.0
 #: seconds between two console lines about the NIS band
 NIS_LOG_INTERVAL_S = 10.0
+#: seconds between polls of the session-state and bias trackers (off the fusion path)
+TRACK_PERIOD_S = 0.05
+#: the interpreter's thread switch interval in the node process (s): the diagnostics worker thread gives the
+#: GIL back to the fusing thread within this (Python's default, 5 ms, would be the whole latency budget)
+SWITCH_INTERVAL_S = 0.0005
 #: stamps whose median latency (publish - stamp) lies outside [-LIVE_STAMP_S, LIVE_STAMP_S] are not live
 LIVE_STAMP_S = 60.0
 
@@ -102,7 +121,10 @@ class FusionNode(Node):
         grid = f", own stamps paired onto the stamps of {desc.names[reference]!r}" if own else ""
         self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}{grid}")
         self._track_start(self.core.fusion.model)
-        self.raw = RawQueue()
+        self.raw = CompletionQueue(len(desc.names), self._on_complete, own_stamps=own, reference=reference)
+        self.gate = BacklogGate()
+        self._period_ns = int(p.period * 1e9)
+        self._last_event = self._now()
         hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
                 "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
         self.raw_subs = RawSubscriptions(self, Imu, [imu_topic(n, p.topic_prefix) for n in desc.names],
@@ -119,7 +141,10 @@ class FusionNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
         self._reported: set[str] = set()
         self._foreign: set[str] = set()
-        timer(self, p.period, self._step)
+        self._diag_worker: threading.Thread | None = None
+        self._diag_result = None
+        timer(self, p.period, self._sweep)
+        timer(self, TRACK_PERIOD_S, self._poll_trackers)
         timer(self, 1.0, self._diagnose)
         if cal:
             timer(self, p.watch_period, self._watch)
@@ -143,14 +168,39 @@ class FusionNode(Node):
             self.get_logger().info(f"sync_timeout now {timeout_ns / 1e9:g} s (a best-effort topic: a missing "
                                    "message is lost, not late)")
 
-    def _step(self) -> None:
+    def _on_complete(self, key: bytes) -> None:
+        """A sample is complete (called from the subscription callback of its last message): fuse now,
+        unless the gate lets it wait for a batch (messages backing up)."""
         now = self._now()
+        self._last_event = now
+        if self.gate.complete(time.monotonic_ns(), stamp_ns(key)):
+            self._step(now)
+
+    def _sweep(self) -> None:
+        """The timer: fuse what timed out, only when no sample has completed for a sync timeout (an IMU
+        silent or lost, the end of a stream); otherwise the completions fuse everything."""
+        now = self._now()
+        core = self.core
+        quiet = now - self._last_event
+        if self.gate.waiting and quiet >= self._period_ns:  # waiting for a batch, and no more completions came
+            self.gate.fused()
+        elif quiet < core.timeout_ns:
+            return
+        if len(self.raw) or core.assembler.pending or core.held:
+            self._step(now)
+
+    def _step(self, now: int | None = None) -> None:
+        now = self._now() if now is None else now
         payloads, index = self.raw.drain()
         if payloads:
             self.core.add(payloads, index, now)
         self._publish(self.core.step(now))
+
+    def _poll_trackers(self) -> None:
+        if self._diag_result is not None:
+            self._diagnose_publish()
         if self.tracker is not None:
-            self._track(now)
+            self._track(self._now())
         if self.biases is not None:
             self._track_biases()
 
@@ -191,7 +241,26 @@ class FusionNode(Node):
         self.get_logger().info(f"reloaded calibration {path}")
 
     def _diagnose(self) -> None:
-        s = self.core.summary(self._now())
+        """1 Hz: copy the window (cheap) and compute the summary in a worker thread; published when done."""
+        if self._diag_worker is not None and self._diag_worker.is_alive():
+            return  # the last one is still being computed (a loaded machine): skip this second
+        snap = self.core.snapshot(self._now())
+
+        def work() -> None:
+            try:
+                self._diag_result = summarize(snap)
+            except Exception as err:  # noqa: BLE001 - reported on the node's thread
+                self._diag_result = err
+
+        self._diag_worker = threading.Thread(target=work, daemon=True, name="fusion-diagnostics")
+        self._diag_worker.start()
+
+    def _diagnose_publish(self) -> None:
+        s, self._diag_result = self._diag_result, None
+        if s is None:
+            return
+        if isinstance(s, Exception):
+            raise s
         self._log_rejections(s.counts)
         known = {imu_topic(n, self.p.topic_prefix) for n in self.core.names}
         prefix = self.p.topic_prefix.rstrip("/") + "/"
@@ -309,6 +378,7 @@ class FusionNode(Node):
         """Fuse and publish what is still buffered, if the context is still up."""
         try:
             self._step()
+            self._poll_trackers()
             self._publish(self.core.step(self._now(), flush=True))
         except Exception:  # noqa: BLE001 - shutting down: the context may already be gone
             pass
@@ -319,6 +389,7 @@ class FusionNode(Node):
 
 
 def main(args=None) -> int:
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return run(FusionNode, args)
 
 
