@@ -40,7 +40,9 @@ def generate_launch_description():
     driver = Node(
         package="imu_array_ros", executable="driver_node", name="imu_array_driver", output="screen",
         parameters=[os.path.join(config, "driver_node.params.yaml"),
-                    {**common, "mode": arg["mode"], "port": arg["port"], "bag": arg["bag"], "rate": arg["rate"]}],
+                    {**common, "mode": arg["mode"], "port": arg["port"], "bag": arg["bag"], "rate": arg["rate"],
+                     # the fusion node publishes the frames in use (the calibrated ones after a reload)
+                     "publish_frames": False}],
     )
     fusion = Node(
         package="imu_array_ros", executable="fusion_node", name="imu_array_fusion", output="screen",

@@ -38,7 +38,8 @@ LAYERS = {
 }
 #: modules only the nodes may import (the core is ROS-free)
 ROS_MODULES = ("rclpy", "sensor_msgs", "geometry_msgs", "std_srvs", "diagnostic_msgs", "builtin_interfaces",
-               "std_msgs", "rosidl_runtime_py", "launch", "launch_ros", "ament_index_python")
+               "std_msgs", "rosidl_runtime_py", "launch", "launch_ros", "ament_index_python", "tf2_msgs",
+               "rosgraph_msgs")
 MAX_LINES = 500
 
 

@@ -39,7 +39,7 @@ ROSDEP = {"numpy": "python3-numpy", "scipy": "python3-scipy", "pyyaml": "python3
 DISTRIBUTION = {"yaml": "pyyaml", "serial": "pyserial", "distributed": "dask"}
 #: ROS 2 packages the nodes and the launch file need (exec_depend)
 ROS_PACKAGES = ("rclpy", "rcl_interfaces", "sensor_msgs", "geometry_msgs", "std_srvs", "diagnostic_msgs", "launch",
-                "launch_ros", "ament_index_python")
+                "launch_ros", "ament_index_python", "tf2_msgs", "rosgraph_msgs")
 #: third-party imports that are neither a requirement nor a ROS package, and why
 ALLOWED_IMPORTS = {"backports": "backports.zstd: mcap_format's fallback when zstandard is missing (rosbags brings it)"}
 

@@ -25,6 +25,7 @@ The serial protocol, reconnection and the device clock live in
 
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -66,7 +67,8 @@ class DriverNode(Node):
         hint = ("the subscriber asks for reliable delivery: set reliable:=false on it (a best-effort subscription "
                 "receives from every publisher) or reliable:=true here")
         self.pubs = [self.create_publisher(Imu, imu_topic(n, p.topic_prefix), q,
-                                           event_callbacks=qos_events(self, "publisher", hint))
+                                           event_callbacks=qos_events(self, "publisher", hint,
+                                                                      imu_topic(n, p.topic_prefix)))
                      for n in self.desc.names]
         self.wait_for = p.wait_for_subscribers if p.wait_for_subscribers >= 0 else int(replay)
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: {p.mode}", p.port if p.mode == "serial" else p.bag)
@@ -170,7 +172,8 @@ class DriverNode(Node):
         if st.last_error and st.state == "disconnected" and (
                 st.last_error != last_error or state != "disconnected" or mono - self._error_logged_at >= 30.0):
             lost = "lost" if state == "streaming" else "cannot open"
-            err = st.last_error.removeprefix(f"{port}: ")
+            # pyserial says "[Errno 2] could not open port PORT: [Errno 2] ...: 'PORT'": name the port once
+            err = re.sub(r"^\[Errno \d+\] could not open port [^:]*: ", "", st.last_error.removeprefix(f"{port}: "))
             log.error(f"serial port {port}: {lost}: {err}; retrying (backoff up to {self.link.backoff[1]:g} s)")
             self._error_logged_at = mono
         if st.state == "streaming" and state != "streaming":
