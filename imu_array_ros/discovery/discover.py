@@ -172,8 +172,7 @@ def _summarise(residuals, expected, motion, loglik, still_threshold) -> FitSumma
 def fit_summary(samples, model: SensorModel, *, still_threshold: float = 0.2, motion0=None):
     """(FitSummary, motion, ScoreBlocks-like residuals/expected) of ``samples`` under ``model`` at its ML motion."""
     motion, _, _ = fit_motion(samples, model, motion0)
-    sb = score_blocks(samples, model, ("accelerometer_bias",), motion,
-                      np.zeros(len(samples.stamps), dtype=np.int64))
+    sb = _residuals_only(samples, model, motion, np.zeros(len(samples.stamps), dtype=np.int64))
     return _summarise(sb.residuals, sb.expected, motion, sb.loglik, still_threshold), motion, sb
 
 
@@ -286,8 +285,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     say("fitting the motion with the model as given")
     motion, base_ll, base_r = fit_motion(samples, model)
     base_motion = motion
-    say(f"scoring {len(terms)} terms x {model.n_imus} IMUs")
-    sb = score_blocks(samples, model, terms, motion, blocks)
+    sb = _residuals_only(samples, model, motion, blocks)
     baseline = _summarise(sb.residuals, sb.expected, motion, sb.loglik, opts.still_threshold)
     timings["fit"] = time.perf_counter() - t0
 
@@ -321,6 +319,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     excluded, retry = set(), set()  # (term, k) / Candidate.key: for good; not confirmed: until the next finding
     scopes, tied = scopes_for(model.n_imus, geometry_groups(model.positions, model.rotations))
     own = terms if model.n_imus <= OWN_MAX_IMUS else ()
+    say(f"scoring {len(terms)} terms x {model.n_imus} IMUs at {len(scopes) + model.n_imus} scopes")
     sb = score_given(samples, current, terms, motion, blocks, tied, [], own_terms=own)
     for step in range(1, opts.max_findings + 1):
         cover = {(f.effect, k) for f in accepted.values() for k in f.imus}
@@ -373,6 +372,10 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         say(f"step {step}: found {best.effect} on {best.sensor}: log-likelihood +{delta:.4g}")
         motion = _fill(fit.motion, motion)
         motion, _, _ = fit_motion(samples, current, motion)
+        if step == opts.max_findings:  # no step left to test candidates: residuals only
+            sb = _residuals_only(samples, current, motion, blocks)
+            break
+        say(f"step {step + 1}: re-scoring every candidate given the {len(accepted)} findings")
         sb = score_given(samples, current, terms, motion, blocks, tied, [(f.effect, f.imus) for f in accepted.values()],
                          own_terms=own)
     findings = sorted(accepted.values(), key=lambda f: f.step)
@@ -386,8 +389,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             notes.append(f"backward elimination dropped {gone}: no longer significant given the other findings "
                          f"(see rejected)")
             motion, _, _ = fit_motion(samples, current, motion)
-            sb = score_given(samples, current, terms, motion, blocks, tied,
-                             [(f.effect, f.imus) for f in findings], own_terms=own)
+            sb = _residuals_only(samples, current, motion, blocks)
     timings["explain"] = time.perf_counter() - t1
 
     # 5-6. after, unexplained, held out
@@ -419,6 +421,12 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     return Discovery(model.names, current, baseline, after, findings, all_candidates, indist, rejected,
                      loc_before, loc_after, unexplained, empirical, heldout, validation, settings, timings, levels,
                      notes, sim_source, timing)
+
+
+def _residuals_only(samples, model: SensorModel, motion, blocks):
+    """score_blocks of one small term: its normalised residuals, their expectation and the log-likelihood (which
+    do not depend on the terms scored) without the cost of every candidate's information."""
+    return score_blocks(samples, model, ("accelerometer_bias",), motion, blocks)
 
 
 def _fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
