@@ -120,7 +120,7 @@ def test_localize_reports_the_mode_as_an_entry(tmp_path):
     e = modes[0]
     assert e["sensors"][0] == "imu_1" and set(e["sensors"]) == {"imu_1", "imu_6"} and e["axes"] == ["acc_x"]
     assert e["band_hz"][0] <= 61.0 <= e["band_hz"][1]
-    assert loc.line[1, 0] and loc.line[6, 0] and loc.line.sum() == 2
+    assert {(k, a) for k, a in loc.modes.modes[0].channels} == {(1, 0), (6, 0)}
     json.dumps(loc.to_dict())
     s = loc.modes
     plots.plot_mode(e["mode"], names, pos, s.freqs, s.pooled, s.pooled_threshold, tmp_path / "mode.png")

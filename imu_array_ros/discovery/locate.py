@@ -9,7 +9,7 @@ The statistics, one module each:
 
 * ratio, z and significance of a cell (IMU k, axis a), the split by **regime** of the
   fitted motion and by **time**: :mod:`~imu_array_ros.discovery.excess`;
-* by **frequency** (relative PSD, the band of a finding):
+* by **frequency** (relative PSD, the band of a finding, the narrowband line test):
   :mod:`~imu_array_ros.discovery.spectra`;
 * **narrowband modes** shared across the array (frequency, band, mode shape, when present,
   held-out empirical model): :mod:`~imu_array_ros.discovery.modes`;
@@ -37,7 +37,7 @@ from imu_array_ros.discovery.excess import (
 )
 from imu_array_ros.discovery.rigid import RigidTest, rigid_body_test
 from imu_array_ros.discovery.modes import ModeSearch, detect_modes
-from imu_array_ros.discovery.spectra import imu_spectra, narrowest_band
+from imu_array_ros.discovery.spectra import imu_spectra, line_significant, narrowest_band
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.jsontools import json_safe
 
@@ -60,7 +60,7 @@ class Localization:
     window_ratio_by_imu (W, K), spans: [(t0, t1)] s of merged significant windows.
     freqs (F,) Hz and psd (K, 6, F): relative PSD (white noise of variance v -> v);
     floor (K, 6): the white level (mean E[r^2]).  rigid: :class:`RigidTest` or None.
-    line (K, 6): cells carrying a narrowband mode (not in ``significant``, which is the broadband test).
+    line (K, 6): cells significant by the narrowband line test (included in ``significant``).
     modes: the :class:`~imu_array_ros.discovery.modes.ModeSearch` (None when not run).
     """
 
@@ -204,6 +204,10 @@ class Localization:
         with sensor_shares (their shares of it): a mismatch on a few IMUs leaks
         into the others through the fitted motion (which averages over all IMUs),
         so the IMUs that carry it come first, the leaks after.
+
+        Narrowband modes (:meth:`mode_entries`, key "mode" with their detail) are
+        entries too, on top of the ``max_entries`` largest groups; a group whose
+        cells are all a mode's and whose band overlaps the mode's is that mode.
         """
         groups = self._findings()
         modes = self.mode_entries()
@@ -214,7 +218,7 @@ class Localization:
             if not any(cells <= mc and g["band_hz"][0] <= m["band_hz"][1] and m["band_hz"][0] <= g["band_hz"][1]
                        for m, mc in zip(modes, mode_cells)):
                 kept.append(g)
-        rows = sorted(kept, key=lambda g: -g["share_of_excess"])[:max(0, max_entries - len(modes))]
+        rows = sorted(kept, key=lambda g: -g["share_of_excess"])[:max_entries]  # the modes come on top of these
         rows = sorted(rows + modes, key=lambda g: -g["share_of_excess"])
         out = []
         for g in rows:
@@ -320,17 +324,14 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
     freqs, psd = imu_spectra(r, valid, fs)
     nv = valid.sum(axis=0)
     floor = excess_ratio(e_all, nv)
-    significant = is_significant(o_all, e_all, z_threshold)
+    line = line_significant(psd, floor, n)
+    significant = is_significant(o_all, e_all, z_threshold) | line
     search = None
-    line = np.zeros((k, 6), dtype=bool)
     if modes:
         if std is None and acc_std is not None:
             std = np.concatenate([np.asarray(acc_std, dtype=float).reshape(k, 3), np.full((k, 3), np.nan)], axis=1)
         search = detect_modes(r, fs, valid=valid, positions=positions, rotations=rotations, std=std,
                               still=masks["still"], motion=motion)
-        for m in search.modes:
-            for kk, a in m.channels:
-                line[kk, a] = True
 
     # ---- rigid body
     rigid = None

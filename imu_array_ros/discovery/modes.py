@@ -317,9 +317,11 @@ def _describe(x, valid, p, floor, freqs, lo, hi, pk, band, fs, nper, nu, alpha, 
     sl = slice(lo, hi + 1)
     nbins = hi - lo + 1
     df = freqs[1] - freqs[0]
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):
         excess = np.nansum(p[:, sl] - floor[:, sl], axis=1)          # (C,)
-        band_ratio = np.nanmean(p[:, sl] / floor[:, sl], axis=1)
+        q = p[:, sl] / floor[:, sl]
+        cnt = np.isfinite(q).sum(axis=1)
+        band_ratio = np.where(cnt > 0, np.nansum(q, axis=1) / np.maximum(cnt, 1), np.nan)
     var = np.clip(excess, 0.0, None) * df / (fs / 2)
     amp = np.sqrt(var)
     ok = np.isfinite(band_ratio)

@@ -1,4 +1,4 @@
-"""Where the residuals exceed the noise by frequency: relative PSD and the band of an excess.
+"""Where the residuals exceed the noise by frequency: relative PSD, the narrowband line test, the band of an excess.
 
 Welch spectrum of the normalised residuals r (:mod:`~imu_array_ros.discovery.excess`)
 with masked readings set to 0 and the spectrum divided by the cell's valid fraction.
@@ -10,9 +10,17 @@ The white floor of a cell is its mean ``E[r^2]`` (the mean of 1 - leverage); the
 band of a finding is the narrowest contiguous band holding >= 80 % of its (signed)
 excess ``sum_f (P_rel - floor)``, reported as bin edges (centre +- half a bin).
 
-Narrowband lines shared across the array (board modes) are searched by
-:mod:`~imu_array_ros.discovery.modes` against each channel's *local* floor (a
-white floor would turn every coloured misfit into a line).
+A cell is also significant when one frequency bin (DC and Nyquist left out)
+stands out of its floor: with L Welch segments (Hann, 50 % overlap) the
+relative PSD of white noise is floor x chi^2_nu / nu per bin, nu = 2 L / 1.056
+(Welch's equivalent degrees of freedom), tested at ``LINE_ALPHA`` Bonferroni-
+corrected over every bin of every cell: a narrowband mismatch (a board
+vibration) well below the noise in every sample is found there long before
+it shows in the broadband sum.
+
+Narrowband lines shared across the array (board modes) are located, with their
+band and shape, by :mod:`~imu_array_ros.discovery.modes` against each channel's
+*local* floor (against the white floor every coloured misfit is a line).
 """
 
 from __future__ import annotations
@@ -20,8 +28,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import welch
 
-__all__ = ["BAND_FRACTION", "MIN_SPECTRUM_SAMPLES", "relative_psd", "imu_spectra", "narrowest_band"]
+__all__ = ["LINE_ALPHA", "BAND_FRACTION", "MIN_SPECTRUM_SAMPLES", "relative_psd", "imu_spectra", "line_significant",
+           "narrowest_band"]
 
+#: family-wise level of the narrowband line test over every bin of every cell
+LINE_ALPHA = 0.01
 #: share of the excess power the reported band must hold
 BAND_FRACTION = 0.8
 #: spectra need at least this many samples
@@ -64,6 +75,24 @@ def imu_spectra(r: np.ndarray, valid: np.ndarray, fs: float) -> tuple[np.ndarray
     else:
         freqs, psd = np.zeros(0), np.zeros((k, 6, 0))
     return freqs, psd
+
+
+def line_significant(psd: np.ndarray, floor: np.ndarray, n: int, nperseg: int = 256) -> np.ndarray:
+    """(K, 6) True where one bin (DC and Nyquist excluded) of the relative PSD exceeds the floor beyond what
+    white noise gives at LINE_ALPHA, Bonferroni over all bins and cells (module docstring)."""
+    from scipy.stats import chi2
+
+    k6 = floor.shape
+    if psd.shape[-1] < 3:
+        return np.zeros(k6, dtype=bool)
+    nper = int(min(nperseg, n))
+    segments = 1 + max(0, (n - nper) // (nper // 2))
+    nu = 2.0 * segments / 1.056
+    inner = psd[..., 1:-1]
+    tests = max(1, int(np.isfinite(floor).sum()) * inner.shape[-1])
+    limit = chi2.isf(LINE_ALPHA / tests, nu) / nu
+    with np.errstate(invalid="ignore"):
+        return np.nan_to_num(inner / floor[..., None] > limit).any(axis=-1) & np.isfinite(floor)
 
 
 def narrowest_band(freqs: np.ndarray, excess: np.ndarray, fraction: float = BAND_FRACTION) -> list[float]:
