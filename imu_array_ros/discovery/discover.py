@@ -308,7 +308,9 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         timing = timing_stage(samples, model, motion=motion, loglik=base_ll, residuals=base_r, say=say)
         if timing.model is not model:
             current = timing.model
-            motion, _, _ = fit_motion(samples, current, motion)  # the scores below start from it
+            # the scores below start from its ML motion (the timing stage's own, when it kept it)
+            clocked = getattr(timing, "motion", None)
+            motion = clocked if clocked is not None else fit_motion(samples, current, motion)[0]
         timings["timing"] = time.perf_counter() - t1
 
     # 4. explain

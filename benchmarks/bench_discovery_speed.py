@@ -1,0 +1,183 @@
+"""Discovery's speed against the calibration's on the same real capture, same run (issue 23 item 7: a
+10-minute 8-IMU capture discovered within 4x the time of ``imu-array calibrate all`` on it).
+
+For each code tree given (``--tree DIR``, default this repository; e.g. an older checkout made with
+``git worktree add``), in one run, as the user runs them (the CLI, a fresh process each, under
+``/usr/bin/time -v``, niced):
+
+1. ``imu-array import-openshoe`` of the capture (once, with this repository's code);
+2. ``imu-array calibrate all`` of the capture from config/mimu4444bt_corners.yaml;
+3. ``imu-array discover --calibration <that calibration> --apply`` of the capture (plots included).
+
+The table gives wall time, peak resident memory (max RSS) and the ratio discover / calibrate all, and the
+findings discover reported (to compare the trees' results).  Results are appended to
+benchmarks/results/discovery_speed.json (one entry per tree and run) and the markdown rebuilt from it.
+
+    python -m benchmarks.bench_discovery_speed [--capture exp_2] [--tree DIR --label NAME ...]
+        [--window START DURATION --max-findings N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from benchmarks.harness import DATA, REPO, RESULTS, load_average, machine_header, say, write_results
+
+OUT = RESULTS / "discovery_speed.md"
+JSON = RESULTS / "discovery_speed.json"
+CHUNK_JSON = RESULTS / "discovery_speed_chunk.json"
+ARRAY = REPO / "config" / "mimu4444bt_corners.yaml"
+CLI = "import sys; from imu_array_ros.cli import main; sys.exit(main())"
+
+
+def _run(tree: Path, args: list[str], log: Path) -> dict:
+    """Wall seconds and max RSS (MB) of ``imu-array args`` run with ``tree``'s package, niced."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    cmd = ["/usr/bin/time", "-v", "nice", sys.executable, "-c", CLI, *args]
+    with open(log, "w") as fh:
+        proc = subprocess.run(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, cwd=tree)
+    text = log.read_text()
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(args[:2])} failed (exit {proc.returncode}), see {log}")
+    wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): (\S+)", text).group(1)
+    parts = [float(x) for x in wall.split(":")]
+    seconds = sum(v * 60 ** i for i, v in enumerate(reversed(parts)))
+    rss = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", text).group(1)) / 1024
+    user = float(re.search(r"User time \(seconds\): (\S+)", text).group(1))
+    return {"wall_s": seconds, "max_rss_mb": rss, "user_s": user}
+
+
+def _findings(report: Path) -> list[str]:
+    data = json.loads((report / "report.json").read_text())
+    return [f"{f['effect']}@{f['scope']}:{','.join(f['sensors'])}" for f in data["findings"]]
+
+
+def measure(tree: Path, label: str, capture: Path, work: Path) -> dict:
+    cal = work / f"{label}_cal.yaml"
+    say(f"[{label}] calibrate all")
+    c = _run(tree, ["calibrate", "all", str(capture), "--array", str(ARRAY), "--out", str(cal), "-q"],
+             work / f"{label}_calibrate.log")
+    say(f"[{label}] calibrate all: {c['wall_s']:.1f} s; discover")
+    report = work / f"{label}_report"
+    d = _run(tree, ["discover", str(capture), "--array", str(ARRAY), "--calibration", str(cal),
+                    "--report", str(report), "--apply", str(work / f"{label}_found.yaml")],
+             work / f"{label}_discover.log")
+    say(f"[{label}] discover: {d['wall_s']:.1f} s")
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tree, capture_output=True,
+                            text=True).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--", "imu_array_ros"], cwd=tree,
+                           capture_output=True, text=True).stdout.strip()
+    return {"label": label, "commit": commit + (" + uncommitted" if dirty else ""), "capture": capture.stem,
+            "calibrate": c, "discover": d, "ratio": d["wall_s"] / c["wall_s"], "findings": _findings(report),
+            "load_average": load_average()}
+
+
+CHUNK = """
+import json, resource, sys, time
+from pathlib import Path
+from imu_array_ros import workflows
+from imu_array_ros.discovery.discover import DiscoveryOptions
+capture, cal, start, dur, n = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5])
+desc, _ = workflows.load_array(Path(sys.argv[6]), Path(cal))
+samples = workflows.read_imu_recording(Path(capture), desc)[0].window(start, dur)
+t0 = time.perf_counter()
+d = workflows.discover(samples, desc, options=DiscoveryOptions(max_findings=n))
+print(json.dumps({"wall_s": time.perf_counter() - t0, "samples": len(samples), "timings": d.timings,
+                  "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "findings": [f"{f.effect}@{f.scope}:{','.join(f.candidate.sensors)}" for f in d.findings]}))
+"""
+
+
+def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_findings: int) -> dict:
+    """discover (Python API, defaults but max_findings) on a window of the capture, from ``cal``."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    say(f"[{label}] discover on {window[1]:g} s from {window[0]:g} s, at most {max_findings} findings")
+    out = subprocess.run(["nice", sys.executable, "-c", CHUNK, str(capture), str(cal), str(window[0]), str(window[1]),
+                          str(max_findings), str(ARRAY)], env=env, capture_output=True, text=True, cwd=tree)
+    if out.returncode != 0:
+        raise SystemExit(f"chunk discover failed: {out.stderr[-2000:]}")
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    say(f"[{label}] {r['wall_s']:.1f} s")
+    return {"label": label, "window_s": list(window), "max_findings": max_findings, **r,
+            "load_average": load_average()}
+
+
+def _table(entries: list[dict]) -> str:
+    text = ("| tree (commit) | capture | load avg | calibrate all | discover | ratio | max RSS calibrate / "
+            "discover | findings |\n|---|---|---|---|---|---|---|---|\n")
+    for e in entries:
+        c, d = e["calibrate"], e["discover"]
+        text += (f"| {e['label']} ({e['commit']}) | {e['capture']} | {e['load_average']} | {c['wall_s']:.1f} s "
+                 f"| {d['wall_s']:.1f} s | {e['ratio']:.2f} | {c['max_rss_mb']:.0f} / {d['max_rss_mb']:.0f} MB "
+                 f"| {'; '.join(e['findings']) or '—'} |\n")
+    return text
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--capture", default="exp_2", help="capture of ../shared/data/openshoe_mimu4444bt")
+    ap.add_argument("--tree", action="append", default=[], help="code tree (default this repository)")
+    ap.add_argument("--label", action="append", default=[], help="label of each --tree")
+    ap.add_argument("--window", nargs=2, type=float, metavar=("START", "DURATION"),
+                    help="instead: discover alone (Python API) on this window (s) of the capture, from a calibrate "
+                         "all of the whole capture, every tree in turn (speed and findings compared)")
+    ap.add_argument("--max-findings", type=int, default=8, help="with --window (default 8)")
+    args = ap.parse_args()
+    trees = [Path(t).resolve() for t in args.tree] or [REPO]
+    labels = args.label or [("current" if t == REPO else t.name) for t in trees]
+    if len(labels) != len(trees):
+        raise SystemExit("give one --label per --tree")
+    work = Path(tempfile.mkdtemp(prefix="bench_discovery_speed_"))
+    capture = work / f"{args.capture}.mcap"
+    subprocess.run([sys.executable, "-c", CLI, "import-openshoe", str(DATA / f"{args.capture}.bin"), "--array",
+                    str(ARRAY), "--out", str(capture)], check=True, cwd=REPO, env=dict(os.environ,
+                                                                                       PYTHONPATH=str(REPO)))
+    if args.window:
+        cal = work / "cal.yaml"
+        _run(REPO, ["calibrate", "all", str(capture), "--array", str(ARRAY), "--out", str(cal), "-q"],
+             work / "calibrate.log")
+        runs = [measure_chunk(t, lab, capture, cal, args.window, args.max_findings) for t, lab in zip(trees, labels)]
+        text = "| tree | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
+        text += "|---|---|---|---|---|---|---|---|\n" + "".join(
+            f"| {r['label']} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | {r['max_findings']} | {r['samples']} | "
+            f"{r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | {'; '.join(r['findings']) or '—'} | "
+            f"{r['load_average']} |\n" for r in runs)
+        CHUNK_JSON.write_text(json.dumps((json.loads(CHUNK_JSON.read_text()) if CHUNK_JSON.exists() else []) + runs,
+                                         indent=1) + "\n")
+        _write_md()
+        print(text)
+        return 0
+    runs = [measure(t, lab, capture, work) for t, lab in zip(trees, labels)]
+    entries = json.loads(JSON.read_text()) if JSON.exists() else []
+    JSON.write_text(json.dumps(entries + runs, indent=1) + "\n")
+    _write_md()
+    print(_table(runs))
+    return 0
+
+
+def _write_md() -> None:
+    """The results file from every run saved in the two JSON files."""
+    text = machine_header("Discovery speed against calibrate all, same capture, same run")
+    text += __doc__.split("\n\n", 1)[1].rsplit("\n\n", 1)[0] + "\n\n"
+    entries = json.loads(JSON.read_text()) if JSON.exists() else []
+    text += "## Whole capture (target: ratio <= 4)\n\n" + (_table(entries) if entries else "(no complete run)\n")
+    chunks = json.loads(CHUNK_JSON.read_text()) if CHUNK_JSON.exists() else []
+    if chunks:
+        text += ("\n## A window of the capture (`--window`), discover alone, trees in turn\n\n"
+                 "| tree | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
+                 "|---|---|---|---|---|---|---|---|\n" + "".join(
+                     f"| {r['label']} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | {r['max_findings']} | "
+                     f"{r['samples']} | {r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | "
+                     f"{'; '.join(r['findings']) or '—'} | {r['load_average']} |\n" for r in chunks))
+    write_results(OUT, text)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
