@@ -378,6 +378,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             sb = _residuals_only(samples, current, motion, blocks)
             break
         say(f"step {step + 1}: re-scoring every candidate given the {len(accepted)} findings")
+        sb = None  # memory: the last step's blocks go before the next ones are made
         sb = score_given(samples, current, terms, motion, blocks, tied, [(f.effect, f.imus) for f in accepted.values()],
                          own_terms=own)
     findings = sorted(accepted.values(), key=lambda f: f.step)

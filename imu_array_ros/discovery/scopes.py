@@ -126,32 +126,35 @@ def _project(g, S, X, gF, SFF, W):
     return g - gF @ A.T, S2
 
 
-def profile_given(sb, groups=()):
+def profile_given(sb, groups=(), *, inplace: bool = False):
     """``sb`` with the parameters ``sb.given`` profiled out of every candidate's score and information
     (per IMU, the pooled ``groups`` (IMU indexes, as scored) and the cross terms); ``sb`` itself when nothing
-    is given."""
+    is given.  inplace: overwrite ``sb``'s arrays (no second copy of them in memory)."""
     if sb.given is None:
         return sb
     kf, cf = sb.given[:, 0], sb.given[:, 1]
-    gF, X = sb.g[:, kf, cf], sb.S_given  # (B, F), (B, F, K, P)
+    gF, X = sb.g[:, kf, cf], sb.S_given  # (B, F), (B, F, K, P): copies / never written
     SFF = X[:, :, kf, cf]
     W = _projector(SFF.sum(axis=0))
     b, k, p = sb.g.shape
-    g, S = np.empty_like(sb.g), np.empty_like(sb.S)
-    for i in range(k):
+    g, S = (sb.g, sb.S) if inplace else (np.empty_like(sb.g), np.empty_like(sb.S))
+    for i in range(k):  # IMU i's slice is read before it is written
         g[:, i], S[:, i] = _project(sb.g[:, i], sb.S[:, i], X[:, :, i], gF, SFF, W)
     s_groups = None
     if sb.S_groups is not None:
-        s_groups = np.empty_like(sb.S_groups)
+        s_groups = sb.S_groups if inplace else np.empty_like(sb.S_groups)
         for j in range(sb.S_groups.shape[1]):  # the group's score is re-summed from the projected g
             _, s_groups[:, j] = _project(np.zeros((b, p)), sb.S_groups[:, j], X[:, :, list(groups[j])].sum(axis=2),
                                        gF, SFF, W)
     cross = {}
-    for t, c in sb.S_cross.items():
+    for t in list(sb.S_cross):
         cols = sb.columns(t)
         q = cols.stop - cols.start
-        full = c.transpose(0, 1, 3, 2, 4).reshape(b, k * q, k * q)
+        full = sb.S_cross[t].transpose(0, 1, 3, 2, 4).reshape(b, k * q, k * q)
+        if inplace:
+            sb.S_cross[t] = None  # the reshaped copy above replaces it
         _, s2 = _project(np.zeros((b, k * q)), full, X[:, :, :, cols].reshape(b, -1, k * q), gF, SFF, W)
+        del full
         cross[t] = s2.reshape(b, k, q, k, q).transpose(0, 1, 3, 2, 4)
     return replace(sb, g=g, S=S, S_groups=s_groups, S_cross=cross)
 
@@ -164,7 +167,7 @@ def score_given(samples, model, terms, motion, blocks, groups, found, *, own_ter
     offsets = dict(zip(terms, np.cumsum([0] + [dims[t] for t in terms])[:-1].tolist()))
     sb = score_blocks(samples, model, terms, motion, blocks, groups=groups, cross_terms=own_terms,
                       given=given_columns(offsets, dims, found))
-    return profile_given(sb, groups)
+    return profile_given(sb, groups, inplace=True)  # the unprofiled arrays are not kept
 
 
 def tie_test(fit, term: str, imus, names, base: np.ndarray) -> dict:
