@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from conftest import REPO
-from imu_array_ros.fusion.live import CompletionQueue, LiveFusion
+from imu_array_ros.fusion.live import LiveFusion
+from imu_array_ros.io.live_pairing import CompletionQueue
 from imu_array_ros.io.messages import decode_fused, raw_imu_payloads
 from imu_array_ros.model.description import load_description
 from imu_array_ros.simulation.simulator import simulate_twist
@@ -143,15 +144,24 @@ def test_node_fuses_a_complete_sample_before_any_timer(fusion_node):
         assert published[-1][1][4:12] == stamp
 
 
-def test_backlog_gate_batches_only_when_behind():
-    from imu_array_ros.fusion.live import BacklogGate
+def test_backlog_gate_batches_only_samples_already_queued():
+    from imu_array_ros.io.live_pairing import BacklogGate
 
     rng = np.random.default_rng()
-    gate = BacklogGate(behind_ns=2_000_000, max_wait=8)  # (the node's: 20 ms)
+    gate = BacklogGate(max_wait=8)
     offset = int(rng.integers(-10**18, 10**18))  # any clock offset (recorded stamps): only the changes count
-    lag = lambda i, extra: offset + 5_000_000 * i + int(rng.integers(0, 500_000)) + extra  # noqa: E731
-    now = [lag(i, 0) for i in range(50)]
-    assert all(gate.complete(n, 5_000_000 * i) for i, n in enumerate(now))  # on time: every sample at once
-    behind = [gate.complete(lag(50 + i, 20_000_000), 5_000_000 * (50 + i)) for i in range(24)]
-    assert behind == ([False] * 7 + [True]) * 3 and gate.batched == 21  # 20 ms behind: batches of 8
-    assert gate.complete(lag(80, 0), 5_000_000 * 80)  # caught up
+    period = 5_000_000
+    transport = int(rng.integers(500_000, 3_000_000))
+
+    def complete(i, late):
+        return gate.complete(offset + period * i + transport + int(rng.integers(0, 1_000_000)) + late, period * i)
+
+    assert all(complete(i, 0) for i in range(50))  # on time, with jitter below one spacing: every sample at once
+    # a 4-sample backlog: samples 50..54 stamped on time, the node gets to them 20 ms late, then back to back
+    got = [complete(50 + j, 20_000_000 - j * 4_500_000) for j in range(5)]
+    assert got.count(False) >= 2 and got[-1], got  # waits only for samples already stamped, then fuses them
+    assert all(complete(60 + i, 0) for i in range(10))  # caught up: at once again
+    # far behind (a long stall): batches, never above 8
+    got = [complete(100 + j, 200_000_000 - j * 4_800_000) for j in range(40)]
+    runs = np.diff(np.flatnonzero([True] + got))
+    assert runs.max() <= 8 and runs.mean() > 3, got

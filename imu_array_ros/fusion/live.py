@@ -52,13 +52,13 @@ path by :mod:`imu_array_ros.workflows.live_session`), between two steps, so
 neither loses a sample.  ``sink(samples, fused)``, when given, sees every batch
 published (the raw samples as fused, own stamps included, and their estimates).
 
-Event-driven fusion: :class:`CompletionQueue` takes the serialized messages from the
+Event-driven fusion: :class:`~imu_array_ros.io.live_pairing.CompletionQueue` takes the serialized messages from the
 subscription callbacks and tells, per message and without decoding it (its stamp's 8
 bytes as a key, one bit per IMU), when it completed its array sample; the node then
 drains the queue into :meth:`LiveFusion.add` and :meth:`LiveFusion.step` at once, so a
 complete sample is fused without waiting for a timer (the timer only sweeps samples
-whose ``sync_timeout`` has passed).  When messages back up (:class:`BacklogGate`: the
-samples' lag grows), completed samples wait for a few more and are fused together.  The diagnostics are split so that only a cheap
+whose ``sync_timeout`` has passed).  When messages back up
+(:class:`~imu_array_ros.io.live_pairing.BacklogGate`), completed samples wait and are fused together.  The diagnostics are split so that only a cheap
 copy is taken on the fusing thread (:meth:`LiveFusion.snapshot`) and the NIS ratio
 and quantiles are computed elsewhere (:func:`summarize`, e.g. in a worker thread).
 """
@@ -84,8 +84,8 @@ from imu_array_ros.model.identifiability import check_identifiable
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 from imu_array_ros.model.trajectory import MIN_HALF, WINDOW_S
 
-__all__ = ["LiveFusion", "FusedBatch", "InputCounts", "WindowSummary", "WindowSnapshot", "CompletionQueue",
-           "BacklogGate", "build_fusion", "concatenate_samples", "context_size", "summarize", "stamp_ns"]
+__all__ = ["LiveFusion", "FusedBatch", "InputCounts", "WindowSummary", "WindowSnapshot", "build_fusion",
+           "concatenate_samples", "context_size", "summarize"]
 
 #: stamps of skipped samples kept in the counts
 MAX_SKIPPED_STAMPS = 10
@@ -155,113 +155,6 @@ class WindowSnapshot:
     counts: dict
     model: SensorModel
     timed: bool
-
-
-class CompletionQueue:
-    """Serialized raw messages queued by the subscription callbacks (``receiver(k)`` is IMU k's callback),
-    drained in one batch by :meth:`drain`; ``on_complete(stamp)`` is called from the callback of the message that
-    completed an array sample: every IMU has a message of its stamp (``header.stamp``: bytes 4-12 of the
-    CDR payload, taken as they are, no decoding).  A duplicate message sets its IMU's bit again and completes
-    nothing (completed stamps are remembered too).  ``own_stamps``: the IMUs stamp their own messages, no stamp is shared; every message of the
-    ``reference`` IMU calls ``on_complete`` instead (a new grid point).  Stamps that never complete (a lost
-    message) are forgotten oldest first, keeping the newest ``keep`` stamps."""
-
-    def __init__(self, n_imus: int, on_complete: Callable[[bytes], None] | None = None, *, own_stamps: bool = False,
-                 reference: int = 0, keep: int = 256) -> None:
-        self.n_imus = int(n_imus)
-        self.on_complete = on_complete
-        self.own_stamps, self.reference, self.keep = bool(own_stamps), int(reference), int(keep)
-        self.payloads: list = []
-        self.index: list = []
-        self.completed = 0  # samples completed so far
-        self._masks: dict = {}  # stamp bytes -> bits of the IMUs that sent it
-
-    def receiver(self, k: int) -> Callable[[bytes], None]:
-        payloads, index, masks = self.payloads, self.index, self._masks
-        if self.own_stamps:
-            ref = k == self.reference
-
-            def receive_own(payload: bytes) -> None:
-                payloads.append(payload)
-                index.append(k)
-                if ref and self.on_complete is not None:
-                    self.on_complete(payload[4:12])
-
-            return receive_own
-        bit, full = 1 << int(k), (1 << self.n_imus) - 1
-
-        def receive(payload: bytes) -> None:
-            payloads.append(payload)
-            index.append(k)
-            key = payload[4:12]
-            bits = masks.get(key, 0)
-            if bits == full:  # complete already: a duplicate
-                return
-            bits |= bit
-            masks[key] = bits
-            if bits != full:
-                if len(masks) > 2 * self.keep:
-                    self._forget()
-                return
-            self.completed += 1
-            if self.on_complete is not None:
-                self.on_complete(key)
-
-        return receive
-
-    def _forget(self) -> None:
-        """Keep the newest ``keep`` stamps (amortised: once every ``keep`` new stamps)."""
-        newest = list(self._masks.items())[-self.keep:]
-        self._masks.clear()
-        self._masks.update(newest)
-
-    def __len__(self) -> int:
-        return len(self.payloads)
-
-    def drain(self) -> tuple[list, list]:
-        """(payloads, imu indexes) queued since the last call, in arrival order."""
-        payloads, index = self.payloads[:], self.index[:]
-        del self.payloads[:], self.index[:]
-        return payloads, index
-
-
-def stamp_ns(key: bytes) -> int:
-    """The ``header.stamp`` (ns) of a stamp key of :class:`CompletionQueue` (CDR bytes 4-12)."""
-    return int.from_bytes(key[:4], "little", signed=True) * 1_000_000_000 + int.from_bytes(key[4:8], "little")
-
-
-class BacklogGate:
-    """Fuse a completed sample now, or let it join the next batch when messages back up.
-
-    The lag of a sample (``now - stamp`` on any steady clock; only its changes matter, so recorded
-    stamps and clock offsets cancel) is compared with the least lag of the last ``window`` completions:
-    more than ``behind_ns`` above it (well above a publisher's or the scheduler's jitter, which would only
-    be made worse by waiting), the node is behind (messages queued in the executor) and the sample
-    waits, up to ``max_wait`` samples, then they are fused in one call (the per-call cost is mostly fixed,
-    so this is how a backlog is caught up).  Samples waiting are fused by the node's next timer sweep at
-    the latest."""
-
-    def __init__(self, behind_ns: int = 20_000_000, max_wait: int = 8, window: int = 200) -> None:
-        self.behind_ns, self.max_wait = int(behind_ns), int(max_wait)
-        self._lags: deque = deque(maxlen=int(window))
-        self.waiting = 0  # completed samples not yet fused
-        self.batched = 0  # samples that waited for a batch so far
-
-    def complete(self, now_ns: int, stamp: int) -> bool:
-        """A sample completed at ``now_ns``: True to fuse now (it and those waiting)."""
-        lag = now_ns - stamp
-        lags = self._lags
-        lags.append(lag)
-        if lag - min(lags) > self.behind_ns and self.waiting + 1 < self.max_wait:
-            self.waiting += 1
-            self.batched += 1
-            return False
-        self.waiting = 0
-        return True
-
-    def fused(self) -> None:
-        """The waiting samples were fused (by a sweep)."""
-        self.waiting = 0
 
 
 class LiveFusion:

@@ -9,13 +9,14 @@ All the work is :class:`imu_array_ros.fusion.live.LiveFusion`; the
 subscriptions take the serialized messages (``raw=True``) and queue them.
 
 Fusion is event-driven: the callback of the message that completes an array sample
-(every IMU's message of its stamp arrived; :class:`~imu_array_ros.fusion.live.CompletionQueue`,
+(every IMU's message of its stamp arrived; :class:`~imu_array_ros.io.live_pairing.CompletionQueue`,
 a dictionary look-up per message, no decoding) decodes, assembles, fuses and publishes
-everything queued, at once.  When messages back up (the samples' lag grows by over 20 ms:
-:class:`~imu_array_ros.fusion.live.BacklogGate`) completed samples wait for up to 8 and
-are fused in one call.  The ``period`` timer only sweeps: samples left waiting by the
-gate when no sample completed during a period, and, when no sample has completed for ``sync_timeout``, the samples whose timeout
-has passed (an IMU silent or lost).  The diagnostics (NIS ratio, rates, latency quantiles; 1 Hz) take a
+everything queued, at once.  When messages back up (a sample completes later than the
+next one's stamp: :class:`~imu_array_ros.io.live_pairing.BacklogGate`) it waits for those
+already queued behind it, and the ``period`` timer fuses them in one call (as it did every
+sample before: batching is what lets a node short of CPU catch up); at most 8 wait.  Otherwise
+the timer only sweeps: when no sample has completed for ``sync_timeout``, it fuses the samples
+whose timeout has passed (an IMU silent or lost).  The diagnostics (NIS ratio, rates, latency quantiles; 1 Hz) take a
 cheap copy on this thread, are computed in a worker thread and published by a 20 Hz
 timer, which also polls the session-state and bias trackers (not per fused sample).
 
@@ -46,7 +47,6 @@ than 3 sigma is logged.
 from __future__ import annotations
 
 import os
-import sys
 import threading
 import time
 from pathlib import Path
@@ -56,7 +56,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from imu_array_ros.errors import ConfigError, ImuArrayError
-from imu_array_ros.fusion.live import BacklogGate, CompletionQueue, LiveFusion, stamp_ns, summarize
+from imu_array_ros.fusion.live import LiveFusion, summarize
+from imu_array_ros.io.live_pairing import BacklogGate, CompletionQueue, stamp_ns
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_OPTIONS, declare
 from imu_array_ros.nodes.runtime import (OK, WARN, DiagnosticsPublisher, RawSubscriptions, output_qos, qos_events,
@@ -74,9 +75,6 @@ NIS_WARN_RATIO = 3.0
 NIS_LOG_INTERVAL_S = 10.0
 #: seconds between polls of the session-state and bias trackers (off the fusion path)
 TRACK_PERIOD_S = 0.05
-#: the interpreter's thread switch interval in the node process (s): the diagnostics worker thread gives the
-#: GIL back to the fusing thread within this (Python's default, 5 ms, would be the whole latency budget)
-SWITCH_INTERVAL_S = 0.0005
 #: stamps whose median latency (publish - stamp) lies outside [-LIVE_STAMP_S, LIVE_STAMP_S] are not live
 LIVE_STAMP_S = 60.0
 
@@ -123,7 +121,6 @@ class FusionNode(Node):
         self._track_start(self.core.fusion.model)
         self.raw = CompletionQueue(len(desc.names), self._on_complete, own_stamps=own, reference=reference)
         self.gate = BacklogGate()
-        self._period_ns = int(p.period * 1e9)
         self._last_event = self._now()
         hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
                 "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
@@ -177,12 +174,12 @@ class FusionNode(Node):
             self._step(now)
 
     def _sweep(self) -> None:
-        """The timer: fuse what timed out, only when no sample has completed for a sync timeout (an IMU
-        silent or lost, the end of a stream); otherwise the completions fuse everything."""
+        """The timer: fuse the samples the gate held back (behind: one batch), and what timed out when no
+        sample has completed for a sync timeout (an IMU silent or lost, the end of a stream)."""
         now = self._now()
         core = self.core
         quiet = now - self._last_event
-        if self.gate.waiting and quiet >= self._period_ns:  # waiting for a batch, and no more completions came
+        if self.gate.waiting:  # behind: the samples completed since the last sweep, in one batch
             self.gate.fused()
         elif quiet < core.timeout_ns:
             return
@@ -389,7 +386,6 @@ class FusionNode(Node):
 
 
 def main(args=None) -> int:
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return run(FusionNode, args)
 
 
