@@ -165,3 +165,8 @@ def test_backlog_gate_batches_only_samples_already_queued():
     got = [complete(100 + j, 200_000_000 - j * 4_800_000) for j in range(40)]
     runs = np.diff(np.flatnonzero([True] + got))
     assert runs.max() <= 8 and runs.mean() > 3, got
+    # on time, but a fusion call takes most of a spacing: left to the timer's batches (at most 8 wait)
+    gate.fused()  # (a sweep fused those still waiting)
+    got = [gate.complete(offset + period * i + transport, period * i, cost_ns=0.8 * period) for i in range(200, 216)]
+    assert got == ([False] * 7 + [True]) * 2, got
+    assert gate.complete(offset + period * 216 + transport, period * 216, cost_ns=0.2 * period)

@@ -383,11 +383,13 @@ class BacklogGate:
     how many later samples were stamped before this one completed: when messages back up, they are
     waiting in the executor, and the sample waits for them (up to ``max_wait`` in all) to be fused in
     one call -- the per-call cost is mostly fixed, so this is how a backlog is caught up.  A sample on
-    time (less than one spacing above the baseline) is fused at once.  Samples waiting are fused by
-    the node's next timer sweep at the latest (when no sample completed for a moment)."""
+    time (less than one spacing above the baseline) is fused at once -- if a fusion call takes less than
+    ``headroom`` of the stamp spacing (``cost_ns``, the caller's running measure): a node whose calls take
+    most of a spacing cannot keep up one sample per call, and its samples are all left to the timer's
+    batches.  Samples waiting are fused by the node's next timer sweep."""
 
-    def __init__(self, max_wait: int = 8, rise: float = 1e-3) -> None:
-        self.max_wait, self.rise = int(max_wait), float(rise)
+    def __init__(self, max_wait: int = 8, rise: float = 1e-3, headroom: float = 0.5) -> None:
+        self.max_wait, self.rise, self.headroom = int(max_wait), float(rise), float(headroom)
         self._base: int | None = None
         self._last = 0
         self._stamp: int | None = None
@@ -395,8 +397,9 @@ class BacklogGate:
         self.waiting = 0  # completed samples not yet fused
         self.batched = 0  # samples that waited for a batch so far
 
-    def complete(self, now_ns: int, stamp: int) -> bool:
-        """A sample completed at ``now_ns``: True to fuse now (it and those waiting)."""
+    def complete(self, now_ns: int, stamp: int, cost_ns: float = 0.0) -> bool:
+        """A sample completed at ``now_ns``; ``cost_ns``: what a fusion call takes now.  True to fuse now
+        (it and those waiting)."""
         lag = now_ns - stamp
         base = lag if self._base is None else min(self._base + int(self.rise * (now_ns - self._last)), lag)
         self._base, self._last = base, now_ns
@@ -405,6 +408,8 @@ class BacklogGate:
             self.spacing = step if self.spacing <= 0 else 0.95 * self.spacing + 0.05 * min(step, 4 * self.spacing)
         self._stamp = stamp
         queued = int((lag - base) // self.spacing) if self.spacing > 0 else 0
+        if cost_ns > self.headroom * self.spacing > 0:
+            queued = self.max_wait  # too slow for one call per sample: the timer batches
         if self.waiting < min(queued, self.max_wait - 1):
             self.waiting += 1
             self.batched += 1

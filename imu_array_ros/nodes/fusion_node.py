@@ -14,7 +14,9 @@ a dictionary look-up per message, no decoding) decodes, assembles, fuses and pub
 everything queued, at once.  When messages back up (a sample completes later than the
 next one's stamp: :class:`~imu_array_ros.io.live_pairing.BacklogGate`) it waits for those
 already queued behind it, and the ``period`` timer fuses them in one call (as it did every
-sample before: batching is what lets a node short of CPU catch up); at most 8 wait.  Otherwise
+sample before: batching is what lets a node short of CPU catch up); at most 8 wait.  So does
+a node whose fusion calls take more than half the stamp spacing (a running mean): it cannot
+keep up one call per sample, and fuses on the timer only, as before.  Otherwise
 the timer only sweeps: when no sample has completed for ``sync_timeout``, it fuses the samples
 whose timeout has passed (an IMU silent or lost).  The diagnostics (NIS ratio, rates, latency quantiles; 1 Hz) take a
 cheap copy on this thread, are computed in a worker thread and published by a 20 Hz
@@ -121,6 +123,7 @@ class FusionNode(Node):
         self._track_start(self.core.fusion.model)
         self.raw = CompletionQueue(len(desc.names), self._on_complete, own_stamps=own, reference=reference)
         self.gate = BacklogGate()
+        self.cost_ns = 0.0  # running mean of a fusion call's duration (the gate's headroom check)
         self._last_event = self._now()
         hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
                 "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
@@ -170,7 +173,7 @@ class FusionNode(Node):
         unless the gate lets it wait for a batch (messages backing up)."""
         now = self._now()
         self._last_event = now
-        if self.gate.complete(time.monotonic_ns(), stamp_ns(key)):
+        if self.gate.complete(time.monotonic_ns(), stamp_ns(key), self.cost_ns):
             self._step(now)
 
     def _sweep(self) -> None:
@@ -187,11 +190,15 @@ class FusionNode(Node):
             self._step(now)
 
     def _step(self, now: int | None = None) -> None:
+        t0 = time.perf_counter_ns()
         now = self._now() if now is None else now
         payloads, index = self.raw.drain()
         if payloads:
             self.core.add(payloads, index, now)
-        self._publish(self.core.step(now))
+        batches = self.core.step(now)
+        self._publish(batches)
+        if batches:
+            self.cost_ns += 0.1 * (time.perf_counter_ns() - t0 - self.cost_ns)
 
     def _poll_trackers(self) -> None:
         if self._diag_result is not None:
