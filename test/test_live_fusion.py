@@ -98,6 +98,22 @@ def test_decode_flags_each_kind_of_bad_message(recording):
     assert not batch.finite[5]
 
 
+def test_decode_checks_every_message_against_its_own_imus_frame(recording):
+    """One batch, many IMUs whose names differ in length (imu_1 .. imu_32): a message is frame_ok exactly when
+    the frame_id it carries is the one of the IMU whose topic it came from."""
+    desc, samples = recording
+    sub = samples.select(slice(0, 1))
+    per_imu = [bytes(p[1][0]) for p in raw_imu_payloads(sub, desc)]
+    rng = np.random.default_rng(5)
+    carried = rng.integers(0, len(per_imu), 200)     # the IMU whose message it is
+    topic = np.where(rng.random(200) < 0.5, carried, rng.integers(0, len(per_imu), 200))  # the topic it came on
+    batch = decode_raw_imu([per_imu[j] for j in carried], topic, desc.names)
+    expected = np.array([desc.names[j] == desc.names[k] for j, k in zip(carried, topic)])
+    assert 0 < expected.sum() < len(expected)
+    np.testing.assert_array_equal(batch.frame_ok, expected)
+    assert batch.decodable.all()
+
+
 def encode_nan(sub, desc):
     from imu_array_ros.io.rosbag.cdr_columns import encode_imu
 

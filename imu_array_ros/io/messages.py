@@ -26,6 +26,7 @@ Topics and fields (the recording contract, :mod:`imu_array_ros.io.rosbag.recordi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Sequence
 
 import numpy as np
@@ -173,27 +174,37 @@ def decode_raw_imu(payloads: Sequence[bytes], imu_index: np.ndarray, frame_ids: 
 
     payloads : M serialized messages; imu_index (M,) int: which IMU's topic each came
     from; frame_ids : the expected ``header.frame_id`` of every IMU (index ->
-    str).  One gather per field over the whole batch, one comparison per IMU.
+    str).  One gather per field and one frame_id comparison over the whole batch.
     """
     imu_index = np.asarray(imu_index, dtype=np.int64).reshape(-1)
     buf, offsets, lengths = concat_payloads(payloads)
     dec = decode_imu(buf, offsets, lengths, ("angular_velocity", "linear_acceleration"))
     frame_ok = np.zeros(len(offsets), dtype=bool)
     if len(offsets):
-        # frame_id bytes start at payload[16]; its length field (incl. NUL) at payload[12:16]
-        for k in np.unique(imu_index[dec.valid]):
-            fid = frame_ids[k].encode("utf-8")
-            sel = np.flatnonzero((imu_index == k) & dec.valid)
-            # valid payloads have the exact length the layout implies for their frame_id length
-            sel = sel[lengths[sel] == IMU_LAYOUT.payload_length(len(fid) + 1)]
-            if fid and len(sel):
-                window = gather_bytes(buf, offsets[sel] + 16, len(fid))
-                frame_ok[sel] = (window == np.frombuffer(fid, dtype=np.uint8)).all(axis=1)
-            else:
-                frame_ok[sel] = True
+        # frame_id bytes start at payload[16]; its length field (incl. NUL) at payload[12:16]. Valid payloads
+        # have the exact length the layout implies for their frame_id length; one comparison for the batch
+        expect, flen, need = _expected_frames(tuple(frame_ids))
+        sel = np.flatnonzero(dec.valid & (lengths == need[imu_index]))
+        width = expect.shape[1]
+        window = gather_bytes(np.concatenate([buf, np.zeros(width, np.uint8)]), offsets[sel] + 16, width)
+        inside = np.arange(width)[None, :] < flen[imu_index[sel]][:, None]
+        frame_ok[sel] = ((window == expect[imu_index[sel]]) | ~inside).all(axis=1)  # an empty frame_id: any
     accel, gyro = dec.fields["linear_acceleration"], dec.fields["angular_velocity"]
     finite = np.isfinite(accel).all(axis=1) & np.isfinite(gyro).all(axis=1)
     return RawBatch(dec.stamps, accel, gyro, dec.valid, frame_ok, finite & dec.valid)
+
+
+@lru_cache(maxsize=8)
+def _expected_frames(frame_ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The expected frame_id bytes of every IMU (K, width) zero-padded, their lengths (K,) and the payload
+    length each implies (K,)."""
+    fids = [f.encode("utf-8") for f in frame_ids]
+    flen = np.array([len(f) for f in fids], dtype=np.int64)
+    expect = np.zeros((len(fids), max(int(flen.max(initial=0)), 1)), dtype=np.uint8)
+    for k, f in enumerate(fids):
+        expect[k, :len(f)] = np.frombuffer(f, dtype=np.uint8)
+    need = np.array([IMU_LAYOUT.payload_length(n + 1) for n in flen], dtype=np.int64)
+    return expect, flen, need
 
 
 def decode_fused(imu_payloads: Sequence[bytes], accel_payloads: Sequence[bytes]) -> FusedSamples:
