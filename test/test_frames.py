@@ -163,3 +163,38 @@ def test_with_tf2_msgs_publishes_every_frame_again_after_a_reload(monkeypatch):
                         for t in msg.transforms])
         np.testing.assert_array_equal(got, d.positions)
         assert all((t.header.stamp.sec, t.header.stamp.nanosec) == (1, 500_000_000) for t in msg.transforms)
+
+
+@pytest.mark.parametrize("publish", [True, False])
+def test_fusion_node_publishes_the_frames_in_use_at_start(dds, monkeypatch, publish):
+    """The fusion node hands its description to the frame publisher at start (publish_frames:=true), with
+    its frame_prefix; publish_frames:=false makes no publisher."""
+    import rclpy
+
+    from imu_array_ros.nodes import fusion_node
+
+    made = []
+
+    class Recorder:
+        def __init__(self, node, prefix=""):
+            self.prefix, self.published = prefix, []
+            made.append(self)
+
+        def publish(self, desc):
+            self.published.append(desc)
+            return len(desc.imus)
+
+    monkeypatch.setattr(fusion_node, "StaticFramePublisher", Recorder)
+    rclpy.init(args=["--ros-args", "-p", f"array_config:={ARRAY32}", "-p", "frame_prefix:=arr/",
+                     "-p", f"publish_frames:={str(publish).lower()}", "-p", "bias_tracking:=false"])
+    try:
+        node = fusion_node.FusionNode()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    if not publish:
+        assert made == []
+        return
+    ((frames,),) = [made]
+    assert frames.prefix == "arr/" and len(frames.published) == 1
+    assert list(frames.published[0].names) == list(load_description(ARRAY32).names)

@@ -61,6 +61,7 @@ from imu_array_ros.errors import ConfigError, ImuArrayError
 from imu_array_ros.fusion.live import LiveFusion, summarize
 from imu_array_ros.io.live_pairing import BacklogGate, CompletionQueue, stamp_ns
 from imu_array_ros.io.rosbag.recording import imu_topic
+from imu_array_ros.nodes.frames import StaticFramePublisher
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_OPTIONS, declare
 from imu_array_ros.nodes.runtime import (OK, WARN, DiagnosticsPublisher, RawSubscriptions, output_qos, qos_events,
                                          run, timer)
@@ -120,6 +121,9 @@ class FusionNode(Node):
         self.core.sink = self._sink
         grid = f", own stamps paired onto the stamps of {desc.names[reference]!r}" if own else ""
         self.get_logger().info(f"fusing {len(desc.names)} IMUs with {source}{grid}")
+        self.frames = StaticFramePublisher(self, p.frame_prefix) if p.publish_frames else None
+        if self.frames is not None:
+            self.frames.publish(desc)
         self._track_start(self.core.fusion.model)
         self.raw = CompletionQueue(len(desc.names), self._on_complete, own_stamps=own, reference=reference)
         self.gate = BacklogGate()
@@ -131,10 +135,11 @@ class FusionNode(Node):
                                          self.raw, p.reliable, hint)
         timer(self, 0.25, self._adapt)
         out = f"{p.topic_prefix.rstrip('/')}/fused"
-        events = qos_events(self, "publisher", "check the subscriber's QoS")
-        self.pub_imu = self.create_publisher(Imu, out + "/imu", output_qos(), event_callbacks=events)
+        hint = "check the subscriber's QoS"
+        self.pub_imu = self.create_publisher(Imu, out + "/imu", output_qos(),
+                                             event_callbacks=qos_events(self, "publisher", hint, out + "/imu"))
         self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, out + "/accel", output_qos(),
-                                               event_callbacks=events)
+                                               event_callbacks=qos_events(self, "publisher", hint, out + "/accel"))
         self._nis_high = False
         self._nis_logged_at = -1e18
         self._t_start = self._now()
@@ -150,7 +155,9 @@ class FusionNode(Node):
             timer(self, p.watch_period, self._watch)
 
     def _now(self) -> int:
-        return self.get_clock().now().nanoseconds
+        """Arrival time on the system clock, also under ``use_sim_time`` (sync timeouts, latency and rates are
+        real-time matters; a simulated clock stops with the replay and would hold the last samples back)."""
+        return time.time_ns()
 
     def _sync_timeout(self, all_reliable: bool) -> float:
         if self.p.sync_timeout >= 0:
@@ -243,6 +250,8 @@ class FusionNode(Node):
             self.get_logger().error(f"calibration not reloaded, keeping the one in use: {err}")
             return
         self.get_logger().info(f"reloaded calibration {path}")
+        if self.frames is not None:
+            self.frames.publish(desc)
 
     def _diagnose(self) -> None:
         """1 Hz: copy the window (cheap) and compute the summary in a worker thread; published when done."""

@@ -94,7 +94,7 @@ FUSION_PARAMS = _COMMON + (
           "-1 = by QoS: 5 s while every raw topic is reliable (a message is late, not lost: a retransmission can "
           "take the writer's heartbeat period, up to 3 s, on a loaded machine), 0.05 s once one is best effort", -1.0, 10.0),
     Param("max_batch", 1000, "most samples per fusion call", 1, 1_000_000),
-    Param("period", 0.005, "seconds between fusion steps", 0.0005, 1.0),
+    Param("period", 0.005, "seconds between timer sweeps (fusion is event-driven: a sample is fused when its last message arrives; the timer fuses batches when behind and samples that timed out)", 0.0005, 1.0),
     Param("watch_period", 0.5, "seconds between checks of calibration_file", 0.05, 60.0),
     Param("stamps", "common", "'common': every IMU's message of an array sample carries the same stamp; 'own': "
           "the IMUs stamp their messages with their own clocks: paired onto the reference IMU's stamps, their "

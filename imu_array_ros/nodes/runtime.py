@@ -135,7 +135,10 @@ def timer(node, period: float, callback):
     """``node.create_timer(period, callback)``, except that the callback is skipped once the node's
     context is shut down, and an exception it raises while the context goes down is dropped: on
     Ctrl-C rclpy invalidates the context before the executor stops, and a timer firing in between
-    would otherwise log ``[FATAL] Exception in 'timers' callback`` (its publishers are gone)."""
+    would otherwise log ``[FATAL] Exception in 'timers' callback`` (its publishers are gone). The timer runs
+    on the steady clock, also under ``use_sim_time``."""
+    from rclpy.clock import Clock, ClockType
+
     context = node.context
 
     def guarded() -> None:
@@ -147,7 +150,9 @@ def timer(node, period: float, callback):
             if context.ok():
                 raise
 
-    return node.create_timer(period, guarded)
+    # on the steady clock: with use_sim_time the node's clock follows /clock, which stops with the replay
+    # and would stop the sweeps that fuse what is left (a node's work is paced by real time, not sim time)
+    return node.create_timer(period, guarded, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
 class RawQueue:
