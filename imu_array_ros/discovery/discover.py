@@ -237,7 +237,7 @@ def _localize(residuals, expected, motion, samples, model, still_threshold):
     return localize(residuals, expected, motion, samples.stamps, model.names,
                     near_saturation=_near_saturation(samples, model), rotations=model.rotations,
                     positions=model.positions, acc_std=model.acc_std, still_threshold=still_threshold,
-                    gravity=STANDARD_GRAVITY)
+                    gravity=STANDARD_GRAVITY, std=model.std)
 
 
 def _sim_residuals(samples, sim, model: SensorModel):
@@ -309,8 +309,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         if timing.model is not model:
             current = timing.model
             # the scores below start from its ML motion (the timing stage's own, when it kept it)
-            clocked = getattr(timing, "motion", None)
-            motion = clocked if clocked is not None else fit_motion(samples, current, motion)[0]
+            motion = timing.motion if timing.motion is not None else fit_motion(samples, current, motion)[0]
         timings["timing"] = time.perf_counter() - t1
 
     # 4. explain
@@ -470,4 +469,6 @@ def _unexplained(loc, sb, motion, samples, model, blocks, fold_of_block):
                         "improves_heldout": any(m.improves for m in ems),
                         "heldout_delta_loglik": float(sum(m.heldout_delta_loglik for m in ems)),
                         "cells": [m.to_dict() for m in ems]}})
+        if "mode" in e:  # a narrowband mode (discovery/modes.py): its shape, presence and held-out model
+            out[-1]["mode"] = e["mode"]
     return out, models

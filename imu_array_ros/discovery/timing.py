@@ -94,6 +94,8 @@ class TimingDiscovery:
     loglik_after: float | None = None
     evidence: dict = field(default_factory=dict, repr=False)
     notes: list = field(default_factory=list)
+    #: the ML motion under ``model`` when the clocks were kept (so the discovery need not fit it again)
+    motion: object = field(default=None, repr=False)
 
     @property
     def used(self) -> bool:
@@ -166,7 +168,7 @@ def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, l
     motion1, loglik1, r1 = fit_motion(samples, clocked, motion)
     out.loglik_before, out.loglik_after = float(loglik), float(loglik1)
     if out.delta_loglik > 0:
-        out.model = clocked
+        out.model, out.motion = clocked, motion1
     else:
         out.notes.append(f"the clocks found ({', '.join(f'{f.imu} {f.sensor}' for f in out.findings)}) do not "
                          f"raise the log-likelihood ({out.delta_loglik:.4g}): rejected")
