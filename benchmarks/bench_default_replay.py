@@ -73,8 +73,9 @@ def _wait_for(path: Path, text: str, timeout: float) -> str | None:
     return None
 
 
-def run_once(domain: int, work: Path, n_samples: int, fusion_args=(), driver_args=()) -> dict:
-    """One run (see the module docstring); a dict of counts and the log lines that matter."""
+def run_once(domain: int, work: Path, n_samples: int, fusion_args=(), driver_args=(), probe_ready=False) -> dict:
+    """One run (see the module docstring); a dict of counts and the log lines that matter.  ``probe_ready``:
+    start the driver only once the probe has matched the fusion node's publishers (it prints ``ready``)."""
     env = _env(domain)
     logs = {k: work / f"{k}_{domain}.log" for k in ("probe", "fusion", "driver")}
     files = {k: open(v, "w") for k, v in logs.items()}
@@ -84,6 +85,7 @@ def run_once(domain: int, work: Path, n_samples: int, fusion_args=(), driver_arg
                         "--timeout", 60, "--reliable"], env, files["probe"])
         fusion = _start([BIN / "fusion_node", "--ros-args", "-p", f"array_config:={ARRAY}", *fusion_args], env,
                         files["fusion"])
+        ready = "ready" in probe.stdout.readline() if probe_ready else None
         driver = _start([BIN / "driver_node", "--ros-args", "-p", f"array_config:={ARRAY}", "-p", "mode:=replay",
                          "-p", f"bag:={BAG}", *driver_args], env, files["driver"])
         finished = _wait_for(logs["driver"], "replay finished", 60.0)
@@ -102,7 +104,7 @@ def run_once(domain: int, work: Path, n_samples: int, fusion_args=(), driver_arg
     m = re.search(r"exiting: fused (\d+) samples \((\d+) complete", fusion_log)
     w = re.search(r"subscribers matched after ([0-9.]+) s", driver_log)
     got = np.load(out)["stamps"] if out.exists() else np.zeros(0)
-    return {"domain": domain, "fused": int(m.group(1)) if m else -1, "complete": int(m.group(2)) if m else -1,
+    return {"domain": domain, "ready": ready, "fused": int(m.group(1)) if m else -1, "complete": int(m.group(2)) if m else -1,
             "probe": int(len(got)),
             "waited_s": float(w.group(1)) if w else float("nan"), "finished": finished is not None,
             "timed_out": "anyway" in driver_log, "incompatible": "incompatible QoS" in fusion_log + driver_log,

@@ -8,7 +8,8 @@ Each run, in a DDS domain of its own (``ROS_DOMAIN_ID`` base + run, localhost on
 * once the probe has matched the fusion node's publishers (it prints ``ready``): ``driver_node
   mode:=replay bag:=bags/twist32_sample exit_at_end:=true`` (``publish_clock`` at its default, true).
 
-After the driver exits, the probe gets up to 10 s more; then every process is stopped.  Counted: fused
+After the driver logs ``replay finished``, the probe gets up to 10 s more; then every process is
+stopped (one run is :func:`benchmarks.bench_default_replay.run_once` with these arguments).  Counted: fused
 samples received by the probe (what a subscriber got while the node ran) and the node's own count at exit
 (it publishes what it still holds when it exits).
 
@@ -19,61 +20,22 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
-import re
-import signal
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.bench_default_replay import ARRAY, BAG
+from benchmarks.bench_default_replay import run_once as replay_once
 from benchmarks.harness import load_average
-
-REPO = Path(__file__).resolve().parents[1]
-BIN = Path(sys.executable).parent
-ARRAY = REPO / "config" / "array32.yaml"
-BAG = REPO / "bags" / "twist32_sample"
 
 __all__ = ["run_once", "main"]
 
 
-def _stop(proc, timeout=20.0) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
 def run_once(domain: int, work: Path, n: int, sim_time: bool) -> dict:
-    """One run (module docstring): probe count, node count at exit."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
-    out, log = work / f"probe_{domain}.npz", work / f"fusion_{domain}.log"
-    with open(log, "w") as fusion_err, open(work / f"driver_{domain}.log", "w") as driver_err:
-        probe = subprocess.Popen([sys.executable, "-m", "imu_array_ros.nodes.probe", "--out", str(out), "--count",
-                                  str(n), "--timeout", "60", "--reliable"], env=env, stdout=subprocess.PIPE,
-                                 stderr=subprocess.DEVNULL, text=True)
-        fusion = subprocess.Popen([str(BIN / "fusion_node"), "--ros-args", "-p", f"array_config:={ARRAY}",
-                                   *(["-p", "use_sim_time:=true"] if sim_time else [])], env=env,
-                                  stdout=subprocess.DEVNULL, stderr=fusion_err)
-        ready = "ready" in probe.stdout.readline()
-        driver = subprocess.Popen([str(BIN / "driver_node"), "--ros-args", "-p", f"array_config:={ARRAY}", "-p",
-                                   "mode:=replay", "-p", f"bag:={BAG}", "-p", "exit_at_end:=true"], env=env,
-                                  stdout=subprocess.DEVNULL, stderr=driver_err)
-        driver.wait(60)
-        end = time.monotonic() + 10.0
-        while probe.poll() is None and time.monotonic() < end:
-            time.sleep(0.1)
-        for proc in (probe, fusion):
-            _stop(proc)
-    m = re.search(r"exiting: fused (\d+) samples", log.read_text())
-    return {"ready": ready, "probe": int(len(np.load(out)["stamps"])) if out.exists() else 0,
-            "at_exit": int(m.group(1)) if m else -1}
+    """One run (module docstring): probe count, node count at exit (``fused``)."""
+    return replay_once(domain, work, n, fusion_args=["-p", "use_sim_time:=true"] if sim_time else [],
+                       driver_args=["-p", "exit_at_end:=true"], probe_ready=True)
 
 
 def main(argv=None) -> int:
@@ -93,7 +55,7 @@ def main(argv=None) -> int:
             for j, sim in enumerate((False, True)):
                 r = run_once(args.domain + 2 * i + j, Path(tmp), n, sim)
                 rows.append((i + 1, sim, r))
-                print(f"run {i + 1} use_sim_time {sim}: probe {r['probe']}/{n}, node at exit {r['at_exit']}", flush=True)
+                print(f"run {i + 1} use_sim_time {sim}: probe {r['probe']}/{n}, node at exit {r['fused']}", flush=True)
     got = {sim: [r["probe"] for _, s, r in rows if s == sim] for sim in (False, True)}
     lines = [
         "# The fusion node with use_sim_time on the replay's /clock (issue 24, item 6)",
@@ -106,7 +68,7 @@ def main(argv=None) -> int:
         "",
         "| run | use_sim_time | fused samples received by the probe | fused by the node by its exit |",
         "|---|---|---|---|",
-        *[f"| {i} | {'true' if sim else 'false'} | {r['probe']} / {n} | {r['at_exit']} |" for i, sim, r in rows],
+        *[f"| {i} | {'true' if sim else 'false'} | {r['probe']} / {n} | {r['fused']} |" for i, sim, r in rows],
         "",
         f"Received, worst run: without use_sim_time {min(got[False])} / {n}, with it {min(got[True])} / {n} "
         f"(mean ratio with / without {np.mean(got[True]) / max(np.mean(got[False]), 1):.2f}). What the probe lacks "
