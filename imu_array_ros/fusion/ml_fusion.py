@@ -58,7 +58,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from imu_array_ros.fusion.batched_linalg import BLOCK, inv_sym3, row_times, solve_sym3, take_rows
-from imu_array_ros.fusion.gauss_newton import gauss_newton
+from imu_array_ros.fusion.gauss_newton import gauss_newton, gauss_newton_one
 from imu_array_ros.fusion.pattern_geometry import (
     Geometry,
     dropout_masks,
@@ -370,8 +370,9 @@ class MLFusion:
         beta_t = beta[:, :6] - ef[:, :6]
         phi_lin = ef[:, 6:]
         cfg = self.config
-        w_hat, it, cv, h = gauss_newton(omega0, geo.TF, beta_t, wg, gvec,
-                                        max_iterations=cfg.max_iterations, tolerance=cfg.tolerance)
+        one = len(omega0) == 1 and geo.TF.ndim == 2 and wg.ndim == 2  # a live sample: in Python floats
+        w_hat, it, cv, h = (gauss_newton_one if one else gauss_newton)(
+            omega0, geo.TF, beta_t, wg, gvec, max_iterations=cfg.max_iterations, tolerance=cfg.tolerance)
         c_ww, ok = inv_sym3(h)
         ok &= np.isfinite(w_hat).all(1)
         ej = geo.e_jq(w_hat)

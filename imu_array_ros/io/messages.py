@@ -181,14 +181,19 @@ def decode_raw_imu(payloads: Sequence[bytes], imu_index: np.ndarray, frame_ids: 
     dec = decode_imu(buf, offsets, lengths, ("angular_velocity", "linear_acceleration"))
     frame_ok = np.zeros(len(offsets), dtype=bool)
     if len(offsets):
-        # frame_id bytes start at payload[16]; its length field (incl. NUL) at payload[12:16]. Valid payloads
-        # have the exact length the layout implies for their frame_id length; one comparison for the batch
-        expect, flen, need = _expected_frames(tuple(frame_ids))
-        sel = np.flatnonzero(dec.valid & (lengths == need[imu_index]))
+        # header.frame_id: its length field (incl. NUL) at payload[12:16], its bytes and NUL from payload[16].
+        # Valid payloads have the length the layout implies for their frame_id; one comparison for the batch
+        # of the length field, the bytes and the NUL against the expected ones
+        expect, skip, need = _expected_frames(tuple(frame_ids))
         width = expect.shape[1]
-        window = gather_bytes(np.concatenate([buf, np.zeros(width, np.uint8)]), offsets[sel] + 16, width)
-        inside = np.arange(width)[None, :] < flen[imu_index[sel]][:, None]
-        frame_ok[sel] = ((window == expect[imu_index[sel]]) | ~inside).all(axis=1)  # an empty frame_id: any
+        ok = dec.valid & (lengths == need[imu_index])
+        if len(buf) == len(offsets) * int(lengths[0]) and (lengths == lengths[0]).all() and 12 + width <= lengths[0]:
+            window = buf.reshape(len(offsets), -1)[:, 12:12 + width]  # back to back, one length: no gather
+            frame_ok = ok & ((window == expect[imu_index]) | skip[imu_index]).all(axis=1)
+        else:
+            sel = np.flatnonzero(ok)
+            window = gather_bytes(np.concatenate([buf, np.zeros(width, np.uint8)]), offsets[sel] + 12, width)
+            frame_ok[sel] = ((window == expect[imu_index[sel]]) | skip[imu_index[sel]]).all(axis=1)
     accel, gyro = dec.fields["linear_acceleration"], dec.fields["angular_velocity"]
     finite = np.isfinite(accel).all(axis=1) & np.isfinite(gyro).all(axis=1)
     return RawBatch(dec.stamps, accel, gyro, dec.valid, frame_ok, finite & dec.valid)
@@ -196,15 +201,19 @@ def decode_raw_imu(payloads: Sequence[bytes], imu_index: np.ndarray, frame_ids: 
 
 @lru_cache(maxsize=8)
 def _expected_frames(frame_ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The expected frame_id bytes of every IMU (K, width) zero-padded, their lengths (K,) and the payload
-    length each implies (K,)."""
+    """Per IMU (K rows): the expected bytes from payload[12] (the frame_id's length field, its bytes, the NUL;
+    zero-padded to one width), which of them not to compare (the padding), and the payload length the
+    frame_id implies (K,)."""
     fids = [f.encode("utf-8") for f in frame_ids]
     flen = np.array([len(f) for f in fids], dtype=np.int64)
-    expect = np.zeros((len(fids), max(int(flen.max(initial=0)), 1)), dtype=np.uint8)
+    expect = np.zeros((len(fids), 4 + int(flen.max(initial=0)) + 1), dtype=np.uint8)
+    skip = np.ones(expect.shape, dtype=bool)
     for k, f in enumerate(fids):
-        expect[k, :len(f)] = np.frombuffer(f, dtype=np.uint8)
+        row = (len(f) + 1).to_bytes(4, "little") + f + b"\x00"
+        expect[k, :len(row)] = np.frombuffer(row, dtype=np.uint8)
+        skip[k, :len(row)] = False
     need = np.array([IMU_LAYOUT.payload_length(n + 1) for n in flen], dtype=np.int64)
-    return expect, flen, need
+    return expect, skip, need
 
 
 def decode_fused(imu_payloads: Sequence[bytes], accel_payloads: Sequence[bytes]) -> FusedSamples:

@@ -122,7 +122,34 @@ class SampleAssembler:
             self._heard = np.full(self.n_imus, int(arrival_ns), dtype=np.int64)
         if idx.min() < 0 or idx.max() >= self.n_imus:
             raise ValueError(f"imu_index outside [0, {self.n_imus})")
-        # previous stamp of the same IMU, in arrival order: the stored latest or the batch's running max
+        once = bool((np.bincount(idx, minlength=self.n_imus) <= 1).all())  # one message per IMU (a live sample)
+        if once:
+            prev = self._latest[idx]
+        else:
+            prev = self._previous(idx, st)
+        dup = st == prev
+        back = st < prev
+        late = ~dup & ~back & (st <= self._last_out)
+        ok = ~(dup | back | late)
+        self.stats.duplicate += int(dup.sum())
+        self.stats.backwards += int(back.sum())
+        self.stats.late += int(late.sum())
+        self.stats.accepted += int(ok.sum())
+        self._heard[idx] = int(arrival_ns)  # rejected or not, the IMU is alive
+        if not ok.any():
+            return ok
+        if once:
+            self._latest[idx[ok]] = st[ok]  # above the previous stamp: neither a duplicate nor backwards
+        else:
+            np.maximum.at(self._latest, idx[ok], st[ok])
+        self._insert(idx[ok], st[ok], np.asarray(accel, float).reshape(-1, 3)[ok],
+                     np.asarray(gyro, float).reshape(-1, 3)[ok], int(arrival_ns))
+        return ok
+
+    def _previous(self, idx: np.ndarray, st: np.ndarray) -> np.ndarray:
+        """Previous stamp of the same IMU for each message, in arrival order: the stored latest or the batch's
+        running max."""
+        m = len(idx)
         order = np.lexsort((np.arange(m), idx))
         prev = np.empty(m, dtype=np.int64)
         s_sorted, i_sorted = st[order], idx[order]
@@ -137,28 +164,15 @@ class SampleAssembler:
         shifted[first_of_group] = self._latest[i_sorted[first_of_group]]
         shifted[~first_of_group] = np.maximum(shifted[~first_of_group], self._latest[i_sorted[~first_of_group]])
         prev[order] = shifted
-        dup = st == prev
-        back = st < prev
-        late = ~dup & ~back & (st <= self._last_out)
-        ok = ~(dup | back | late)
-        self.stats.duplicate += int(dup.sum())
-        self.stats.backwards += int(back.sum())
-        self.stats.late += int(late.sum())
-        self.stats.accepted += int(ok.sum())
-        self._heard[idx] = int(arrival_ns)  # rejected or not, the IMU is alive
-        if not ok.any():
-            return ok
-        np.maximum.at(self._latest, idx[ok], st[ok])
-        self._insert(idx[ok], st[ok], np.asarray(accel, float).reshape(-1, 3)[ok],
-                     np.asarray(gyro, float).reshape(-1, 3)[ok], int(arrival_ns))
-        return ok
+        return prev
 
     def _insert(self, idx, st, acc, gyr, arrival_ns) -> None:
         new = np.setdiff1d(np.unique(st), self._stamps, assume_unique=True)
         if len(new):
             k = self.n_imus
             stamps = np.concatenate([self._stamps, new])
-            order = np.argsort(stamps, kind="stable")
+            # new stamps after every buffered one (np.unique sorts them): appended in order
+            order = slice(None) if not len(self._stamps) or new[0] > self._stamps[-1] else np.argsort(stamps, kind="stable")
             n_new = len(new)
             self._stamps = stamps[order]
             self._acc = np.concatenate([self._acc, np.full((n_new, k, 3), np.nan)])[order]
