@@ -131,7 +131,8 @@ def normalized_residuals(samples: ImuSamples, model: SensorModel, fused: FusedSa
         res = np.concatenate([ya, yg], axis=2) - jac.predicted
         z2 = np.where(valid, np.nan_to_num(res) ** 2 / sig2, 0.0)
         rows = jac.motion  # (n, K, 6, 9)
-        lev = np.einsum("nkai,nij,nkaj->nka", rows, fused.covariance[lo:hi], rows) / sig2
+        # leverage of each reading: row C row^T (a matmul: a three-operand einsum runs as a naive loop)
+        lev = np.einsum("nkai,nkai->nka", rows @ fused.covariance[lo:hi, None], rows) / sig2
         e = np.where(valid, 1.0 - lev, 0.0)
         nis[lo:hi] = z2.sum(axis=(1, 2))
         nis_exp[lo:hi] = e.sum(axis=(1, 2))
