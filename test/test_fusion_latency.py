@@ -10,7 +10,7 @@ import pytest
 
 from conftest import REPO
 from imu_array_ros.fusion.live import LiveFusion
-from imu_array_ros.io.live_pairing import CompletionQueue
+from imu_array_ros.io.live_queue import CompletionQueue
 from imu_array_ros.io.messages import decode_fused, raw_imu_payloads
 from imu_array_ros.model.description import load_description
 from imu_array_ros.simulation.simulator import simulate_twist
@@ -145,7 +145,7 @@ def test_node_fuses_a_complete_sample_before_any_timer(fusion_node):
 
 
 def test_backlog_gate_batches_only_samples_already_queued():
-    from imu_array_ros.io.live_pairing import BacklogGate
+    from imu_array_ros.io.live_queue import BacklogGate
 
     rng = np.random.default_rng()
     gate = BacklogGate(max_wait=8)

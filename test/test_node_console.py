@@ -271,11 +271,12 @@ def ros_node(dds):
 def test_best_effort_publisher_switches_the_topic_once_with_one_line(ros_node, capfd):
     from sensor_msgs.msg import Imu
 
-    from imu_array_ros.nodes.runtime import RAW_DEPTH, RawQueue, RawSubscriptions, qos
+    from imu_array_ros.io.live_queue import CompletionQueue
+    from imu_array_ros.nodes.runtime import RAW_DEPTH, RawSubscriptions, qos
 
     console = Console(capfd)
     topics = [f"/console_test_{os.getpid()}/imu_{k}/data_raw" for k in range(4)]
-    subs = RawSubscriptions(ros_node, Imu, topics, RawQueue(), reliable=False, hint="-")
+    subs = RawSubscriptions(ros_node, Imu, topics, CompletionQueue(len(topics)), reliable=False, hint="-")
     pubs = [ros_node.create_publisher(Imu, t, qos(False)) for t in topics[1:3]]  # sensor data: best effort
 
     def adapted():
@@ -300,12 +301,13 @@ def test_best_effort_publisher_switches_the_topic_once_with_one_line(ros_node, c
 def test_incompatible_qos_names_topic_policy_and_fix_at_most_every_10_s(ros_node, capfd):
     from sensor_msgs.msg import Imu
 
-    from imu_array_ros.nodes.runtime import RawQueue, RawSubscriptions, qos
+    from imu_array_ros.io.live_queue import CompletionQueue
+    from imu_array_ros.nodes.runtime import RawSubscriptions, qos
 
     console = Console(capfd)
     topics = [f"/console_test_{os.getpid()}/imu_{k}/data_raw" for k in range(3)]
     hint = "set reliable:=true on the publisher too, or false here"
-    RawSubscriptions(ros_node, Imu, topics, RawQueue(), reliable=True, hint=hint)
+    RawSubscriptions(ros_node, Imu, topics, CompletionQueue(len(topics)), reliable=True, hint=hint)
     ros_node.create_publisher(Imu, topics[0], qos(False))  # best effort: cannot reach a reliable subscription
     assert ros_node.spin(10.0, lambda: console.matching("cannot connect to this subscription")), console.read()
     for t in topics[1:]:

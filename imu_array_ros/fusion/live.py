@@ -52,13 +52,13 @@ path by :mod:`imu_array_ros.workflows.live_session`), between two steps, so
 neither loses a sample.  ``sink(samples, fused)``, when given, sees every batch
 published (the raw samples as fused, own stamps included, and their estimates).
 
-Event-driven fusion: :class:`~imu_array_ros.io.live_pairing.CompletionQueue` takes the serialized messages from the
+Event-driven fusion: :class:`~imu_array_ros.io.live_queue.CompletionQueue` takes the serialized messages from the
 subscription callbacks and tells, per message and without decoding it (its stamp's 8
 bytes as a key, one bit per IMU), when it completed its array sample; the node then
 drains the queue into :meth:`LiveFusion.add` and :meth:`LiveFusion.step` at once, so a
 complete sample is fused without waiting for a timer (the timer only sweeps samples
 whose ``sync_timeout`` has passed).  When messages back up
-(:class:`~imu_array_ros.io.live_pairing.BacklogGate`), completed samples wait and are fused together.  The diagnostics are split so that only a cheap
+(:class:`~imu_array_ros.io.live_queue.BacklogGate`), completed samples wait and are fused together.  The diagnostics are split so that only a cheap
 copy is taken on the fusing thread (:meth:`LiveFusion.snapshot`) and the NIS ratio
 and quantiles are computed elsewhere (:func:`summarize`, e.g. in a worker thread).
 """

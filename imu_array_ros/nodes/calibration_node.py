@@ -34,11 +34,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from imu_array_ros.errors import ConfigError, ImuArrayError
+from imu_array_ros.io.live_queue import CompletionQueue
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.io.window import SampleWindow
 from imu_array_ros.model.description import load_description
 from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, NODE_OPTIONS, declare
-from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawQueue, RawSubscriptions, run, timer
+from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawSubscriptions, run, timer
 from imu_array_ros.workflows import calibrate, load_array
 
 __all__ = ["CalibrationNode", "main", "SERVICE"]
@@ -62,7 +63,7 @@ class CalibrationNode(Node):
         self.out = Path(p.output_file)
         self._check_output()
         self.window = SampleWindow(self.desc, p.frame_prefix, p.sync_timeout, p.window, p.window_samples)
-        self.raw = RawQueue()
+        self.raw = CompletionQueue(len(self.desc.names))  # a plain queue: the window is buffered by a timer
         hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
                 "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
         self.raw_subs = RawSubscriptions(self, Imu, [imu_topic(n, p.topic_prefix) for n in self.desc.names],

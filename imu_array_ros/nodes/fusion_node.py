@@ -9,10 +9,10 @@ All the work is :class:`imu_array_ros.fusion.live.LiveFusion`; the
 subscriptions take the serialized messages (``raw=True``) and queue them.
 
 Fusion is event-driven: the callback of the message that completes an array sample
-(every IMU's message of its stamp arrived; :class:`~imu_array_ros.io.live_pairing.CompletionQueue`,
+(every IMU's message of its stamp arrived; :class:`~imu_array_ros.io.live_queue.CompletionQueue`,
 a dictionary look-up per message, no decoding) decodes, assembles, fuses and publishes
 everything queued, at once.  When messages back up (a sample completes later than the
-next one's stamp: :class:`~imu_array_ros.io.live_pairing.BacklogGate`) it waits for those
+next one's stamp: :class:`~imu_array_ros.io.live_queue.BacklogGate`) it waits for those
 already queued behind it, and the ``period`` timer fuses them in one call (as it did every
 sample before: batching is what lets a node short of CPU catch up); at most 8 wait.  So does
 a node whose fusion calls take more than half the stamp spacing (a running mean): it cannot
@@ -59,7 +59,7 @@ from sensor_msgs.msg import Imu
 
 from imu_array_ros.errors import ConfigError, ImuArrayError
 from imu_array_ros.fusion.live import LiveFusion, summarize
-from imu_array_ros.io.live_pairing import BacklogGate, CompletionQueue, stamp_ns
+from imu_array_ros.io.live_queue import BacklogGate, CompletionQueue, stamp_ns
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.frames import StaticFramePublisher
 from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_OPTIONS, declare

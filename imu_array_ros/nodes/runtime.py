@@ -19,9 +19,10 @@ import sys
 import threading
 
 from imu_array_ros.errors import ImuArrayError
+from imu_array_ros.io.live_queue import CompletionQueue
 
 __all__ = ["run", "qos", "raw_subscription_qos", "output_qos", "qos_events", "timer", "DiagnosticsPublisher",
-           "RawQueue", "RawSubscriptions", "OK", "WARN", "ERROR", "RAW_DEPTH"]
+           "RawSubscriptions", "OK", "WARN", "ERROR", "RAW_DEPTH"]
 
 OK, WARN, ERROR = b"\x00", b"\x01", b"\x02"
 
@@ -60,7 +61,7 @@ class RawSubscriptions:
     effort, keeping the last :data:`RAW_DEPTH`, as soon as a best-effort publisher (the live serial
     driver) appears on it, once, with one console line for all topics switched together."""
 
-    def __init__(self, node, msg_type, topics: list[str], queue: "RawQueue", reliable: bool, hint: str) -> None:
+    def __init__(self, node, msg_type, topics: list[str], queue: CompletionQueue, reliable: bool, hint: str) -> None:
         self.node, self.msg_type, self.topics, self.queue = node, msg_type, list(topics), queue
         self.adaptive = not reliable
         self.reliable = [True] * len(self.topics)
@@ -153,30 +154,6 @@ def timer(node, period: float, callback):
     # on the steady clock: with use_sim_time the node's clock follows /clock, which stops with the replay
     # and would stop the sweeps that fuse what is left (a node's work is paced by real time, not sim time)
     return node.create_timer(period, guarded, clock=Clock(clock_type=ClockType.STEADY_TIME))
-
-
-class RawQueue:
-    """Serialized messages the raw (``raw=True``) subscriptions queue, drained in one batch by a timer
-    of the same executor thread; ``receiver(k)`` is the callback of IMU k's topic."""
-
-    def __init__(self) -> None:
-        self.payloads: list = []
-        self.index: list = []
-
-    def receiver(self, k: int):
-        payloads, index = self.payloads, self.index
-
-        def receive(payload: bytes) -> None:
-            payloads.append(payload)
-            index.append(k)
-
-        return receive
-
-    def drain(self) -> tuple[list, list]:
-        """(payloads, imu indexes) queued since the last call, in arrival order."""
-        payloads, index = self.payloads[:], self.index[:]
-        del self.payloads[:], self.index[:]
-        return payloads, index
 
 
 class DiagnosticsPublisher:
