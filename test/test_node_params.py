@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib.util
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +11,7 @@ import pytest
 import yaml
 
 from conftest import REPO
+from dds_harness import dds_env, pick_domain
 from imu_array_ros.nodes.parameters import NODE_PARAMS
 
 NODE_NAMES = {"driver_node": "imu_array_driver", "fusion_node": "imu_array_fusion",
@@ -36,7 +36,7 @@ def test_example_params_file_lists_every_parameter_with_its_type(exe):
 @pytest.mark.parametrize("exe", sorted(NODE_PARAMS))
 def test_node_reads_its_example_params_file(exe, tmp_path):
     """The file parses as ROS parameters: the node gets to its own checks (here: a missing array file)."""
-    env = dict(os.environ, ROS_DOMAIN_ID="231", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dds_env(pick_domain())  # the tests' own domain range (IMU_ARRAY_TEST_DOMAINS)
     proc = subprocess.run([str(Path(sys.executable).parent / exe), "--ros-args", "--params-file",
                            str(REPO / "config" / f"{exe}.params.yaml"), "-p", f"array_config:={tmp_path}/none.yaml"],
                           capture_output=True, text=True, timeout=30, env=env)
