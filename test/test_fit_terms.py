@@ -313,3 +313,14 @@ def test_named_parameters_are_held_outside_the_gauge_search(positions_recording)
     assert more.model.terms["gyroscope_gain"].values[1, 2] == nominal.terms["gyroscope_gain"].values[1, 2]
     with pytest.raises(CalibrationError, match="hold: 'imu_00 gyroscope.bias\\[0\\]' is not a parameter"):
         fit(samples, nominal, ["position"], hold=["imu_00 gyroscope.bias[0]"])
+
+
+def test_cost_tolerance_stops_once_a_step_gains_little_likelihood(positions_recording):
+    """cost_tolerance (discovery's confirming refits): stop when a step lowers the cost by less; the
+    log-likelihood is then within that of the full fit's, the default (None) fit unchanged."""
+    nominal, truth, samples, _ = positions_recording
+    full = fit(samples, nominal, ["position"], tolerance=1e-6)
+    quick = fit(samples, nominal, ["position"], tolerance=1e-6, cost_tolerance=0.1)
+    assert quick.converged and quick.iterations < full.iterations
+    assert 0.0 <= full.loglik_after - quick.loglik_after < 0.1
+    assert quick.loglik_after - quick.loglik_before > 100  # it did fit

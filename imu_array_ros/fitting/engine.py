@@ -93,7 +93,7 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
               progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None,
               only: dict | None = None, t0_ns: int | None = None, robust: str | None = None,
-              sandwich: bool = True, hold: Sequence[str] = ()) -> FitResult:
+              sandwich: bool = True, hold: Sequence[str] = (), cost_tolerance: float | None = None) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
     samples: the readings (:class:`~imu_array_ros.model.samples.ImuSamples`: stamps (N,) int64 ns,
@@ -132,14 +132,18 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     ``HUBER_ROUNDS`` times with the readings reweighted by Huber's weights on the residuals of the fit before
     (:func:`~imu_array_ros.fitting.robust.huber_sigma`, each axis' scale from its median absolute residual):
     readings far out count linearly instead of quadratically; nis/loglik "after" are then those of the
-    reweighted problem; sandwich: compute ``covariance_robust`` (one more pass over the samples).  Raises
+    reweighted problem; sandwich: compute ``covariance_robust`` (one more pass over the samples);
+    cost_tolerance: also converged when a step lowers the cost (-log-likelihood) by less than this (default
+    None: the parameter and motion steps alone decide; discovery's confirming refits need only the
+    likelihood).  Raises
     :class:`CalibrationError` (one line) when the problem cannot be solved or
     identified.
     """
     if robust is not None:
         return _huber(samples, model, free, robust, dict(imus=imus, reference=reference, gauge=gauge,
                       max_iterations=max_iterations, tolerance=tolerance, progress=progress,
-                      motion_model=motion_model, only=only, t0_ns=t0_ns, sandwich=sandwich, hold=hold),
+                      motion_model=motion_model, only=only, t0_ns=t0_ns, sandwich=sandwich, hold=hold,
+                      cost_tolerance=cost_tolerance),
                       motion0, sigma)
     free = check_terms(free)
     if gauge not in ("reference", "mean"):
@@ -156,7 +160,8 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     dof = prob.check_dof(gauge_fix.rank)
     before = lin.cost
     model, motion, lin, iterations, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
-                                                                    max_iterations, tolerance, progress)
+                                                                    max_iterations, tolerance, progress,
+                                                                    cost_tolerance)
     for _ in range(TIMING_ROUNDS if prob.needs_derivatives else 0):
         # the timing terms' trajectory was held through the optimisation: rebuild it from the motion found
         # and optimise again, until the parameters no longer move
@@ -164,7 +169,8 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
         prob.freeze(motion)
         lin = prob.linearize(model, motion)
         model, motion, lin, more, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
-                                                                  max_iterations, tolerance, progress)
+                                                                  max_iterations, tolerance, progress,
+                                                                  cost_tolerance)
         iterations += more
         s_z, _ = gauge_fix.reduce(lin.S, lin.g)
         std = np.sqrt(np.clip(np.diag(gauge_fix.expand_covariance(inverse(s_z))), 0.0, None))

@@ -15,13 +15,14 @@ __all__ = ["levenberg_marquardt", "inverse"]
 
 
 def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Linearization, gauge: Gauge,
-                        max_iterations: int, tolerance: float, progress):
+                        max_iterations: int, tolerance: float, progress, cost_tolerance: float | None = None):
     """Levenberg-Marquardt on the reduced system (damping on S's diagonal, a step accepted when the cost
     drops); returns (model, motion, lin, iterations, converged).
 
     lin: the linearisation at (model, motion); converged when every parameter step is below ``tolerance``
-    standard deviations and the RMS motion step below ``tolerance`` of its own; progress(iteration, cost)
-    or None."""
+    standard deviations and the RMS motion step below ``tolerance`` of its own, or (``cost_tolerance`` given)
+    when an accepted step lowered the cost by less than ``cost_tolerance`` (log-likelihood units: a caller that
+    needs the likelihood, not the last digits of the estimate); progress(iteration, cost) or None."""
     lam, iterations, converged = 0.0, 0, False
     for _ in range(max_iterations):
         if progress is not None:
@@ -48,7 +49,11 @@ def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, l
                 return model, motion, lin, iterations, False
         model, motion = new_model, new_motion
         iterations += 1
+        drop = lin.cost - cost
         lin = prob.linearize(model, motion)
+        if cost_tolerance is not None and drop < cost_tolerance:
+            converged = True
+            break
     return model, motion, lin, iterations, converged
 
 

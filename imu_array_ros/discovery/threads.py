@@ -1,0 +1,31 @@
+"""BLAS threads of discovery's score passes.
+
+A score pass (:func:`~imu_array_ros.fitting.score.score_blocks` through :func:`.scopes.score_given`) makes
+tens of thousands of small matrix products (per 0.5 s block and IMU: 56 x 186 by 186 x 56 with every
+candidate term).  OpenBLAS splits each across its threads; on a machine whose cores are busy with other work
+the threads wait for one another and each product takes 10-100x longer than on one thread (measured on 2
+cores at load ~4: a 60 s score pass of exp_3 44.5 s with the default threads, 3.4 s with one,
+``benchmarks/results/discovery_speed.md``).  So the score passes run on one BLAS thread, with threadpoolctl
+when it is installed (without it the threads are left as they are).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+
+__all__ = ["single_blas_thread", "limiter_available"]
+
+
+def limiter_available() -> bool:
+    """True when the BLAS thread count can be limited (threadpoolctl importable)."""
+    return importlib.util.find_spec("threadpoolctl") is not None
+
+
+def single_blas_thread():
+    """Context manager: BLAS on one thread inside (threadpoolctl), a no-op when it cannot be limited."""
+    if not limiter_available():
+        return contextlib.nullcontext()
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
