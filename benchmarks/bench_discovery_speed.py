@@ -105,7 +105,7 @@ def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_
         raise SystemExit(f"chunk discover failed: {out.stderr[-2000:]}")
     r = json.loads(out.stdout.strip().splitlines()[-1])
     say(f"[{label}] {r['wall_s']:.1f} s")
-    return {"label": label, "window_s": list(window), "max_findings": max_findings, **r,
+    return {"label": label, "capture": capture.stem, "window_s": list(window), "max_findings": max_findings, **r,
             "load_average": load_average()}
 
 
@@ -144,9 +144,10 @@ def main() -> int:
         _run(REPO, ["calibrate", "all", str(capture), "--array", str(ARRAY), "--out", str(cal), "-q"],
              work / "calibrate.log")
         runs = [measure_chunk(t, lab, capture, cal, args.window, args.max_findings) for t, lab in zip(trees, labels)]
-        text = "| tree | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
-        text += "|---|---|---|---|---|---|---|---|\n" + "".join(
-            f"| {r['label']} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | {r['max_findings']} | {r['samples']} | "
+        text = "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
+        text += "|---|---|---|---|---|---|---|---|---|\n" + "".join(
+            f"| {r['label']} | {r['capture']} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | {r['max_findings']} | "
+            f"{r['samples']} | "
             f"{r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | {'; '.join(r['findings']) or '—'} | "
             f"{r['load_average']} |\n" for r in runs)
         CHUNK_JSON.write_text(json.dumps((json.loads(CHUNK_JSON.read_text()) if CHUNK_JSON.exists() else []) + runs,
@@ -171,9 +172,10 @@ def _write_md() -> None:
     chunks = json.loads(CHUNK_JSON.read_text()) if CHUNK_JSON.exists() else []
     if chunks:
         text += ("\n## A window of the capture (`--window`), discover alone, trees in turn\n\n"
-                 "| tree | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
-                 "|---|---|---|---|---|---|---|---|\n" + "".join(
-                     f"| {r['label']} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | {r['max_findings']} | "
+                 "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
+                 "|---|---|---|---|---|---|---|---|---|\n" + "".join(
+                     f"| {r['label']} | {r.get('capture', '?')} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | "
+                     f"{r['max_findings']} | "
                      f"{r['samples']} | {r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | "
                      f"{'; '.join(r['findings']) or '—'} | {r['load_average']} |\n" for r in chunks))
     write_results(OUT, text)
