@@ -42,6 +42,7 @@ from imu_array_ros.discovery.confirm import confirm, update_finding
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
+from imu_array_ros.discovery.threads import on_one_blas_thread
 from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, score_blocks
@@ -258,6 +259,7 @@ def _sim_residuals(samples, sim, model: SensorModel):
     return np.where(valid, d, np.nan), np.where(valid, 1.0, np.nan)
 
 
+@on_one_blas_thread
 def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = None, sim=None,
              validate=(), progress=None) -> Discovery:
     """The mismatch-discovery workflow (module docstring) on ``samples`` (ImuSamples) under ``model``.
