@@ -128,8 +128,7 @@ def _driver(dds, bag, subscribers):
 
 
 def _calibration_node(dds, out, *params):
-    args = ["-p", f"array_config:={ARRAY32}", "-p", f"output_file:={out}", "-p", "reliable:=true",
-            "-p", "sync_timeout:=2.0"]
+    args = ["-p", f"array_config:={ARRAY32}", "-p", f"output_file:={out}", "-p", "reliable:=true"]  # sync_timeout default
     for p in params:
         args += ["-p", p]
     return dds.start("calibration", BIN / "calibration_node", "--ros-args", *args)

@@ -38,7 +38,7 @@ from imu_array_ros.io.live_queue import CompletionQueue
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.io.window import SampleWindow
 from imu_array_ros.model.description import load_description
-from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, NODE_OPTIONS, declare
+from imu_array_ros.nodes.parameters import CALIBRATION_PARAMS, NODE_OPTIONS, declare, sync_timeout_s
 from imu_array_ros.nodes.runtime import OK, WARN, DiagnosticsPublisher, RawSubscriptions, run, timer
 from imu_array_ros.workflows import calibrate, load_array
 
@@ -62,13 +62,14 @@ class CalibrationNode(Node):
                               f"(the IMUs of {p.array_config} are {', '.join(self.desc.names[:4])}...)")
         self.out = Path(p.output_file)
         self._check_output()
-        self.window = SampleWindow(self.desc, p.frame_prefix, p.sync_timeout, p.window, p.window_samples)
+        self.window = SampleWindow(self.desc, p.frame_prefix, sync_timeout_s(p.sync_timeout, all_reliable=True),
+                                   p.window, p.window_samples)
         self.raw = CompletionQueue(len(self.desc.names))  # a plain queue: the window is buffered by a timer
         hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
                 "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
         self.raw_subs = RawSubscriptions(self, Imu, [imu_topic(n, p.topic_prefix) for n in self.desc.names],
                                          self.raw, p.reliable, hint)
-        timer(self, 0.25, self.raw_subs.adapt)
+        timer(self, 0.25, self._adapt)
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
         timer(self, p.period, self._step)
         timer(self, 1.0, self._diagnose)
@@ -134,6 +135,18 @@ class CalibrationNode(Node):
 
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
+
+    def _adapt(self) -> None:
+        """Raw topics to best effort when a best-effort publisher appears; sync_timeout -1 follows (as the
+        fusion node)."""
+        subs = self.raw_subs
+        was = all(subs.reliable)
+        subs.adapt()
+        if was and not all(subs.reliable) and self.p.sync_timeout < 0:
+            seconds = sync_timeout_s(self.p.sync_timeout, all_reliable=False)
+            self.window.assembler.timeout_ns = int(round(seconds * 1e9))
+            self.get_logger().info(f"sync_timeout now {seconds:g} s (a best-effort topic: a missing message is "
+                                   "lost, not late)")
 
     def _step(self) -> None:
         now = self._now()

@@ -62,7 +62,7 @@ from imu_array_ros.fusion.live import LiveFusion, summarize
 from imu_array_ros.io.live_queue import BacklogGate, CompletionQueue, stamp_ns
 from imu_array_ros.io.rosbag.recording import imu_topic
 from imu_array_ros.nodes.frames import StaticFramePublisher
-from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_OPTIONS, declare
+from imu_array_ros.nodes.parameters import FUSION_PARAMS, NODE_OPTIONS, declare, sync_timeout_s
 from imu_array_ros.nodes.runtime import (OK, WARN, DiagnosticsPublisher, RawSubscriptions, output_qos, qos_events,
                                          run, timer)
 from imu_array_ros.workflows import load_array
@@ -70,8 +70,6 @@ from imu_array_ros.workflows.live_session import MIN_MOVING_S, BiasSessionTracke
 
 __all__ = ["FusionNode", "main", "NIS_WARN_RATIO", "LIVE_STAMP_S", "latency_values"]
 
-#: sync_timeout -1 (by QoS): seconds while every raw topic is reliable, and once one is best effort
-SYNC_TIMEOUT_RELIABLE_S, SYNC_TIMEOUT_BEST_EFFORT_S = 5.0, 0.05
 #: NIS ratio above which the diagnostics say the model no longer fits (WARN).
 NIS_WARN_RATIO = 3.0
 #: seconds between two console lines about the NIS band
@@ -160,9 +158,7 @@ class FusionNode(Node):
         return time.time_ns()
 
     def _sync_timeout(self, all_reliable: bool) -> float:
-        if self.p.sync_timeout >= 0:
-            return self.p.sync_timeout
-        return SYNC_TIMEOUT_RELIABLE_S if all_reliable else SYNC_TIMEOUT_BEST_EFFORT_S
+        return sync_timeout_s(self.p.sync_timeout, all_reliable)
 
     def _adapt(self) -> None:
         """Raw topics to best effort when a best-effort publisher appears; sync_timeout -1 follows."""

@@ -87,6 +87,18 @@ DRIVER_PARAMS = _COMMON + (
           "e.g. the fusion node with a calibration_file"),
 )
 
+#: sync_timeout -1 (by QoS): seconds while every raw topic is reliable (a message is late, not lost), and once
+#: one is best effort (a missing message is lost)
+SYNC_TIMEOUT_RELIABLE_S, SYNC_TIMEOUT_BEST_EFFORT_S = 5.0, 0.05
+
+
+def sync_timeout_s(value: float, all_reliable: bool) -> float:
+    """The ``sync_timeout`` parameter's seconds: itself when >= 0, else by QoS."""
+    if value >= 0:
+        return float(value)
+    return SYNC_TIMEOUT_RELIABLE_S if all_reliable else SYNC_TIMEOUT_BEST_EFFORT_S
+
+
 FUSION_PARAMS = _COMMON + (
     Param("calibration_file", "", "calibrated description YAML; used instead of array_config's values when "
           "present, and reloaded whenever it changes on disk", read_only=True),
@@ -129,8 +141,9 @@ CALIBRATION_PARAMS = _COMMON + (
     Param("method", DEFAULT_METHOD, "'joint': Gauss-Newton on positions and motion together; 'bcd': block "
           "coordinate descent (carlsson2017 Alg. 1)", choices=METHODS),
     Param("max_iterations", 0, "iteration cap of the solver; 0 = the solver's default", 0, 100_000),
-    Param("sync_timeout", 0.05, "seconds an array sample waits for missing IMUs before it is buffered without "
-          "them (the calibration skips incomplete samples)", 0.0, 10.0),
+    Param("sync_timeout", -1.0, "seconds an array sample waits for missing IMUs before it is buffered without "
+          "them (the calibration skips incomplete samples); -1 = by QoS, as the fusion node: 5 s while every raw "
+          "topic is reliable, 0.05 s once one is best effort", -1.0, 10.0),
     Param("period", 0.01, "seconds between buffering steps (decoding the queued messages)", 0.0005, 1.0),
 )
 
