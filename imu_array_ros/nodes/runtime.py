@@ -186,7 +186,7 @@ def run(node_class, args=None) -> int:
     from rclpy.experimental import EventsExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    prog = os.path.basename(sys.argv[0]) or node_class.__name__
+    prog = os.path.basename(sys.argv[0]).removesuffix(".py") or node_class.__name__  # also under python -m
     # SIGINT / SIGTERM only set a flag the spin loop reads: rclpy's own handlers invalidate the
     # context at once and Python's raises KeyboardInterrupt inside whichever callback runs, so a
     # Ctrl-C would log "[FATAL] Exception in ... callback" and could cut a file write or a service
