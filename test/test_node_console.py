@@ -318,3 +318,26 @@ def test_incompatible_qos_names_topic_policy_and_fix_at_most_every_10_s(ros_node
     text = lines[0][3]
     assert "RELIABILITY" in text and hint in text and "publisher" in text, text
     assert topics[0] in text, f"the line does not name the topic: {text}"
+
+
+def test_publisher_grace_says_only_what_stays_incompatible(ros_node, capfd):
+    """The serial driver's best-effort publishers wait ``grace`` before saying a subscriber cannot connect: a
+    reliable subscription that goes away (the nodes switch to best effort) is not reported, one that stays is."""
+    from sensor_msgs.msg import Imu
+
+    from imu_array_ros.nodes.runtime import qos, qos_events
+
+    console = Console(capfd)
+    topics = [f"/console_grace_{os.getpid()}/imu_{k}/data_raw" for k in range(2)]
+    for t in topics:
+        ros_node.create_publisher(Imu, t, qos(False), event_callbacks=qos_events(
+            ros_node, "publisher", "-", t, grace=0.5, own_qos=qos(False)))
+    passing = ros_node.create_subscription(Imu, topics[0], lambda m: None, qos(True))
+    ros_node.spin(0.3)
+    ros_node.destroy_subscription(passing)  # switched away within the grace period: nothing to say
+    ros_node.spin(1.5)
+    assert not console.matching("cannot connect"), console.read()
+    ros_node.create_subscription(Imu, topics[1], lambda m: None, qos(True))  # stays reliable
+    assert ros_node.spin(10.0, lambda: console.matching("cannot connect to this publisher")), console.read()
+    lines = console.matching("cannot connect to this publisher")
+    assert len(lines) == 1 and topics[1] in lines[0][3], lines

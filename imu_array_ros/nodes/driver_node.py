@@ -56,6 +56,10 @@ def replay_clock_ns(first_ns: int, last_ns: int, elapsed_ns: int, rate: float, *
     return restamp_ns + int(local / rate) if restamp_ns is not None else first_ns + int(local)
 
 
+#: seconds a subscriber must stay incompatible before the driver says so (the nodes' raw subscriptions start
+#: reliable and switch to the serial driver's best effort within ~0.35 s)
+QOS_GRACE_S = 2.0
+
 class DriverNode(Node):
     def __init__(self) -> None:
         super().__init__("imu_array_driver", **NODE_OPTIONS)
@@ -68,7 +72,8 @@ class DriverNode(Node):
                 "receives from every publisher) or reliable:=true here")
         self.pubs = [self.create_publisher(Imu, imu_topic(n, p.topic_prefix), q,
                                            event_callbacks=qos_events(self, "publisher", hint,
-                                                                      imu_topic(n, p.topic_prefix)))
+                                                                      imu_topic(n, p.topic_prefix),
+                                                                      grace=QOS_GRACE_S, own_qos=q))
                      for n in self.desc.names]
         self.wait_for = p.wait_for_subscribers if p.wait_for_subscribers >= 0 else int(replay)
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: {p.mode}", p.port if p.mode == "serial" else p.bag)

@@ -107,16 +107,43 @@ def output_qos():
     return qos(True)
 
 
-def qos_events(node, kind: str, hint: str, topic: str | None = None):
+def qos_events(node, kind: str, hint: str, topic: str | None = None, *, grace: float = 0.0, own_qos=None):
     """Event callbacks of a publisher (``kind`` 'publisher') or subscription ('subscription') on ``topic`` that
     log, at most every 10 s (one line for all of a node's publishers or subscriptions), a peer whose QoS cannot
-    connect: the topic, the policy, and ``hint`` (the fix)."""
+    connect: the topic, the policy, and ``hint`` (the fix).
+
+    ``grace`` (s, publishers with ``own_qos`` only): say it only if a subscription on ``topic`` is still
+    incompatible with ``own_qos`` that long after the event -- the fusion and calibration nodes start their raw
+    subscriptions reliable and switch to best effort within a fraction of a second when they see a best-effort
+    publisher (the serial driver's default), which is not a problem to report."""
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-    from rclpy.qos import QoSPolicyKind
+    from rclpy.qos import QoSCompatibility, QoSPolicyKind, qos_check_compatible
 
     logger = node.get_logger()
+    pending: list = []
+
+    def still_incompatible() -> bool:
+        return any(qos_check_compatible(own_qos, info.qos_profile)[0] == QoSCompatibility.ERROR
+                   for info in node.get_subscriptions_info_by_topic(topic))
+
+    def later(event) -> None:
+        if pending:
+            return  # a check is due already
+
+        def check() -> None:
+            pending.pop().cancel()
+            if still_incompatible():
+                say(event)
+
+        pending.append(timer(node, grace, check))
 
     def incompatible(event) -> None:
+        if grace > 0 and own_qos is not None and topic and kind == "publisher":
+            later(event)
+        else:
+            say(event)
+
+    def say(event) -> None:
         try:
             policy = QoSPolicyKind(event.last_policy_kind).name
         except ValueError:
