@@ -76,6 +76,9 @@ DRIVER_PARAMS = _COMMON + (
           "'wait_timeout') before starting the replay / the serial stream; -1 = 1 in replay, 0 in serial", -1, 1000),
     Param("wait_timeout", 10.0, "seconds to wait for the subscribers of 'wait_for_subscribers' before starting "
           "anyway (logged); 0 = wait forever", 0.0, 3600.0),
+    Param("start_delay", -1.0, "seconds between the subscribers of 'wait_for_subscribers' matching and the "
+          "first sample, so that the fusion node's own subscribers (yours of the fused topics) have matched it "
+          "too; -1 = 2 s in replay when waiting for subscribers, else 0", -1.0, 60.0),
     Param("exit_at_end", False, "replay: exit when the recording has been played (and acknowledged)"),
     Param("poll_period", 0.002, "seconds between reads of the port / replay steps", 0.0005, 1.0),
     Param("publish_clock", True, "replay: publish /clock (rosgraph_msgs/Clock) with the time of the replayed stamps "
