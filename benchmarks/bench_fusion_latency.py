@@ -260,7 +260,7 @@ def _q(x, q):
 def report(results: list[dict], args, started: str, load_start: str, load_end: str, cmd: str) -> str:
     modes = [m for m in ("bare", "event", "old") if any(r["mode"] == m for r in results)]
     names = {"bare": "bare subscriber (ceiling: last IMU message of a sample)",
-             "event": "fusion_node, event-driven (this commit)", "old": f"fusion_node, 5 ms timer (`{args.old}`)"}
+             "event": "fusion_node, event-driven (this commit)", "old": f"fusion_node of `{args.old}` (the baseline)"}
     lines = [machine_header("Fused-output latency at 32 IMUs x 200 Hz vs the bare-subscriber ceiling", date=started,
                             cmd=cmd, extra=[f"load average (1, 5, 15 min) at start: {load_start}; at end: {load_end}",
                                             f"{args.repeats} rounds of {args.duration:g} s per mode, modes in turn, "
