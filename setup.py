@@ -42,6 +42,7 @@ setup(
         "lz4>=4.0",
         "zstandard>=0.21",
         "pyserial>=3.5",
+        "threadpoolctl>=3.1",
     ],
     zip_safe=True,
     maintainer="imu_array_ros maintainers",

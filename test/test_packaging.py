@@ -34,7 +34,7 @@ BAYES_MODULES = ("arviz", "dask", "distributed", "h5netcdf")
 #: install_requires distribution -> its rosdep key; None: rosdep has none (package.xml names it in its
 #: ``no-rosdep-key:`` comment instead of an exec_depend)
 ROSDEP = {"numpy": "python3-numpy", "scipy": "python3-scipy", "pyyaml": "python3-yaml", "pyserial": "python3-serial",
-          "setuptools": "python3-setuptools", "mcap": None, "rosbags": None, "lz4": None, "zstandard": None}
+          "setuptools": "python3-setuptools", "threadpoolctl": "python3-threadpoolctl", "mcap": None, "rosbags": None, "lz4": None, "zstandard": None}
 #: import name -> distribution, where they differ
 DISTRIBUTION = {"yaml": "pyyaml", "serial": "pyserial", "distributed": "dask"}
 #: ROS 2 packages the nodes and the launch file need (exec_depend)
