@@ -59,3 +59,25 @@ def test_progress_lines_off_a_terminal_are_few(capsys, monkeypatch):
     for i in range(101):
         p(i, 100)
     assert capsys.readouterr().err.splitlines() == ["quick: 100%  (0.0 s)"]
+
+
+def test_samples_that_did_not_converge_point_to_the_description_even_with_q(tmp_path, capsys, monkeypatch):
+    """A one-digit position typo fused a real capture with exit 0 and 59 'not converged' in a count line (helper-31's
+    trial): the user is told what it likely means and how to see which IMU, also with -q."""
+    from imu_array_ros.cli import fuse as fuse_cli
+    from imu_array_ros.fusion.ml_fusion import FusionStats
+
+    real = fuse_cli.read_and_fuse
+
+    def with_unconverged(*args, **kwargs):
+        desc, f = real(*args, **kwargs)
+        f.stats = FusionStats(**{**f.stats.__dict__, "not_converged": 7})
+        return desc, f
+
+    monkeypatch.setattr(fuse_cli, "read_and_fuse", with_unconverged)
+    code, _, err = cli(capsys, "fuse", SAMPLE, "--array", ARRAY32, "--out", tmp_path / "f.mcap", "-q")
+    assert code == 0
+    assert "7 samples did not converge" in err and "imu-array residuals" in err and str(ARRAY32) in err, err
+    monkeypatch.setattr(fuse_cli, "read_and_fuse", real)
+    code, _, err = cli(capsys, "fuse", SAMPLE, "--array", ARRAY32, "--out", tmp_path / "g.mcap", "-q")
+    assert code == 0 and "did not converge" not in err, err

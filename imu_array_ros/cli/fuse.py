@@ -41,6 +41,11 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
                 f"saturated-gyro samples {s.saturated_gyro_samples}, not converged {s.not_converged}")
     if s.skipped_stamps:
         info(quiet, "  first skipped stamps (ns): " + ", ".join(map(str, s.skipped_stamps)))
+    if s.not_converged:
+        # said even with -q: on a sound recording this is the description not fitting the array
+        info(False, f"imu-array: warning: the estimate of {s.not_converged} samples did not converge; unless the "
+                    "array spun beyond its gyroscopes' range, the description does not fit it (a position or "
+                    f"orientation typo?): `imu-array residuals {recording} --array {array}` shows which IMU")
     if s.fused == 0:
         raise FusionError(f"{recording}: no sample could be fused (see counts above)")
     write_fused_recording(out, f.fused, desc.frame_id)

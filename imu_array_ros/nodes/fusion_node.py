@@ -316,8 +316,11 @@ class FusionNode(Node):
         c = self.core.summary(self._now()).counts
         kinds = ("late", "duplicate", "backwards", "undecodable", "wrong_frame_id", "non_finite")
         rejected = ", ".join(f"{c[k]} {k.replace('_', ' ')}" for k in kinds if c.get(k))
+        skipped = c.get("skipped_unidentifiable", 0)
         return (f"fused {c.get('fused', 0)} samples ({c.get('complete_samples', 0)} complete, "
-                f"{c.get('incomplete_samples', 0)} incomplete) from {c.get('messages', 0)} messages in "
+                f"{c.get('incomplete_samples', 0)} incomplete"
+                + (f"; {skipped} of them skipped: not identifiable" if skipped else "")
+                + f") from {c.get('messages', 0)} messages in "
                 f"{(self._now() - self._t_start) / 1e9:.1f} s"
                 + (f"; rejected messages: {rejected}" if rejected else ""))
 
