@@ -83,7 +83,7 @@ def signal_rate(ctx: MotionContext, sensor: str) -> np.ndarray:
     else:
         sd = ctx.specific_force_dot if ctx.specific_force_dot is not None else np.zeros_like(ctx.specific_force)
         v = sd[:, None, :] + np.einsum("nij,kj->nki", ctx.lever_dot, ctx.positions)
-    return np.einsum("kji,nkj->nki", ctx.rotations, v)
+    return _to_sensor(ctx, v)
 
 
 def exact_shift(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
@@ -130,9 +130,9 @@ def _rate_along(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarra
     else:
         omega, _, _ = ctx.trajectory(when)
         w, dw = skew(omega), skew(d_omega)
-        lever_dot = np.einsum("nkij,nkjl->nkil", dw, w) + np.einsum("nkij,nkjl->nkil", w, dw) + skew(d_omega_dot)
-        v = d_s + np.einsum("nkij,kj->nki", lever_dot, ctx.positions)
-    return np.einsum("kji,nkj->nki", ctx.rotations, v)
+        lever_dot = dw @ w + w @ dw + skew(d_omega_dot)  # matmuls: einsum runs these as loops
+        v = d_s + (lever_dot @ ctx.positions[:, :, None])[..., 0]
+    return _to_sensor(ctx, v)
 
 
 def shift_features(ctx: MotionContext, sensor: str) -> tuple[np.ndarray, np.ndarray | None] | None:
