@@ -73,6 +73,11 @@ def _read(path: Path, desc: ArrayDescription, label: str, quiet: bool) -> ImuSam
     return samples
 
 
+
+def _nis(value: float) -> str:
+    """A NIS ratio for the console; n/a where the recording has no sample of that regime (NaN)."""
+    return "n/a (no such samples)" if value != value else f"{value:.4g}"
+
 def run(recording: Path, *, array: Path, report: Path, calibration: Path | None = None, sim: Path | None = None,
         apply: Path | None = None, validate: list[Path] | None = None, terms: str | None = None,
         alpha: float = 0.01, block: float = 0.5, max_findings: int = 8, no_plots: bool = False,
@@ -103,8 +108,8 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
     with as_flags({"sim": "--sim", "validate": "--validate"}):
         d = workflows.discover(samples, desc, options=options, sim=sim_samples, validate=others,
                                progress=lambda text: info(quiet, f"discover: {text}"))
-    info(quiet, f"baseline: log-likelihood {d.baseline.loglik:.8g}, NIS still {d.baseline.nis_still:.4g}, "
-                f"moving {d.baseline.nis_moving:.4g}")
+    info(quiet, f"baseline: log-likelihood {d.baseline.loglik:.8g}, NIS still {_nis(d.baseline.nis_still)}, "
+                f"moving {_nis(d.baseline.nis_moving)}")
     for f in d.findings:
         info(quiet, f"found {f.effect} on {f.sensor}: log-likelihood +{f.exact_delta_loglik:.4g}, "
                     f"held-out +{f.candidate.heldout:.4g}")
@@ -114,8 +119,8 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
         info(quiet, f"unexplained: {', '.join(u['sensors'][:4])}{' ...' if len(u['sensors']) > 4 else ''} "
                     f"{', '.join(u['axes'])}, {u['band_hz'][0]:.3g}-{u['band_hz'][1]:.3g} Hz, "
                     f"{u['share_of_residual']:.0%} of the excess")
-    info(quiet, f"after: log-likelihood {d.after.loglik:.8g}, NIS still {d.after.nis_still:.4g}, "
-                f"moving {d.after.nis_moving:.4g}")
+    info(quiet, f"after: log-likelihood {d.after.loglik:.8g}, NIS still {_nis(d.after.nis_still)}, "
+                f"moving {_nis(d.after.nis_moving)}")
     try:
         written = write_report(d, report, plots=not no_plots, source=str(recording))
         written.append(write_report_manifest(report, REPORT_KIND, [p.name for p in written]))
