@@ -251,6 +251,10 @@ def test_export_without_random_walk_is_refused(capsys, tmp_path):
     out = tmp_path / "k.yaml"
     line = _refused(capsys, out, "export", "kalibr", REPO / "config" / "planar4.yaml", "--out", out, "--rate", RATE)
     assert "bias_random_walk" in line and "imu-array calibrate noise" in line and "--random-walk-accel" in line
+    assert "--random-walk-gyro" in line, line  # both missing options named at once (helper-31's trial)
+    line = _refused(capsys, out, "export", "kalibr", REPO / "config" / "planar4.yaml", "--out", out, "--rate", RATE,
+                    "--random-walk-accel", "1e-3")
+    assert "--random-walk-gyro" in line and "--random-walk-accel" not in line, line
 
 
 def test_export_needs_a_rate(capsys, tmp_path):

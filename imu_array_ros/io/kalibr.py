@@ -142,16 +142,25 @@ def _rms(v: np.ndarray) -> float:
     return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
 
 
-def _random_walk(imu: ImuSpec, sensor: str, fallback: float | None, source: str) -> float:
+def _random_walk(imu: ImuSpec, sensor: str, fallback: float | None) -> float | None:
+    """The bias random walk Kalibr gets for ``sensor`` of ``imu``: the description's, else ``fallback``; None
+    when neither gives one (> 0)."""
     k = _rms(imu.noise.get(f"{sensor}.bias_random_walk", np.full(3, np.nan)))
     if math.isfinite(k) and k > 0:
         return k
-    if fallback is not None:
-        return float(fallback)
-    flag = "--random-walk-accel" if sensor == "accelerometer" else "--random-walk-gyro"
-    why = "is 0" if math.isfinite(k) else "is not given"
-    raise ConfigError(f"{source}: imu {imu.name!r}: the {sensor} bias_random_walk, which Kalibr requires (> 0), {why}: "
-                      f"run 'imu-array calibrate noise' on a still recording, or give {flag}")
+    return None if fallback is None else float(fallback)
+
+
+def _check_random_walks(desc: ArrayDescription, fallback: dict) -> None:
+    """One ConfigError naming every sensor whose bias random walk Kalibr would lack (and its option)."""
+    flags = {"accelerometer": "--random-walk-accel", "gyroscope": "--random-walk-gyro"}
+    lacking = [(s, next(imu.name for imu in desc.imus if _random_walk(imu, s, fallback[s]) is None))
+               for s in flags if any(_random_walk(imu, s, fallback[s]) is None for imu in desc.imus)]
+    if lacking:
+        what = " and ".join(f"the {s} (imu {name!r} and maybe others)" for s, name in lacking)
+        raise ConfigError(f"{desc.source}: Kalibr requires a bias_random_walk (> 0), which the description does not "
+                          f"give for {what}: run 'imu-array calibrate noise' on a still recording, or give "
+                          + " and ".join(flags[s] for s, _ in lacking))
 
 
 def kalibr_from_description(desc: ArrayDescription, *, rate: float, topic_prefix: str = "/imu_array",
@@ -174,6 +183,8 @@ def kalibr_from_description(desc: ArrayDescription, *, rate: float, topic_prefix
         model = "scale-misalignment" if any(_has_intrinsics(imu) for imu in desc.imus) else "calibrated"
     if model not in MODELS:
         raise ConfigError(f"unknown Kalibr IMU model {model!r} (known: {', '.join(MODELS)})")
+    walks = {"accelerometer": random_walk_accel, "gyroscope": random_walk_gyro}
+    _check_random_walks(desc, walks)
     noise_std = {s: desc.noise_std(s) for s in _SENSORS}
     out = []
     for k, imu in enumerate(desc.imus):
@@ -188,9 +199,9 @@ def kalibr_from_description(desc: ArrayDescription, *, rate: float, topic_prefix
         out.append(KalibrImu(
             T_i_b=kalibr_transform(c_ib, imu.position),
             accelerometer_noise_density=density["accelerometer"],
-            accelerometer_random_walk=_random_walk(imu, "accelerometer", random_walk_accel, desc.source),
+            accelerometer_random_walk=_random_walk(imu, "accelerometer", random_walk_accel),
             gyroscope_noise_density=density["gyroscope"],
-            gyroscope_random_walk=_random_walk(imu, "gyroscope", random_walk_gyro, desc.source),
+            gyroscope_random_walk=_random_walk(imu, "gyroscope", random_walk_gyro),
             rostopic=imu_topic(imu.name, topic_prefix), update_rate=float(rate),
             time_offset=float(imu.value("gyroscope.time_offset")), model=model, intrinsics=intrinsics))
     return out, _export_notes(desc, model)
