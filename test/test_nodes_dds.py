@@ -34,6 +34,7 @@ def test_replay_through_fusion_node_equals_offline_fuse(dds, tmp_path):
                        "-p", "wait_for_subscribers:=1", "-p", "exit_at_end:=true")
     code, _, err = probe.finish(120)
     assert code == 0, err
+    assert f"received {len(want)} fused samples" in err, err  # the probe says what it got
     code, _, err = driver.finish(30)
     assert code == 0, err
     got = np.load(tmp_path / "got.npz")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 
 import numpy as np
@@ -82,6 +83,8 @@ def main(argv=None) -> int:
              specific_force=fused.specific_force, covariance=fused.covariance,
              arrival_ns=np.asarray(arrival[:n], dtype=np.int64), diagnostics=json.dumps(diags))
     atomic_write_bytes(args.out, buf.getvalue())
+    print(f"received {n} fused samples ({len(imu)} Imu and {len(acc)} Accel messages); wrote {args.out}",
+          file=sys.stderr, flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
