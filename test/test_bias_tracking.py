@@ -162,3 +162,24 @@ def test_fuse_cli_tracks_by_default_and_the_flag_turns_it_off(session, tmp_path,
     np.testing.assert_allclose(on.omega, want_on.omega, rtol=0, atol=1e-12)
     np.testing.assert_allclose(off.omega, want_off.omega, rtol=0, atol=1e-12)
     assert np.abs(on.omega - off.omega).max() > 1e-3
+
+
+def test_many_bias_jumps_share_one_console_line():
+    """A real capture jumps dozens of times (helper-31's trial: ~20 lines per fuse): the first few are listed,
+    the rest summed up in one line with their times."""
+    from imu_array_ros.calibration.bias_tracking import (MAX_JUMP_LINES, BiasTrack, BiasUpdate, StillPiece)
+
+    names, z = ("a", "b"), np.zeros((2, 3))
+
+    def update(t_s, sigma):
+        piece = StillPiece(int(t_s * 1e9), int((t_s + 1) * 1e9), int((t_s + 0.5) * 1e9), np.array([50, 50]), z, z,
+                           z)
+        return BiasUpdate(piece, z, z, z, z, z, np.array([sigma, 0.0]))
+
+    jumps = 3 * MAX_JUMP_LINES
+    track = BiasTrack(names, z, [update(0, 0)] + [update(10 * (i + 1), 5.0) for i in range(jumps)])
+    notes = track.notes()
+    listed = [n for n in notes if n.startswith("gyroscope biases: update")]
+    assert len(listed) == MAX_JUMP_LINES and "a (5.0 sigma)" in listed[0], notes
+    assert len(notes) == 1 + MAX_JUMP_LINES + 1 and f"{jumps - MAX_JUMP_LINES} more updates" in notes[-1], notes
+    assert notes[-1].endswith(f"{10 * jumps} s"), notes[-1]

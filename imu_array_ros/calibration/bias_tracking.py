@@ -62,6 +62,8 @@ EARTH_RATE = 7.292115e-5
 RANDOM_WALK = 1e-9
 #: an update whose innovation exceeds this many standard deviations is reported
 JUMP_SIGMA = 3.0
+#: updates over JUMP_SIGMA listed one per console line; the rest share one line
+MAX_JUMP_LINES = 3
 #: batch means: blocks per piece
 BLOCKS = 8
 
@@ -386,10 +388,15 @@ class BiasTrack:
         lines = [f"gyroscope biases: {len(self.updates)} still pieces ({seconds:.0f} s still); largest change from the "
                  f"description {change[k]:.3g} rad/s ({self.names[k]}); within the recording the estimates moved by up "
                  f"to {np.nanmax(wander):.3g} rad/s"]
-        for i, u in enumerate(self.updates[1:], 1):
-            if u.jumps(self.names):
-                lines.append(f"gyroscope biases: update {i} at {(u.piece.start_ns - self.updates[0].piece.start_ns) * 1e-9:.1f} s "
-                             f"moved by more than {JUMP_SIGMA:g} sigma: " + ", ".join(u.jumps(self.names)))
+        jumped = [(i, u) for i, u in enumerate(self.updates[1:], 1) if u.jumps(self.names)]
+        at = lambda u: (u.piece.start_ns - self.updates[0].piece.start_ns) * 1e-9  # noqa: E731
+        for i, u in jumped[:MAX_JUMP_LINES]:
+            lines.append(f"gyroscope biases: update {i} at {at(u):.1f} s "
+                         f"moved by more than {JUMP_SIGMA:g} sigma: " + ", ".join(u.jumps(self.names)))
+        if len(jumped) > MAX_JUMP_LINES:  # one line for the rest (a real capture has dozens)
+            rest = jumped[MAX_JUMP_LINES:]
+            lines.append(f"gyroscope biases: {len(rest)} more updates moved by more than {JUMP_SIGMA:g} sigma, at "
+                         + ", ".join(f"{at(u):.0f}" for _, u in rest) + " s")
         return lines
 
     def wander(self) -> np.ndarray:
