@@ -276,7 +276,9 @@ def test_best_effort_publisher_switches_the_topic_once_with_one_line(ros_node, c
 
     console = Console(capfd)
     topics = [f"/console_test_{os.getpid()}/imu_{k}/data_raw" for k in range(4)]
-    subs = RawSubscriptions(ros_node, Imu, topics, CompletionQueue(len(topics)), reliable=False, hint="-")
+    timeouts = []
+    subs = RawSubscriptions(ros_node, Imu, topics, CompletionQueue(len(topics)), reliable=False, hint="-",
+                            sync_timeout=-1.0, set_timeout=timeouts.append)
     pubs = [ros_node.create_publisher(Imu, t, qos(False)) for t in topics[1:3]]  # sensor data: best effort
 
     def adapted():
@@ -290,6 +292,7 @@ def test_best_effort_publisher_switches_the_topic_once_with_one_line(ros_node, c
     assert subs.reliable == [True, False, False, True]
     lines = console.matching("best-effort publisher")
     assert len(lines) == 1 and lines[0][0] == "INFO", console.read()
+    assert timeouts == [50_000_000] and len(console.matching("sync_timeout now 0.05 s")) == 1, console.read()
     text = lines[0][3]
     assert "on 2 IMU topic(s)" in text and topics[1] in text and f"keeping the last {RAW_DEPTH}" in text, text
     # the switched topic receives from the best-effort publisher; no incompatible-QoS line

@@ -68,8 +68,9 @@ class CalibrationNode(Node):
         hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
                 "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
         self.raw_subs = RawSubscriptions(self, Imu, [imu_topic(n, p.topic_prefix) for n in self.desc.names],
-                                         self.raw, p.reliable, hint)
-        timer(self, 0.25, self._adapt)
+                                         self.raw, p.reliable, hint, sync_timeout=p.sync_timeout,
+                                         set_timeout=self._set_timeout)
+        timer(self, 0.25, self.raw_subs.adapt)
         self.diagnostics = DiagnosticsPublisher(self, self.get_name(), p.array_config)
         timer(self, p.period, self._step)
         timer(self, 1.0, self._diagnose)
@@ -136,17 +137,8 @@ class CalibrationNode(Node):
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _adapt(self) -> None:
-        """Raw topics to best effort when a best-effort publisher appears; sync_timeout -1 follows (as the
-        fusion node)."""
-        subs = self.raw_subs
-        was = all(subs.reliable)
-        subs.adapt()
-        if was and not all(subs.reliable) and self.p.sync_timeout < 0:
-            seconds = sync_timeout_s(self.p.sync_timeout, all_reliable=False)
-            self.window.assembler.timeout_ns = int(round(seconds * 1e9))
-            self.get_logger().info(f"sync_timeout now {seconds:g} s (a best-effort topic: a missing message is "
-                                   "lost, not late)")
+    def _set_timeout(self, timeout_ns: int) -> None:
+        self.window.assembler.timeout_ns = timeout_ns
 
     def _step(self) -> None:
         now = self._now()

@@ -108,8 +108,8 @@ class FusionNode(Node):
         if p.reference_imu and p.reference_imu not in desc.names:
             raise ConfigError(f"parameter 'reference_imu': no IMU {p.reference_imu!r} in {source}")
         reference = list(desc.names).index(p.reference_imu) if p.reference_imu else 0
-        self.core = LiveFusion(desc, frame_prefix=p.frame_prefix, sync_timeout_s=self._sync_timeout(all_reliable=True),
-                               max_batch=p.max_batch,
+        self.core = LiveFusion(desc, frame_prefix=p.frame_prefix,
+                               sync_timeout_s=sync_timeout_s(p.sync_timeout, all_reliable=True), max_batch=p.max_batch,
                                own_stamps=own, reference=reference, timed_batch_s=p.timed_batch)
         self.tracker: SessionTracker | None = None
         self._logged_error: str | None = None
@@ -130,8 +130,9 @@ class FusionNode(Node):
         hint = ("this node subscribes reliable (reliable:=true) and the publisher is best effort (e.g. the serial "
                 "driver without reliable:=true): set reliable:=true on the publisher too, or false here")
         self.raw_subs = RawSubscriptions(self, Imu, [imu_topic(n, p.topic_prefix) for n in desc.names],
-                                         self.raw, p.reliable, hint)
-        timer(self, 0.25, self._adapt)
+                                         self.raw, p.reliable, hint, sync_timeout=p.sync_timeout,
+                                         set_timeout=self._set_timeout)
+        timer(self, 0.25, self.raw_subs.adapt)
         out = f"{p.topic_prefix.rstrip('/')}/fused"
         hint = "check the subscriber's QoS"
         self.pub_imu = self.create_publisher(Imu, out + "/imu", output_qos(),
@@ -157,19 +158,8 @@ class FusionNode(Node):
         real-time matters; a simulated clock stops with the replay and would hold the last samples back)."""
         return time.time_ns()
 
-    def _sync_timeout(self, all_reliable: bool) -> float:
-        return sync_timeout_s(self.p.sync_timeout, all_reliable)
-
-    def _adapt(self) -> None:
-        """Raw topics to best effort when a best-effort publisher appears; sync_timeout -1 follows."""
-        subs = self.raw_subs
-        was = all(subs.reliable)
-        subs.adapt()
-        if was and not all(subs.reliable) and self.p.sync_timeout < 0:
-            timeout_ns = int(round(self._sync_timeout(all_reliable=False) * 1e9))
-            self.core.timeout_ns = self.core.intake.assembler.timeout_ns = timeout_ns
-            self.get_logger().info(f"sync_timeout now {timeout_ns / 1e9:g} s (a best-effort topic: a missing "
-                                   "message is lost, not late)")
+    def _set_timeout(self, timeout_ns: int) -> None:
+        self.core.timeout_ns = self.core.intake.assembler.timeout_ns = timeout_ns
 
     def _on_complete(self, key: bytes) -> None:
         """A sample is complete (called from the subscription callback of its last message): fuse now,

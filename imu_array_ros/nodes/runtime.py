@@ -17,9 +17,11 @@ import os
 import signal
 import sys
 import threading
+from typing import Callable
 
 from imu_array_ros.errors import ImuArrayError
 from imu_array_ros.io.live_queue import CompletionQueue
+from imu_array_ros.nodes.parameters import sync_timeout_s
 
 __all__ = ["run", "qos", "raw_subscription_qos", "output_qos", "qos_events", "timer", "DiagnosticsPublisher",
            "RawSubscriptions", "OK", "WARN", "ERROR", "RAW_DEPTH"]
@@ -59,13 +61,19 @@ class RawSubscriptions:
     False (adaptive): each topic starts reliable keep-all, so a reliable publisher (the replay) loses
     nothing even on a loaded machine; :meth:`adapt` (a timer of the node) switches a topic to best
     effort, keeping the last :data:`RAW_DEPTH`, as soon as a best-effort publisher (the live serial
-    driver) appears on it, once, with one console line for all topics switched together."""
+    driver) appears on it, once, with one console line for all topics switched together.
 
-    def __init__(self, node, msg_type, topics: list[str], queue: CompletionQueue, reliable: bool, hint: str) -> None:
+    ``sync_timeout`` (the node's parameter) -1 = by QoS: when the first topic turns best effort,
+    ``set_timeout(ns)`` gets the best-effort timeout (:func:`~imu_array_ros.nodes.parameters.sync_timeout_s`),
+    said in one line."""
+
+    def __init__(self, node, msg_type, topics: list[str], queue: CompletionQueue, reliable: bool, hint: str, *,
+                 sync_timeout: float = 0.0, set_timeout: Callable[[int], None] | None = None) -> None:
         self.node, self.msg_type, self.topics, self.queue = node, msg_type, list(topics), queue
         self.adaptive = not reliable
         self.reliable = [True] * len(self.topics)
         self.hint = hint
+        self.sync_timeout, self.set_timeout = sync_timeout, set_timeout
         self.subs = [self._subscribe(k, True) for k in range(len(self.topics))]
 
     def _subscribe(self, k: int, reliable: bool):
@@ -87,6 +95,7 @@ class RawSubscriptions:
             return
         from rclpy.qos import ReliabilityPolicy
 
+        first = all(self.reliable)  # no topic switched before
         switched = []
         for k, topic in enumerate(self.topics):
             if self.reliable[k] and any(info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
@@ -99,6 +108,11 @@ class RawSubscriptions:
             self.node.get_logger().info(
                 f"best-effort publisher(s) on {len(switched)} IMU topic(s) (e.g. {switched[0]}): subscribing "
                 f"them best effort, keeping the last {RAW_DEPTH} messages")
+        if switched and first and self.sync_timeout < 0 and self.set_timeout is not None:  # sync_timeout -1 follows
+            seconds = sync_timeout_s(self.sync_timeout, all_reliable=False)
+            self.set_timeout(int(round(seconds * 1e9)))
+            self.node.get_logger().info(f"sync_timeout now {seconds:g} s (a best-effort topic: a missing message "
+                                        "is lost, not late)")
 
 
 def output_qos():
