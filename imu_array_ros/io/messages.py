@@ -33,6 +33,7 @@ import numpy as np
 
 from imu_array_ros.io.rosbag.cdr_columns import (
     IMU_LAYOUT,
+    back_to_back,
     decode_accel_with_covariance_stamped,
     decode_imu,
     encode_accel_with_covariance_stamped,
@@ -187,8 +188,9 @@ def decode_raw_imu(payloads: Sequence[bytes], imu_index: np.ndarray, frame_ids: 
         expect, skip, need = _expected_frames(tuple(frame_ids))
         width = expect.shape[1]
         ok = dec.valid & (lengths == need[imu_index])
-        if len(buf) == len(offsets) * int(lengths[0]) and (lengths == lengths[0]).all() and 12 + width <= lengths[0]:
-            window = buf.reshape(len(offsets), -1)[:, 12:12 + width]  # back to back, one length: no gather
+        rows = back_to_back(buf, offsets, lengths)
+        if rows is not None and 12 + width <= rows.shape[1]:
+            window = rows[:, 12:12 + width]  # one length: no gather
             frame_ok = ok & ((window == expect[imu_index]) | skip[imu_index]).all(axis=1)
         else:
             sel = np.flatnonzero(ok)

@@ -67,6 +67,7 @@ __all__ = [
     "split_stamps",
     "join_stamps",
     "gather_bytes",
+    "back_to_back",
 ]
 
 #: Encapsulation header of little-endian plain CDR (XCDR1).
@@ -328,9 +329,9 @@ def decode_columns(
     if m and (offset.min() < 0 or (offset + length).max() > len(buf)):
         raise ValueError("payload range outside buffer")
 
-    if m and len(buf) == m * int(length[0]) and int(length[0]) >= 4 + 12 + 1 + layout.body_size \
-            and (offset == np.arange(0, len(buf), int(length[0]))).all():
-        return _decode_uniform(layout, buf.reshape(m, int(length[0])), names)
+    rows = back_to_back(buf, offset, length)
+    if rows is not None and rows.shape[1] >= 4 + 12 + 1 + layout.body_size:
+        return _decode_uniform(layout, rows, names)
     valid = length >= 4 + 12 + 1 + layout.body_size
     safe = np.where(valid, offset, 0)
     if len(buf) < 4 + 12 + 1 + layout.body_size:  # nothing can be valid; keep gathers in range
@@ -366,6 +367,17 @@ def decode_columns(
             vals = np.where(valid[:, None], vals, np.nan)
         out[name] = vals
     return DecodedColumns(stamps=stamps, valid=valid, encapsulation_ok=encap_ok, fields=out)
+
+
+def back_to_back(buf: np.ndarray, offset: np.ndarray, length: np.ndarray) -> np.ndarray | None:
+    """``buf`` as (M, L) rows when it holds exactly the M payloads, back to back, all of length L (what
+    :func:`~imu_array_ros.io.messages.concat_payloads` makes of one sample's messages); else None."""
+    m = len(offset)
+    if not m or len(buf) != m * int(length[0]) or not (length == length[0]).all():
+        return None
+    if not (offset == np.arange(0, len(buf), int(length[0]))).all():
+        return None
+    return buf.reshape(m, int(length[0]))
 
 
 _HEAD = np.dtype([("sec", "<i4"), ("nanosec", "<u4"), ("n", "<u4")])
