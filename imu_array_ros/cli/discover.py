@@ -73,10 +73,10 @@ def _read(path: Path, desc: ArrayDescription, label: str, quiet: bool) -> ImuSam
     return samples
 
 
-
 def _nis(value: float) -> str:
     """A NIS ratio for the console; n/a where the recording has no sample of that regime (NaN)."""
     return "n/a (no such samples)" if value != value else f"{value:.4g}"
+
 
 def run(recording: Path, *, array: Path, report: Path, calibration: Path | None = None, sim: Path | None = None,
         apply: Path | None = None, validate: list[Path] | None = None, terms: str | None = None,

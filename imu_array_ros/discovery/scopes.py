@@ -26,7 +26,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.stats
 
-from imu_array_ros.discovery.threads import single_blas_thread
 from imu_array_ros.fitting.engine import check_terms, score_blocks
 from imu_array_ros.model.terms import REGISTRY
 
@@ -166,9 +165,9 @@ def score_given(samples, model, terms, motion, blocks, groups, found, *, own_ter
     terms = check_terms(terms)
     dims = {t: REGISTRY[t].dim() for t in terms}
     offsets = dict(zip(terms, np.cumsum([0] + [dims[t] for t in terms])[:-1].tolist()))
-    with single_blas_thread():  # many small products: threads only wait on each other (.threads)
-        sb = score_blocks(samples, model, terms, motion, blocks, groups=groups, cross_terms=own_terms,
-                          given=given_columns(offsets, dims, found))
+    # on one BLAS thread: discover (its only caller) runs whole inside one (.threads)
+    sb = score_blocks(samples, model, terms, motion, blocks, groups=groups, cross_terms=own_terms,
+                      given=given_columns(offsets, dims, found))
     return profile_given(sb, groups, inplace=True)  # the unprofiled arrays are not kept
 
 

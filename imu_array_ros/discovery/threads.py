@@ -1,4 +1,4 @@
-"""BLAS threads of discovery: :func:`~.discover.discover` runs on one.
+"""BLAS threads of discovery: :func:`~.discover.discover` runs on one (:func:`on_one_blas_thread`).
 
 A score pass (:func:`~imu_array_ros.fitting.score.score_blocks` through :func:`.scopes.score_given`) makes
 tens of thousands of small matrix products (per 0.5 s block and IMU: 56 x 186 by 186 x 56 with every
@@ -7,8 +7,8 @@ the threads wait for one another and each product takes 10-100x longer than on o
 cores at load ~4: a 60 s score pass of exp_3 44.5 s with the default threads, 3.4 s with one,
 ad hoc, ``benchmarks/results/discovery_speed.md``); the refits' (9 n x M) products do the same (one
 linearisation of a 120 s window under the clocked model, load ~4: 3.9 s -> 1.0 s, bit-identical).  So
-discover runs on one BLAS thread, with threadpoolctl when it is installed (without it the threads are left as
-they are).
+discover runs on one BLAS thread, with threadpoolctl (a dependency; where it is missing the threads are left
+as they are).
 """
 
 from __future__ import annotations

@@ -154,8 +154,8 @@ def _random_walk(imu: ImuSpec, sensor: str, fallback: float | None) -> float | N
 def _check_random_walks(desc: ArrayDescription, fallback: dict) -> None:
     """One ConfigError naming every sensor whose bias random walk Kalibr would lack (and its option)."""
     flags = {"accelerometer": "--random-walk-accel", "gyroscope": "--random-walk-gyro"}
-    lacking = [(s, next(imu.name for imu in desc.imus if _random_walk(imu, s, fallback[s]) is None))
-               for s in flags if any(_random_walk(imu, s, fallback[s]) is None for imu in desc.imus)]
+    without = {s: [imu.name for imu in desc.imus if _random_walk(imu, s, fallback[s]) is None] for s in flags}
+    lacking = [(s, names[0]) for s, names in without.items() if names]
     if lacking:
         what = " and ".join(f"the {s} (imu {name!r} and maybe others)" for s, name in lacking)
         raise ConfigError(f"{desc.source}: Kalibr requires a bias_random_walk (> 0), which the description does not "

@@ -63,6 +63,7 @@ QOS_GRACE_S = 2.0
 #: too, which took 0.7-1.6 s after the fusion node's start in 5 of 9 runs (helper-31's trial, load 2-5)
 START_DELAY_S = 2.0
 
+
 class DriverNode(Node):
     def __init__(self) -> None:
         super().__init__("imu_array_driver", **NODE_OPTIONS)
