@@ -121,7 +121,12 @@ def main(argv=None) -> int:
     ap.add_argument("--domain", type=int, default=170, help="ROS_DOMAIN_ID of the first run (+1 per run)")
     ap.add_argument("--out", type=Path, default=None, help="results markdown (default: print only)")
     ap.add_argument("--logs", type=Path, default=None, help="keep the nodes' logs in this directory")
+    ap.add_argument("--driver-param", action="append", default=[], metavar="NAME:=VALUE",
+                    help="a parameter given to the driver (e.g. start_delay:=0.0 as a baseline; not the defaults)")
+    ap.add_argument("--busy", type=int, default=0, help="load the machine with this many busy-loop processes")
     args = ap.parse_args(argv)
+    driver_args = [a for kv in args.driver_param for a in ("-p", kv)]
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
     load_start = load_average()
     samples = read_imu_recording(BAG, load_description(ARRAY))[0]
     n, rate = len(samples), 1e9 / float(np.median(np.diff(samples.stamps)))
@@ -129,12 +134,17 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp) if args.logs is None else args.logs
         work.mkdir(parents=True, exist_ok=True)
-        for i in range(args.runs):
-            r = run_once(args.domain + i, work, n)
-            rows.append(r)
-            print(f"run {i + 1}: fused {r['fused']}/{n} ({r['complete']} complete), probe {r['probe']}/{n}, "
-                  f"waited {r['waited_s']:.2f} s, replay finished {r['finished']}, timed out {r['timed_out']}, "
-                  f"late messages {r['late']}, switched to best effort {r['switched']}", flush=True)
+        try:
+            for i in range(args.runs):
+                r = run_once(args.domain + i, work, n, driver_args=driver_args)
+                rows.append(r)
+                print(f"run {i + 1}: fused {r['fused']}/{n} ({r['complete']} complete), probe {r['probe']}/{n}, "
+                      f"waited {r['waited_s']:.2f} s, replay finished {r['finished']}, timed out {r['timed_out']}, "
+                      f"late messages {r['late']}, switched to best effort {r['switched']}", flush=True)
+        finally:
+            for p in busy:
+                p.kill()
+                p.wait()
     worst = min(r["complete"] for r in rows) / n
     lines = [
         "# Default replay into the fusion node (issue 24)",
@@ -144,7 +154,9 @@ def main(argv=None) -> int:
         "with every other parameter at its default, started one right after the other, each run in a DDS domain "
         f"of its own (2-core machine; load average at the start {load_start}, at the end {load_average()}). "
         f"Recording: {n} samples × 32 IMUs "
-        f"at {rate:.0f} Hz ({n * 32} messages).",
+        f"at {rate:.0f} Hz ({n * 32} messages)."
+        + (f" Not the defaults: driver {', '.join(args.driver_param)}." if args.driver_param else "")
+        + (f" Machine loaded with {args.busy} busy-loop processes." if args.busy else ""),
         "",
         "| run | fused by the node | of them complete (all 32 IMUs) | received by the probe | "
         "replay waited for subscribers (s; – = they were there already) | wait timed out | late messages |",
