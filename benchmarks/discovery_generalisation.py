@@ -21,6 +21,7 @@ benchmarks/results/discovery_generalisation.md, .json and .png (``--render``: on
 .json).  ``--quick``: 1 scenario per class and 3 nulls, written to /tmp (a smoke run).
 
     python -m benchmarks.discovery_generalisation [--seed S] [--per-class 10] [--nulls 50] [--workers 2] [--quick]
+        [--classes group shared single]
 """
 
 from __future__ import annotations
@@ -95,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--evidence", type=float, nargs=2, default=(10.0, 1000.0), metavar=("LO", "HI"),
                     help="range of the target oracle evidence (log-uniform)")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
+                    help="effect classes to draw (default every class but null; the nulls: --nulls)")
     ap.add_argument("--quick", action="store_true", help="1 per class, 3 nulls, written to /tmp")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--render", action="store_true", help="only re-write the .md and .png from the saved .json")
@@ -109,6 +112,13 @@ def main(argv: list[str] | None = None) -> int:
     from benchmarks.time_aware_sim import import_package, library_state
     from imu_array_ros.simulation.suites import CLASSES
 
+    classes = tuple(CLASSES[:-1]) if args.classes is None else tuple(dict.fromkeys(args.classes))
+    unknown = [c for c in classes if c not in CLASSES[:-1]]
+    if unknown:
+        print(f"discovery_generalisation: unknown class {unknown[0]!r} (known: {', '.join(CLASSES[:-1])}; "
+              f"the nulls: --nulls)", file=sys.stderr)
+        return 2
+    args.classes = list(classes)
     import_package()
     header = machine_header(TITLE, extra=[
         f"package state: {library_state()}",
@@ -118,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         f"load average at the start: {load_average()}"])
     ev = tuple(args.evidence)
     # index-major, the nulls spread through: a run stopped early (--render) still covers every class evenly
-    jobs = [(args.seed, c, i, ev) for i in range(args.per_class) for c in CLASSES[:-1]]
+    jobs = [(args.seed, c, i, ev) for i in range(args.per_class) for c in classes]
     step = max(1, len(jobs) // max(args.nulls, 1))
     for i in range(args.nulls):
         jobs.insert(min(len(jobs), (i + 1) * (step + 1) - 1), (args.seed, "null", i, ev))
