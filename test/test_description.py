@@ -269,3 +269,18 @@ def test_bad_term_fields_are_one_line_errors(tmp_path, array32, mutate, message)
     with pytest.raises(ConfigError) as err:
         load_description(path)
     assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_yaml_12_numbers_are_numbers(tmp_path):
+    """PyYAML (YAML 1.1) reads 1e-3 and -0.00945e3 as strings; a description must read them as numbers."""
+    from imu_array_ros.util.files import parse_yaml
+
+    doc = parse_yaml("a: 1e-3\nb: -0.00945e3\nc: 5E2\nd: .5e1\ne: 12\nf: 1.5\ng: e3\nh: 1e\ni: '1e-3'\nj: .inf\n")
+    assert doc == {"a": 1e-3, "b": -9.45, "c": 500.0, "d": 5.0, "e": 12, "f": 1.5, "g": "e3", "h": "1e",
+                   "i": "1e-3", "j": float("inf")}
+    assert isinstance(doc["e"], int)
+    text = (REPO / "config" / "mimu4444bt_corners.yaml").read_text()
+    path = tmp_path / "mm.yaml"
+    path.write_text(text.replace("accelerometer_noise_std: 0.045", "accelerometer_noise_std: 45e-3", 1))
+    assert "45e-3" in path.read_text()
+    assert load_description(path).accelerometer_noise_std == pytest.approx(0.045)

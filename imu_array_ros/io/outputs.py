@@ -17,7 +17,7 @@ from typing import Iterable
 
 from imu_array_ros.errors import OutputError
 from imu_array_ros.io.rosbag.mcap_format import MAGIC as MCAP_MAGIC
-from imu_array_ros.util.files import atomic_write_text, unnamed
+from imu_array_ros.util.files import atomic_write_text, parse_yaml, unnamed
 
 __all__ = ["check_output", "OUTPUT_KINDS", "check_report_directory", "report_manifest", "write_report_manifest",
            "MANIFEST"]
@@ -85,15 +85,13 @@ def _read_head(path: Path, n: int) -> bytes | None:
 
 def _rosbag_problem(directory: Path) -> str | None:
     """None if ``directory`` is a rosbag2 recording holding only its own files, else why not."""
-    import yaml
-
     meta = directory / "metadata.yaml"
     if meta.is_symlink() or not meta.is_file():
         return "is a directory but not a rosbag2 recording (no metadata.yaml)"
     try:
         if meta.stat().st_size > _MAX_TEXT_BYTES:
             raise ValueError
-        info = yaml.safe_load(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        info = parse_yaml(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
         files = info["relative_file_paths"]
         if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
             raise ValueError
@@ -137,9 +135,7 @@ def _kind_problem(out: Path, kind: str) -> str | None:
     try:
         text = (raw or b"").decode("utf-8")
         if kind == "yaml":
-            import yaml
-
-            if not isinstance(yaml.safe_load(text), dict):
+            if not isinstance(parse_yaml(text), dict):
                 raise ValueError
         else:
             json.loads(text)

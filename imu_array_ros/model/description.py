@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from imu_array_ros.util.files import atomic_write_text
+from imu_array_ros.util.files import atomic_write_text, parse_yaml
 from imu_array_ros.errors import ConfigError
 from imu_array_ros.model.terms import REGISTRY, Field, term_names
 
@@ -426,5 +426,5 @@ def dump_description(desc: ArrayDescription) -> str:
 def save_description(desc: ArrayDescription, path: str | Path) -> None:
     """Write a description atomically; the result re-validates before it lands."""
     text = dump_description(desc)
-    description_from_dict(yaml.safe_load(text), source=str(path))  # never write what we can't read
+    description_from_dict(parse_yaml(text), source=str(path))  # never write what we can't read
     atomic_write_text(path, text)

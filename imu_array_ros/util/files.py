@@ -8,12 +8,17 @@
   be written at all is :func:`imu_array_ros.io.outputs.check_output`'s business.
 * :func:`load_yaml_file`: the one place YAML read errors are worded (the array
   description and the rosbag2 ``metadata.yaml`` reader use it).
+* :func:`parse_yaml`: YAML with YAML 1.2's numbers.  PyYAML implements YAML 1.1, where a float needs a
+  decimal point and a signed exponent: ``1e-3`` and ``-0.00945e3`` would be read as *strings*, a trap for
+  a user typing a noise figure or a position.  :class:`YamlLoader` adds the YAML 1.2 core schema's float
+  pattern (``1e-3``, ``5E2``, ``-0.00945e3``); everything else is ``yaml.safe_load``'s.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -23,7 +28,22 @@ import yaml
 
 from imu_array_ros.errors import OutputError
 
-__all__ = ["unnamed", "atomic_path", "atomic_write_bytes", "atomic_write_text", "load_yaml_file", "yaml_error_text"]
+__all__ = ["unnamed", "atomic_path", "atomic_write_bytes", "atomic_write_text", "load_yaml_file", "yaml_error_text",
+           "YamlLoader", "parse_yaml"]
+
+
+class YamlLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that also reads YAML 1.2 floats without a decimal point or exponent sign."""
+
+
+#: YAML 1.2 core schema floats that YAML 1.1's pattern misses (its own still match first)
+_FLOAT_12 = re.compile(r"^[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)$")
+YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+0123456789."))
+
+
+def parse_yaml(text: str) -> Any:
+    """``yaml.safe_load(text)`` with YAML 1.2's floats (:class:`YamlLoader`)."""
+    return yaml.load(text, Loader=YamlLoader)  # noqa: S506 -- a SafeLoader subclass
 
 
 def unnamed(target: Path) -> bool:
@@ -140,7 +160,7 @@ def yaml_error_text(err: yaml.YAMLError) -> str:
 
 
 def load_yaml_file(path: str | os.PathLike, error_cls: type[Exception], what: str) -> Any:
-    """Parse the YAML file ``path`` (``yaml.safe_load``); the parsed document.
+    """Parse the YAML file ``path`` (:func:`parse_yaml`); the parsed document.
 
     Every failure raises ``error_cls`` with one line naming the file:
     ``<path>: <what> not found``, ``<path>: cannot read <what>: <reason>`` or
@@ -158,6 +178,6 @@ def load_yaml_file(path: str | os.PathLike, error_cls: type[Exception], what: st
         reason = getattr(err, "strerror", None) or str(err)
         raise error_cls(f"{path}: cannot read {what}: {reason}") from None
     try:
-        return yaml.safe_load(text)
+        return parse_yaml(text)
     except yaml.YAMLError as err:
         raise error_cls(f"{path}: {yaml_error_text(err)}") from None
