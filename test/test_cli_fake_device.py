@@ -93,3 +93,24 @@ def test_interrupt_exits_cleanly(tmp_path, sig):
     out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0 and out == "" and err == ""
     assert not os.path.lexists(port)
+
+
+@needs_pty
+def test_host_stop_is_said_and_the_device_waits(tmp_path):
+    """A host that stops the stream is named on the console; the device waits for the next start, as one would."""
+    from imu_array_ros.io.openshoe.serial_link import SerialArrayLink
+
+    proc, port = _start(tmp_path, "--duration", "2", "--loop")
+    link = SerialArrayLink(port, 8)
+    n, deadline = 0, time.monotonic() + 10
+    while n < 5 and time.monotonic() < deadline:
+        n += len(link.poll())
+        time.sleep(0.005)
+    link.close()  # sends the stop command
+    time.sleep(0.6)
+    assert proc.poll() is None  # still waiting for a start
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=10)
+    assert n >= 5 and proc.returncode == 0, err
+    assert "the host started the stream" in err
+    assert "the host stopped the stream" in err and "waiting for the next start" in err

@@ -172,8 +172,9 @@ def run(
         print(device.port, flush=True)
         info(quiet, f"fake-device: {k} IMUs, {len(device.raw)} samples ({what}) on {device.tty} via {device.port}; "
                     f"waiting for the start command{'' if loop else ' (stops at the end of the data)'}; Ctrl-C to stop")
+        seen = 0
         while not device.wait_finished(0.2, drained=False):
-            pass
+            seen = _say_commands(device.record, seen, quiet)
         device.wait_finished(_DRAIN_S)
     except (KeyboardInterrupt, _Terminated):
         pass
@@ -188,6 +189,20 @@ def run(
     if device.error is not None:
         raise ImuArrayError(f"fake-device: stopped early: {device.error}")
     return 0
+
+
+def _say_commands(record, seen: int, quiet: bool) -> int:
+    """One console line per start or stop the host sent since the ``seen`` first commands; the new count.
+    A real device keeps running when its host stops, so the fake one waits for the next start: say so."""
+    from imu_array_ros.io.openshoe.protocol import START_RAW_IMU, STOP_OUTPUT
+
+    for cmd in record.commands[seen:]:
+        if cmd.code == START_RAW_IMU:
+            info(quiet, "fake-device: the host started the stream")
+        elif cmd.code == STOP_OUTPUT:
+            info(quiet, f"fake-device: the host stopped the stream ({record.packets_sent} packets sent so far); "
+                        "waiting for the next start, as a device would (Ctrl-C to stop)")
+    return len(record.commands)
 
 
 def _capture_device(device_class, capture: Path, k: int, faults: dict):
