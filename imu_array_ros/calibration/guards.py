@@ -38,7 +38,8 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
-__all__ = ["check_calibration", "check_converged", "check_plausible", "check_fits_better", "POSITION_BOUND"]
+__all__ = ["check_calibration", "check_converged", "check_plausible", "check_fits_better", "implausible",
+           "POSITION_BOUND"]
 
 #: default largest distance, m, a calibrated position may be from the position it started from
 POSITION_BOUND = 5e-3
@@ -84,15 +85,23 @@ def _bound(field, model: SensorModel) -> float | None:
 
 def check_plausible(cal: Calibration, start: SensorModel, *, position_bound: float = POSITION_BOUND) -> None:
     """(b): CalibrationError naming the worst value beyond its bound (module docstring)."""
+    problem = implausible(cal.model, start, position_bound=position_bound)
+    if problem is not None:
+        raise CalibrationError(f"{cal.method}: refused: {problem}; {_NOTHING}")
+
+
+def implausible(model: SensorModel, start: SensorModel, *, position_bound: float = POSITION_BOUND) -> str | None:
+    """Why ``model`` is physically implausible as a change from ``start`` (check (b) of the module docstring):
+    the worst value beyond its bound, in one phrase; None when every changed value is within its bound.
+    Mismatch discovery asks this of every exact refit before it reports a finding."""
     if not position_bound > 0:
         raise CalibrationError(f"the position bound must be > 0 m, got {position_bound!r}")
-    model, names = cal.model, cal.model.names
+    names = model.names
     change = np.linalg.norm(model.positions - start.positions, axis=1)
     if not np.all(np.isfinite(change)) or np.max(change) > position_bound:
         k = int(np.argmax(np.where(np.isfinite(change), change, np.inf)))
-        raise CalibrationError(
-            f"{cal.method}: refused: {names[k]} position moved {change[k] * 1e3:.2f} mm from the description it "
-            f"started from (more than {position_bound * 1e3:g} mm: physically implausible); {_NOTHING}")
+        return (f"{names[k]} position moved {change[k] * 1e3:.2f} mm from the description it started from "
+                f"(more than {position_bound * 1e3:g} mm: physically implausible)")
     for term_name, term in model.terms.items():
         before = start.terms.get(term_name)
         if before is not None and np.array_equal(before.values, term.values):
@@ -108,10 +117,9 @@ def check_plausible(cal: Calibration, start: SensorModel, *, position_bound: flo
                                        bad.shape)
                 element = f"[{','.join(str(int(i)) for i in idx[1:])}]" if len(idx) > 1 else ""
                 unit = "" if f.unit == "1" else f" {f.unit}"
-                raise CalibrationError(
-                    f"{cal.method}: refused: {names[idx[0]]} {f.key}{element} = "
-                    f"{float(np.reshape(values, bad.shape)[idx]):.4g}{unit}, more than {bound:.4g} from "
-                    f"{f.default:g} (physically implausible); {_NOTHING}")
+                return (f"{names[idx[0]]} {f.key}{element} = {float(np.reshape(values, bad.shape)[idx]):.4g}{unit}, "
+                        f"more than {bound:.4g} from {f.default:g} (physically implausible)")
+    return None
 
 
 def check_fits_better(cal: Calibration, start: SensorModel) -> None:
