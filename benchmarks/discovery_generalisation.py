@@ -101,9 +101,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="1 per class, 3 nulls, written to /tmp")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--render", action="store_true", help="only re-write the .md and .png from the saved .json")
+    ap.add_argument("--baseline", type=Path, default=None, metavar="JSON",
+                    help="a run of the same suite (same seed and settings) by other code: the .md compares the two")
     args = ap.parse_args(argv)
     if args.render:
-        render(json.loads(args.out.with_suffix(".json").read_text()), args.out)
+        render(json.loads(args.out.with_suffix(".json").read_text()), args.out, _baseline(args.baseline))
         return 0
     if args.quick:
         args.per_class, args.nulls = 1, 3
@@ -133,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     for i in range(args.nulls):
         jobs.insert(min(len(jobs), (i + 1) * (step + 1) - 1), (args.seed, "null", i, ev))
     settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()
-                if k not in ("out", "render")}
+                if k not in ("out", "render", "baseline")}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     t0, rows = time.perf_counter(), []
     with ProcessPoolExecutor(max_workers=args.workers, mp_context=multiprocessing.get_context("fork")) as pool:
@@ -142,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
             res = {"header": header, "settings": settings, "rows": rows, "jobs_total": len(jobs),
                    "total_wall_seconds": time.perf_counter() - t0, "load_average_end": load_average()}
             _save(res, args.out)  # after every job: a run cut short keeps what it measured
-    render(res, args.out)
+    render(res, args.out, _baseline(args.baseline))
     say(f"wrote {args.out.with_suffix('.md')}")
     return 0
 
@@ -174,7 +176,61 @@ def _bin_label(i: int) -> str:
     return f">= {lo:g}" if not np.isfinite(hi) else f"{lo:g}-{hi:g}"
 
 
-def render(res: dict, out: Path) -> None:
+def _baseline(path: Path | None) -> dict | None:
+    if path is None:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as err:
+        raise SystemExit(f"discovery_generalisation: --baseline {path}: {err}") from None
+
+
+def _comparison(res: dict, base: dict) -> str:
+    """Per class, the correct rate of this run against the baseline run of the same scenarios."""
+    def key(r):
+        return r["scenario"]
+    rows = {key(r): r for r in res["rows"] if "error" not in r}
+    brows = {key(r): r for r in base["rows"] if "error" not in r}
+    both = sorted(set(rows) & set(brows), key=lambda k: list(rows).index(k))
+    bs = base["settings"]
+    def fact(name):
+        line = [x for x in base["header"].splitlines() if x.startswith(f"- {name}: ")]
+        return line[0].split(": ", 1)[1] if line else "?"
+    text = (f"## Against the baseline\n\nBaseline: {fact('command')} at {fact('commit')}, package state "
+            f"{fact('package state')}, seed {bs.get('seed')}; {len(both)} scenarios scored in both runs.\n\n")
+    if bs.get("seed") != res["settings"].get("seed"):
+        text += "**The baseline ran another seed: the rates do not compare scenario by scenario.**\n\n"
+    text += ("| class | baseline correct | correct | ratio | baseline at >= 100 | at >= 100 | ratio |\n"
+             "|---|---|---|---|---|---|---|\n")
+    from imu_array_ros.simulation.suites import CLASSES
+
+    def rate(rs):
+        k = sum(bool(r["correct"]) for r in rs)
+        return k, len(rs)
+
+    def ratio(a, b):
+        return f"{(a[0] / a[1]) / (b[0] / b[1]):.2f}" if a[1] and b[1] and b[0] else "—"
+    for c in CLASSES:
+        sel = [k for k in both if rows[k]["class"] == c]
+        if not sel:
+            continue
+        strong = [k for k in sel if c != "null" and (rows[k]["power_evidence"] or 0) >= 100]
+        b, a = rate([brows[k] for k in sel]), rate([rows[k] for k in sel])
+        bs_, as_ = rate([brows[k] for k in strong]), rate([rows[k] for k in strong])
+        text += (f"| {c} | {b[0]}/{b[1]} | {a[0]}/{a[1]} | {ratio(a, b)} | "
+                 + (f"{bs_[0]}/{bs_[1]} | {as_[0]}/{as_[1]} | {ratio(as_, bs_)} |" if strong else "— | — | — |") + "\n")
+    changed = [k for k in both if bool(rows[k]["correct"]) != bool(brows[k]["correct"])
+               or rows[k]["found"] != brows[k]["found"]]
+    if changed:
+        text += "\nScenarios whose findings changed (baseline → this run):\n\n"
+        for k in changed:
+            text += (f"- {k.replace('|', '/')}: {', '.join(brows[k]['found']) or '—'} "
+                     f"({'correct' if brows[k]['correct'] else 'wrong'}) → {', '.join(rows[k]['found']) or '—'} "
+                     f"({'correct' if rows[k]['correct'] else 'wrong'})\n")
+    return text + "\n"
+
+
+def render(res: dict, out: Path, base: dict | None = None) -> None:
     rows = [r for r in res["rows"] if "error" not in r]
     errors = [r for r in res["rows"] if "error" in r]
     s = res["settings"]
@@ -216,6 +272,8 @@ def render(res: dict, out: Path) -> None:
     if errors:
         text += (f"Not scored (no visible draw, or discovery raised): {len(errors)}: "
                  + "; ".join(f"{r['scenario']} ({r['error']})" for r in errors) + "\n")
+    if base is not None:
+        text += "\n" + _comparison(res, base)
     text += "\n## Power curves (correct vs realised oracle evidence)\n\n![power](" + out.with_suffix(".png").name + ")\n\n"
     text += "| class | " + " | ".join(_bin_label(i) for i in range(len(BINS) - 1)) + " |\n"
     text += "|---" * len(BINS) + "|\n"

@@ -6,6 +6,11 @@ and adding one would thread a linear map through its gauge search, identifiabili
 Instead the per-IMU values are tested for one shared value (:func:`~.scopes.tie_test`, a Wald test with
 the exact fit's CRB, asymptotically the likelihood ratio of the tied fit) and the shared value is their
 generalised least-squares mean, which is asymptotically the tied maximum-likelihood estimate.
+
+A confirmed pooled candidate is then narrowed to the IMUs that carry it (:mod:`.subset`): the fewest IMUs of
+the scope whose own values explain the pooled fit (Wald test at alpha), the exact likelihood ratio of the
+refit on those IMUs only against the pooled one, and the re-confirmation of the narrowed finding at the
+step's level.
 """
 
 from __future__ import annotations
@@ -14,7 +19,8 @@ import numpy as np
 import scipy.stats
 
 from imu_array_ros.discovery.explain import Candidate
-from imu_array_ros.discovery.scopes import tie_test
+from imu_array_ros.discovery.scopes import geometry_groups, tie_test
+from imu_array_ros.discovery.subset import is_own, propose, scope_label, term_indexes
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
@@ -49,6 +55,13 @@ def update_finding(f, fit, model: SensorModel, alpha: float) -> None:
     f.shared = f.tie["p"] >= alpha
 
 
+def _refit(samples, current: SensorModel, pairs, motion):
+    only = only_imus(pairs)
+    imus = sorted({k for ks in only.values() for k in ks})
+    return fit_terms(samples, current, list(only), imus=imus, only=only, motion0=motion, max_iterations=30,
+                     sandwich=False, cost_tolerance=COST_TOLERANCE)  # CRB only: no sandwich pass
+
+
 def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level: float, model: SensorModel,
              alpha: float):
     """Exact refit of every finding so far plus ``c`` (the engine, ``only``: a pooled candidate with each IMU's
@@ -56,18 +69,17 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     the candidate.  A shared scope is confirmed by the gain of the shared value: the per-IMU fit's gain less
     half the tie test's statistic (the Wald approximation of the tied fit's likelihood ratio) when the tie
     test accepts one value at ``alpha``, else by the per-IMU fit's gain against a chi-square with all its
-    parameters."""
-    only = only_imus([(f.effect, f.imus) for f in accepted.values()] + [(c.effect, c.imus)])
-    imus = sorted({k for ks in only.values() for k in ks})
+    parameters.  A confirmed pooled candidate is narrowed to the IMUs that carry it (:mod:`.subset`; ``c``'s
+    scope, IMUs and sensors are then changed in place and its note says why), the fit returned the refit on
+    them."""
+    pairs = [(f.effect, f.imus) for f in accepted.values()]
     try:
-        fit = fit_terms(samples, current, list(only), imus=imus,
-                        only=only, motion0=motion, max_iterations=30, sandwich=False,
-                        cost_tolerance=COST_TOLERANCE)  # CRB only: no sandwich pass
+        fit = _refit(samples, current, pairs + [(c.effect, c.imus)], motion)
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
     delta = fit.loglik_after - fit.loglik_before
-    gain, dof = delta, c.dof
-    if c.scope != "imu" and c.scope != "all own":
+    gain, dof, tie = delta, c.dof, None
+    if c.scope != "imu" and not is_own(c.scope):
         tie = tie_test(fit, c.effect, list(c.imus), model.names, model.terms[c.effect].values[list(c.imus)])
         if tie["p"] >= alpha:
             gain = delta - 0.5 * tie["statistic"]
@@ -77,4 +89,83 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     if not np.isfinite(gain) or gain < need:
         return (f"not confirmed by the exact fit: log-likelihood gain {gain:.3g} < {need:.3g} "
                 f"(the score test's first-order gain was {c.delta_loglik:.3g})")
+    if c.scope != "imu":
+        narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha)
+        if narrowed is not None:
+            return narrowed
     return fit, float(delta)
+
+
+def _free(fit) -> int:
+    return int(np.sum(np.diag(fit.covariance) > 0))
+
+
+def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motion, level, model, alpha):
+    """(fit, delta) of ``c`` narrowed to the IMUs that carry it (:mod:`.subset`), ``c`` changed in place; None
+    (``c`` as it was, its note saying why when a subset was tried) when the scope stands."""
+    term, imus = c.effect, tuple(c.imus)
+    if any(t == term and set(ks) & set(imus) for t, ks in pairs):
+        return None  # an IMU of the scope already holds an earlier finding of this term
+    prop = propose(fit, term, imus, model.terms[term].values[list(imus)], alpha)
+    if prop is None:
+        return None
+    sub = prop.imus
+    names = [model.names[k] for k in sub]
+    tried = f"narrowing to {', '.join(names)} (the fewest IMUs of the scope the Wald test at alpha = {alpha:g} accepts)"
+    try:
+        fit_c = _refit(samples, current, pairs + [(term, sub)], motion)
+    except CalibrationError as err:
+        c.note = f"{tried}: the exact refit failed ({err}); the scope stands"
+        return None
+    delta_c = fit_c.loglik_after - fit_c.loglik_before
+    base = model.terms[term].values[list(sub)]
+    tie_c = tie_test(fit_c, term, list(sub), model.names, base) if len(sub) > 1 else None
+    shared_c = tie_c is not None and tie_c["p"] >= alpha
+    gain_c = delta_c - (0.5 * tie_c["statistic"] if shared_c else 0.0)
+    n_c = int(np.sum(np.diag(fit_c.covariance)[term_indexes(fit_c, term, sub)] > 0))
+    dof_c = (n_c - tie_c["dof"]) if shared_c else n_c
+    if tie is None:  # an own scope: whether one shared value on all of it would do as well
+        tie = tie_test(fit, term, list(imus), model.names, model.terms[term].values[list(imus)])
+    if tie["p"] >= alpha:  # one shared value on the whole scope is adequate: C's must be more likely
+        gap = gain_c - (delta - 0.5 * tie["statistic"])
+        ok = (shared_c or len(sub) == 1) and gap >= np.log(1.0 / alpha)
+        if shared_c or len(sub) == 1:
+            why = (f"one value on {'them' if len(sub) > 1 else 'it'} is {'more' if gap >= 0 else 'less'} likely "
+                   f"than one shared by all {len(imus)} (tie test p = {tie['p']:.3g}): 2 delta log-lik "
+                   f"{2 * gap:.3g}, needed >= 2 ln(1/alpha) = {2 * np.log(1 / alpha):.3g}")
+        else:
+            why = (f"one value shared by all {len(imus)} is adequate (tie test p = {tie['p']:.3g}) and their values "
+                   f"differ (tie test over them p = {tie_c['p']:.3g} < alpha)")
+    else:
+        lr, ddof = 2.0 * (delta - delta_c), _free(fit) - _free(fit_c)
+        p_lr = float(scipy.stats.chi2.sf(lr, ddof)) if ddof > 0 else (1.0 if lr <= 0 else 0.0)
+        ok = p_lr >= alpha
+        why = (f"the refit with only them free loses 2 delta log-lik {lr:.3g} on {ddof} dof against the pooled "
+               f"fit (exact likelihood ratio, p = {p_lr:.3g} {'>=' if ok else '<'} alpha = {alpha:g})")
+    if not ok:
+        c.note = f"{tried}: not adequate ({why}); the scope stands"
+        return None
+    need = 0.5 * scipy.stats.chi2.isf(level, max(dof_c, 1))
+    if not np.isfinite(gain_c) or gain_c < need:
+        c.note = f"{tried}: its gain {gain_c:.3g} < {need:.3g} (the step's level); the scope stands"
+        return None
+    old = f"{c.scope} ({', '.join(c.sensors)})"
+    groups = geometry_groups(model.positions, model.rotations)
+    label = scope_label(sub, model.names, groups, shared_c)  # one IMU: "imu_3 own" (its pooled figures kept)
+    ps = ", ".join(f"{model.names[k]} {p:.2g}" for k, p in prop.p.items())
+    note = (f"tested at scope '{old}' (score test, statistic {c.statistic:.4g} on {c.dof} dof; exact gain "
+            f"{delta:.4g}); carried by {', '.join(names)} only: the fewest IMUs of the scope whose own values "
+            f"explain the pooled fit (Wald test of nothing on the others {prop.zero_stat:.3g} on {prop.zero_dof} dof, "
+            f"p = {scipy.stats.chi2.sf(prop.zero_stat, max(prop.zero_dof, 1)):.3g} >= alpha = {alpha:g}; each "
+            f"given the others: p = {ps})"
+            + (f" in the gauge that puts {model.names[prop.zero]} at its starting value" if prop.zero is not None
+               else "")
+            + f"; {why}; re-confirmed on them: gain {gain_c:.4g} >= {need:.3g}; reported as "
+            f"'{label}'")
+    if prop.alternatives:
+        note += ("; other sets as small that the Wald test accepts as well (the data hardly tell them apart): "
+                 + " or ".join(", ".join(model.names[k] for k in a) for a in prop.alternatives))
+    c.note = note
+    c.scope, c.imus, c.sensors, c.k = label, tuple(sub), tuple(names), int(sub[0])
+    c.sensor = f"{label} ({', '.join(names)})"
+    return fit_c, float(delta_c)

@@ -17,10 +17,10 @@ repeated until every finding left passes.  Each drop is reported (``rejected``, 
 from __future__ import annotations
 
 import numpy as np
-import scipy.stats
 
 from imu_array_ros.discovery.confirm import only_imus, update_finding
 from imu_array_ros.discovery.scopes import tie_test
+from imu_array_ros.discovery.subset import is_own, term_indexes, wald
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
@@ -29,32 +29,25 @@ from imu_array_ros.model.terms import REGISTRY
 __all__ = ["wald_given_others", "backward_eliminate"]
 
 
-def _indexes(fit, term: str, imus) -> np.ndarray:
-    dims = [REGISTRY[t].dim() for t in fit.free]
-    p, off, width = REGISTRY[term].dim(), sum(dims[:list(fit.free).index(term)]), sum(dims)
-    names = list(fit.imus)
-    return np.array([names.index(fit.model.names[k]) * width + off + i for k in imus for i in range(p)])
-
-
 def wald_given_others(fit, f, base: SensorModel, alpha: float) -> tuple[float, int, float]:
     """(W, dof, p) of finding ``f`` (discover.Finding) given every other parameter of the joint ``fit``:
     its parameters' change from ``base`` (the model discovery started from) against the fit's CRB."""
     imus = list(f.imus)
-    if f.scope != "imu" and f.scope != "all own":
+    if f.scope != "imu" and not is_own(f.scope):
         tie = tie_test(fit, f.effect, imus, base.names, base.terms[f.effect].values[imus])
         if tie["p"] >= alpha:  # one shared value: test it (its covariance: the GLS mean's)
             d, sd = np.asarray(tie["values"]), np.asarray(tie["std"])
             cov_phi = _shared_covariance(fit, f.effect, imus)
-            return _wald(d, cov_phi if cov_phi is not None else np.diag(sd ** 2))
-    idx = _indexes(fit, f.effect, imus)
+            return wald(d, cov_phi if cov_phi is not None else np.diag(sd ** 2))
+    idx = term_indexes(fit, f.effect, imus)
     d = fit.theta[idx] - np.asarray(base.terms[f.effect].values[imus], dtype=float).reshape(-1)
-    return _wald(d, fit.covariance[np.ix_(idx, idx)])
+    return wald(d, fit.covariance[np.ix_(idx, idx)])
 
 
 def _shared_covariance(fit, term: str, imus) -> np.ndarray | None:
     """Covariance of the GLS shared value of ``term`` over ``imus`` (as :func:`~.scopes.tie_test` forms it)."""
     p = REGISTRY[term].dim()
-    idx = _indexes(fit, term, imus)
+    idx = term_indexes(fit, term, imus)
     cov = fit.covariance[np.ix_(idx, idx)]
     keep = np.diag(cov) > 0
     if not keep.any():
@@ -62,19 +55,6 @@ def _shared_covariance(fit, term: str, imus) -> np.ndarray | None:
     t = np.tile(np.eye(p), (len(imus), 1))[keep]
     w = np.linalg.pinv(cov[np.ix_(keep, keep)], hermitian=True)
     return np.linalg.pinv(t.T @ w @ t, hermitian=True)
-
-
-def _wald(d: np.ndarray, cov: np.ndarray) -> tuple[float, int, float]:
-    keep = np.diag(cov) > 0  # held (gauge) parameters carry no information
-    if not keep.any():
-        return 0.0, 0, 1.0
-    c = cov[np.ix_(keep, keep)]
-    s = np.sqrt(np.diag(c))
-    lam, vec = np.linalg.eigh(c / np.outer(s, s))
-    ok = lam > 1e-10 * lam.max()
-    z = (vec[:, ok].T @ (d[keep] / s)) / np.sqrt(lam[ok])
-    stat, dof = float(z @ z), int(ok.sum())
-    return stat, dof, float(scipy.stats.chi2.sf(stat, dof))
 
 
 def backward_eliminate(samples, start: SensorModel, findings: list, fit, motion, levels, alpha: float,

@@ -223,6 +223,10 @@ def markdown(d, *, source: str = "", figures=()) -> str:
                          f"{c.log_p:.4g} | {c.robust_p:.2g} | {c.delta_bic:.4g} | {c.heldout:.4g} |")
     else:
         lines.append("None: no term of the sensor model passes the corrected tests.")
+    scoped = [f for f in d.findings if f.candidate.note and f.candidate.note.startswith(("tested at scope", "narrowing"))]
+    if scoped:  # discovery/subset.py: which IMUs of a pooled scope carry the effect
+        lines += ["", "### Which IMUs carry each pooled finding", ""]
+        lines += [f"- {f.effect} on {f.sensor}: {f.candidate.note}" for f in scoped]
     if d.indistinguishable:
         lines += ["", "### Indistinguishable", ""]
         for e in d.indistinguishable:

@@ -1,0 +1,284 @@
+"""Which IMUs of a pooled finding carry the effect: narrowing a scope to the IMUs the data put it on.
+
+A pooled hypothesis (a shared value on a group, or every IMU its own value: :mod:`.scopes`) passes when the
+pooled evidence of its IMUs does, so an effect on two IMUs of eight passes at the eight-IMU scope: a finding
+on six IMUs without the effect.  After a pooled finding's exact refit (each IMU of the scope its own value,
+:func:`.confirm.confirm`), this module asks which IMUs carry it:
+
+1. **The fewest IMUs that explain it**: from the pooled fit's own values (their changes from the model
+   discovery started from) and their Cramér-Rao bound, the Wald statistic of "the term only on the IMUs C,
+   nothing on the others" (asymptotically twice the log-likelihood that restriction loses).  C is the smallest
+   set for which (a) that test accepts at alpha and (b) every IMU of C is needed given the others of C (the
+   Wald test of its own value given them, p < alpha / G: Bonferroni over the scope's G IMUs); the lowest
+   statistic among sets of that size.  Every set is tried on scopes of up to :data:`EXHAUSTIVE` IMUs, larger
+   ones are grown greedily then pruned.  The pooled fit's values are coupled by the motion (a value common to
+   the IMUs is nearly absorbed by it), so an IMU's value given *every* other IMU free says little about it:
+   hence the joint restriction, not one test per IMU.  When the effect is on C, an IMU outside C is kept only
+   when the true set is rejected by (a), so at most about alpha per pooled finding.  When a gauge freedom of
+   the fit moves the term's values on the scope (a value common to identically oriented IMUs, absorbed by the
+   motion and held by the fit), "nothing on IMU k" depends on the gauge: the values are re-expressed in every
+   gauge that puts one IMU of the scope at its starting value and the sparsest representation is taken;
+   other sets as small and as adequate are named (the data hardly tell them apart).
+2. **Is the subset adequate?** The restriction is tested again by the exact likelihood ratio of the refit
+   with only C free against the pooled fit, chi-square with the difference in free parameters, at alpha.
+   When one value shared by the whole scope is adequate (its tie test accepts at alpha), it explains the data
+   with as few parameters: the scope is narrowed only when one value on C is more likely by a factor 1/alpha
+   (2 delta log-likelihood >= 2 ln(1/alpha), 9.2 at 1 %).  So an effect truly on every IMU, some of whose own
+   values are too uncertain to be needed, stays on every IMU.
+3. **Re-confirmed on C**: one shared value on C when the tie test over C accepts one (p >= alpha), else every
+   IMU of C its own value; its gain must pass the step's level as the pooled one did.  The scope is then
+   named after C: a geometry group's name when C is one ("top shared"), else the IMUs' names
+   ("imu_02,imu_03 shared" / "... own"; one IMU: "imu_3 own", the figures of the pooled test kept).
+
+Nothing is narrowed when no proper subset passes (a) and (b) (every IMU is needed, or the pooled evidence is
+all there is), or when an IMU of the scope already holds an earlier finding of the same term.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+import scipy.stats
+
+from imu_array_ros.model.terms import REGISTRY
+
+__all__ = ["term_indexes", "wald", "restricted", "Representation", "Proposal", "propose", "scope_label",
+           "is_own", "carriers", "EIG_RTOL", "EXHAUSTIVE"]
+
+#: scopes of at most this many IMUs: every subset is tried (smallest first); larger ones are grown greedily
+EXHAUSTIVE = 10
+#: eigenvalue of a Jacobi-scaled covariance, relative to its largest, below which a direction is not identified
+EIG_RTOL = 1e-10
+
+
+def is_own(scope: str) -> bool:
+    """Whether a pooled scope's label is an every-IMU-its-own-value scope ("all own", "top own", ...)."""
+    return scope.endswith(" own")
+
+
+def term_indexes(fit, term: str, imus) -> np.ndarray:
+    """Indexes into fit.theta / fit.covariance of ``term``'s parameters on ``imus`` (IMU-major)."""
+    dims = [REGISTRY[t].dim() for t in fit.free]
+    p, off, width = REGISTRY[term].dim(), sum(dims[:list(fit.free).index(term)]), sum(dims)
+    names = list(fit.imus)
+    return np.array([names.index(fit.model.names[k]) * width + off + i for k in imus for i in range(p)],
+                    dtype=np.int64)
+
+
+def _information(cov: np.ndarray):
+    """(W, keep, rank): pseudo-inverse of ``cov`` on its identified directions (Jacobi-scaled eigenvalues
+    above EIG_RTOL; held parameters, zero variance, left out), as a matrix over the kept entries."""
+    keep = np.diag(cov) > 0
+    if not keep.any():
+        return np.zeros((0, 0)), keep, 0
+    c = cov[np.ix_(keep, keep)]
+    s = np.sqrt(np.diag(c))
+    lam, vec = np.linalg.eigh(c / np.outer(s, s))
+    ok = lam > EIG_RTOL * lam.max()
+    q = vec[:, ok] / s[:, None]
+    return q @ np.diag(1.0 / lam[ok]) @ q.T, keep, int(ok.sum())
+
+
+def restricted(d: np.ndarray, cov: np.ndarray, t: np.ndarray) -> tuple[float, int]:
+    """Wald statistic of the linear restriction d = T phi (phi free) with the covariance of d, and its dof:
+    min_phi (d - T phi)^T C^+ (d - T phi) on the identified directions of C; asymptotically twice the
+    log-likelihood the restriction loses.  T (n, r); r = 0: d = 0."""
+    w, keep, rank = _information(cov)
+    if rank == 0:
+        return 0.0, 0
+    x, tk = d[keep], t[keep]
+    stat = float(x @ w @ x)
+    if tk.shape[1]:
+        info = tk.T @ w @ tk
+        b = tk.T @ w @ x
+        stat -= float(b @ np.linalg.pinv(info, hermitian=True) @ b)
+        rank -= int(np.linalg.matrix_rank(info)) if np.any(info) else 0
+    return max(stat, 0.0), max(rank, 0)
+
+
+def wald(d: np.ndarray, cov: np.ndarray) -> tuple[float, int, float]:
+    """(W, dof, p) of d = 0 with the covariance of d (held parameters carry no information)."""
+    stat, dof = restricted(d, cov, np.zeros((len(d), 0)))
+    return stat, dof, float(scipy.stats.chi2.sf(stat, dof)) if dof > 0 else 1.0
+
+
+@dataclass
+class Representation:
+    """The changes d (G p,) of a term on a scope's IMUs and their covariance, in one gauge: ``zero`` the
+    scope's IMU put at its starting value by the gauge (None: the fit's own gauge)."""
+
+    d: np.ndarray
+    cov: np.ndarray
+    zero: int | None = None
+
+
+@dataclass
+class Proposal:
+    """The IMUs (indexes) that carry a pooled finding's effect: p per IMU of its Wald test, the Wald statistic
+    of "nothing on the others" (zero_stat, zero_dof) and of "one value on C, nothing on the others"
+    (shared_stat) in the representation chosen; alternatives: other carrier sets as sparse and as adequate."""
+
+    imus: tuple[int, ...]
+    p: dict = field(default_factory=dict)
+    zero_stat: float = 0.0
+    zero_dof: int = 0
+    shared_stat: float = 0.0
+    level: float = 0.0
+    zero: int | None = None
+    alternatives: list = field(default_factory=list)
+
+
+def representations(fit, term: str, imus, base: np.ndarray) -> list[Representation]:
+    """The term's changes from ``base`` (G, p) on ``imus`` in the fit's gauge and, when a gauge freedom of
+    the fit moves them, in the gauge that puts each IMU of the scope at zero (to first order the same
+    readings: theta + D c for the fit's gauge directions D)."""
+    idx = term_indexes(fit, term, imus)
+    d = fit.theta[idx] - np.asarray(base, dtype=float).reshape(-1)
+    cov = fit.covariance[np.ix_(idx, idx)]
+    out = [Representation(d, cov)]
+    gd = np.asarray(fit.gauge_directions)
+    if gd.size == 0:
+        return out
+    ds = gd[idx]
+    if np.linalg.norm(ds) < 1e-9 * max(np.linalg.norm(gd), 1e-300):
+        return out
+    p = REGISTRY[term].dim()
+    for j in range(len(imus)):
+        rows = slice(j * p, (j + 1) * p)
+        dj = ds[rows]
+        if np.linalg.matrix_rank(dj, tol=1e-9 * max(np.abs(ds).max(), 1e-300)) < p:
+            continue  # the gauge cannot put every parameter of this IMU at zero
+        a = np.eye(len(d))
+        a[:, rows] -= ds @ np.linalg.pinv(dj)
+        d2, cov2 = a @ d, a @ cov @ a.T
+        d2[rows] = 0.0
+        cov2[rows, :] = 0.0
+        cov2[:, rows] = 0.0
+        out.append(Representation(d2, cov2, j))
+    return out
+
+
+class _Restrictions:
+    """Wald statistics of "the term only on the IMUs C (own values), nothing elsewhere" for many C, from one
+    representation: the information is inverted once."""
+
+    def __init__(self, rep: Representation, n_imus: int, p: int):
+        self.w, keep, self.rank = _information(rep.cov)
+        self.x = rep.d[keep]
+        self.b = self.w @ self.x
+        self.total = float(self.x @ self.b)
+        pos = np.cumsum(keep) - 1  # index among the kept entries
+        self.rows = [pos[j * p:(j + 1) * p][keep[j * p:(j + 1) * p]] for j in range(n_imus)]
+
+    def __call__(self, inside) -> tuple[float, int]:
+        r = np.concatenate([self.rows[j] for j in inside]) if len(inside) else np.zeros(0, dtype=np.int64)
+        if r.size == 0:
+            return self.total, self.rank
+        info = self.w[np.ix_(r, r)]
+        sc = np.sqrt(np.clip(np.diag(info), 1e-300, None))  # Jacobi-scaled: parameters of any unit
+        lam, vec = np.linalg.eigh(info / np.outer(sc, sc))
+        ok = lam > EIG_RTOL * max(lam.max(), 0.0)
+        z = vec[:, ok].T @ (self.b[r] / sc)
+        stat = self.total - float(z @ (z / lam[ok]))
+        return max(stat, 0.0), self.rank - int(ok.sum())
+
+
+def _adequate(stat: float, dof: int, alpha: float) -> bool:
+    return dof <= 0 or scipy.stats.chi2.sf(stat, dof) >= alpha
+
+
+def carriers(rep: Representation, n_imus: int, p: int, alpha: float):
+    """The fewest IMUs whose own values explain the pooled fit: the smallest sets C for which the Wald test of
+    "nothing on the other IMUs of the scope" accepts at ``alpha`` and every IMU of C is needed given the others
+    of C (its own value's Wald test given them, p < alpha / G: Bonferroni over the scope's G IMUs), lowest
+    statistic first; every set up to :data:`EXHAUSTIVE` IMUs, else grown greedily (the IMU that lowers the
+    statistic most) then pruned.  Returns [(C positions, statistic, dof, {position: p given the others})] of
+    the smallest such size (empty: no proper subset)."""
+    wald_of = _Restrictions(rep, n_imus, p)
+    level = alpha / n_imus
+
+    def needed(c, stat, dof):
+        ps = {}
+        for j in c:
+            s1, d1 = wald_of([i for i in c if i != j])
+            ps[j] = float(scipy.stats.chi2.sf(s1 - stat, d1 - dof)) if d1 > dof else 1.0
+        return ps if all(v < level for v in ps.values()) else None
+
+    if n_imus <= EXHAUSTIVE:
+        for size in range(1, n_imus):
+            ok = []
+            for c in combinations(range(n_imus), size):
+                stat, dof = wald_of(c)
+                if _adequate(stat, dof, alpha):
+                    ps = needed(c, stat, dof)
+                    if ps is not None:
+                        ok.append((c, stat, dof, ps))
+            if ok:
+                return sorted(ok, key=lambda x: x[1])
+        return []
+    inside: list[int] = []
+    stat, dof = wald_of(inside)
+    while not _adequate(stat, dof, alpha) and len(inside) < n_imus - 1:
+        stat, dof, j = min(wald_of(inside + [j]) + (j,) for j in range(n_imus) if j not in inside)
+        inside.append(j)
+    if not _adequate(stat, dof, alpha):
+        return []
+    pruned = True
+    while pruned and len(inside) > 1:  # drop what the others no longer need
+        pruned = False
+        tries = sorted((wald_of([i for i in inside if i != j]) + (j,) for j in inside), key=lambda x: x[0])
+        if tries and _adequate(tries[0][0], tries[0][1], alpha):
+            stat, dof, j = tries[0]
+            inside.remove(j)
+            pruned = True
+    c = tuple(sorted(inside))
+    ps = needed(c, stat, dof)
+    return [] if ps is None else [(c, stat, dof, ps)]
+
+
+def _selector(n_imus: int, p: int, inside, shared: bool) -> np.ndarray:
+    """T of the restriction: the IMUs ``inside`` free (their own values, or one shared value), the others 0."""
+    cols = p if shared else p * len(inside)
+    t = np.zeros((n_imus * p, cols))
+    for i, j in enumerate(inside):
+        t[j * p:(j + 1) * p, (0 if shared else i * p):(0 if shared else i * p) + p] = np.eye(p)
+    return t
+
+
+def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | None:
+    """The IMUs that carry ``term``'s pooled finding on ``imus`` in the joint ``fit`` (module docstring, step 1):
+    the smallest proper subset whose restriction the Wald test accepts at ``alpha`` (over the fit's gauge
+    representations), or None.  Positions in the Proposal are IMU indexes."""
+    imus = list(imus)
+    g, p = len(imus), REGISTRY[term].dim()
+    found = []
+    for rep in representations(fit, term, imus, base):
+        for c, zs, zd, ps in carriers(rep, g, p, alpha):
+            found.append((len(c), zs, c, zd, rep, ps))
+    if not found:
+        return None
+    found.sort(key=lambda x: (x[0], x[1]))
+    n, zs, c, zd, rep, ps = found[0]
+    ss, _ = restricted(rep.d, rep.cov, _selector(g, p, c, shared=True))
+    alts = []
+    for x in found[1:]:
+        a = tuple(imus[j] for j in x[2])
+        if x[0] == n and x[2] != c and a not in alts:
+            alts.append(a)
+    return Proposal(tuple(imus[j] for j in c), {imus[j]: v for j, v in ps.items()}, float(zs), int(zd),
+                    float(ss), alpha / g, None if rep.zero is None else imus[rep.zero], [list(a) for a in alts])
+
+
+def scope_label(imus, names, groups, shared: bool) -> str:
+    """A pooled scope's label for the IMU indexes ``imus``: the geometry group's name when they are one
+    ([(name, IMU indexes)], :func:`.scopes.geometry_groups`), "all" when every IMU, else their names."""
+    imus = tuple(sorted(imus))
+    kind = "shared" if shared else "own"
+    if imus == tuple(range(len(names))):
+        return f"all {kind}"
+    for name, group in groups:
+        if tuple(sorted(group)) == imus:
+            return f"{name} {kind}"
+    return f"{','.join(names[k] for k in imus)} {kind}"
