@@ -13,8 +13,14 @@ The table gives wall time, peak resident memory (max RSS) and the ratio discover
 findings discover reported (to compare the trees' results).  Results are appended to
 benchmarks/results/discovery_speed.json (one entry per tree and run) and the markdown rebuilt from it.
 
+``--clocks`` (with ``--window``): the description discover starts from carries the sample clocks the timing
+stage finds on the *whole* capture (their phases re-estimated on the window, as ``discover`` does for a
+description with clocks), so a window exercises the clocked model's refits (the timing stage finds no clock on a window of exp_3
+alone: 60+180, 300+180 and 0+300 s gave largest sawtooths 4.2-5.6x their median, 8x needed; the whole
+capture 38-46x on every gyroscope).
+
     python -m benchmarks.bench_discovery_speed [--capture exp_2] [--tree DIR --label NAME ...]
-        [--window START DURATION --max-findings N]
+        [--window START DURATION --max-findings N [--clocks]]
 """
 
 from __future__ import annotations
@@ -83,30 +89,46 @@ CHUNK = """
 import json, resource, sys, time
 from pathlib import Path
 from imu_array_ros import workflows
-from imu_array_ros.discovery.discover import DiscoveryOptions
+from imu_array_ros.discovery.discover import DiscoveryOptions, discover
+from imu_array_ros.workflows.arrays import as_model
 capture, cal, start, dur, n = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5])
 desc, _ = workflows.load_array(Path(sys.argv[6]), Path(cal))
-samples = workflows.read_imu_recording(Path(capture), desc)[0].window(start, dur)
+whole = workflows.read_imu_recording(Path(capture), desc)[0]
+samples = whole.window(start, dur)
+model = as_model(desc)
+if sys.argv[7] == "clocks":  # the whole capture's sample clocks (not timed)
+    from imu_array_ros.discovery.timing import timing_stage
+    model = timing_stage(whole, model).model
 t0 = time.perf_counter()
-d = workflows.discover(samples, desc, options=DiscoveryOptions(max_findings=n))
+d = discover(samples, model, options=DiscoveryOptions(max_findings=n),
+             progress=lambda text: print(f"{time.perf_counter() - t0:8.1f} s {text}", file=sys.stderr, flush=True))
 print(json.dumps({"wall_s": time.perf_counter() - t0, "samples": len(samples), "timings": d.timings,
                   "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "findings": [f"{f.effect}@{f.scope}:{','.join(f.candidate.sensors)}" for f in d.findings]}))
+                  "findings": [f"{f.effect}@{f.scope}:{','.join(f.candidate.sensors)}" for f in d.findings],
+                  "values": {f"{f.effect}@{f.scope}": [[float(v) for v in f.values], [float(v) for v in f.std]]
+                             for f in d.findings},
+                  "exact_delta_loglik": [float(f.exact_delta_loglik) for f in d.findings]}))
 """
 
 
-def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_findings: int) -> dict:
-    """discover (Python API, defaults but max_findings) on a window of the capture, from ``cal``."""
+def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_findings: int,
+                  clocks: bool = False, log: Path | None = None) -> dict:
+    """discover (Python API, defaults but max_findings) on a window of the capture, from ``cal`` (``clocks``: with
+    the whole capture's sample clocks); its progress lines (seconds since its start) into ``log``."""
     env = dict(os.environ, PYTHONPATH=str(tree))
-    say(f"[{label}] discover on {window[1]:g} s from {window[0]:g} s, at most {max_findings} findings")
+    say(f"[{label}] discover on {window[1]:g} s from {window[0]:g} s, at most {max_findings} findings"
+        + (", the whole capture's sample clocks" if clocks else ""))
     out = subprocess.run(["nice", sys.executable, "-c", CHUNK, str(capture), str(cal), str(window[0]), str(window[1]),
-                          str(max_findings), str(ARRAY)], env=env, capture_output=True, text=True, cwd=tree)
+                          str(max_findings), str(ARRAY), "clocks" if clocks else "-"], env=env, capture_output=True,
+                         text=True, cwd=tree)
+    if log is not None:
+        log.write_text(out.stderr)
     if out.returncode != 0:
         raise SystemExit(f"chunk discover failed: {out.stderr[-2000:]}")
     r = json.loads(out.stdout.strip().splitlines()[-1])
     say(f"[{label}] {r['wall_s']:.1f} s")
-    return {"label": label, "capture": capture.stem, "window_s": list(window), "max_findings": max_findings, **r,
-            "load_average": load_average()}
+    return {"label": label, "capture": capture.stem, "window_s": list(window), "max_findings": max_findings,
+            "clocks": clocks, **r, "load_average": load_average()}
 
 
 def _table(entries: list[dict]) -> str:
@@ -129,6 +151,8 @@ def main() -> int:
                     help="instead: discover alone (Python API) on this window (s) of the capture, from a calibrate "
                          "all of the whole capture, every tree in turn (speed and findings compared)")
     ap.add_argument("--max-findings", type=int, default=8, help="with --window (default 8)")
+    ap.add_argument("--clocks", action="store_true", help="with --window: start from the whole capture's sample "
+                                                         "clocks (module docstring)")
     args = ap.parse_args()
     trees = [Path(t).resolve() for t in args.tree] or [REPO]
     labels = args.label or [("current" if t == REPO else t.name) for t in trees]
@@ -143,10 +167,14 @@ def main() -> int:
         cal = work / "cal.yaml"
         _run(REPO, ["calibrate", "all", str(capture), "--array", str(ARRAY), "--out", str(cal), "-q"],
              work / "calibrate.log")
-        runs = [measure_chunk(t, lab, capture, cal, args.window, args.max_findings) for t, lab in zip(trees, labels)]
+        runs = [measure_chunk(t, lab, capture, cal, args.window, args.max_findings, args.clocks,
+                              work / f"{lab.replace(' ', '_').replace('/', '_')}_progress.log")
+                for t, lab in zip(trees, labels)]
+        say(f"progress logs in {work}")
         text = "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
         text += "|---|---|---|---|---|---|---|---|---|\n" + "".join(
-            f"| {r['label']} | {r['capture']} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | {r['max_findings']} | "
+            f"| {r['label']} | {r['capture']}{' (clocks)' if r['clocks'] else ''} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | "
+            f"{r['max_findings']} | "
             f"{r['samples']} | "
             f"{r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | {'; '.join(r['findings']) or '—'} | "
             f"{r['load_average']} |\n" for r in runs)
@@ -174,7 +202,8 @@ def _write_md() -> None:
         text += ("\n## A window of the capture (`--window`), discover alone, trees in turn\n\n"
                  "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
                  "|---|---|---|---|---|---|---|---|---|\n" + "".join(
-                     f"| {r['label']} | {r.get('capture', '?')} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | "
+                     f"| {r['label']} | {r.get('capture', '?')}{' (clocks)' if r.get('clocks') else ''} | "
+                     f"{r['window_s'][0]:g}+{r['window_s'][1]:g} | "
                      f"{r['max_findings']} | "
                      f"{r['samples']} | {r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | "
                      f"{'; '.join(r['findings']) or '—'} | {r['load_average']} |\n" for r in chunks))

@@ -17,7 +17,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.gauge import GAUGE_ORDER, Gauge
 from imu_array_ros.fitting.identifiability import NOISE_SHARE
 from imu_array_ros.fitting.optimiser import inverse, levenberg_marquardt
-from imu_array_ros.fitting.problem import Linearization, Problem, check_terms
+from imu_array_ros.fitting.problem import Linearization, Problem, check_terms, keep_schur
 from imu_array_ros.fitting.robust import (HUBER_ROUNDS, RobustCovariance, blocked_covariance, huber_sigma,
                                           sample_influence)
 from imu_array_ros.fitting.score import ScoreBlocks, score_blocks
@@ -26,8 +26,8 @@ from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
-__all__ = ["FitResult", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms", "GAUGE_ORDER",
-           "NOISE_SHARE", "TIMING_ROUNDS"]
+__all__ = ["FitResult", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms", "keep_schur",
+           "GAUGE_ORDER", "NOISE_SHARE", "TIMING_ROUNDS"]
 
 #: with timing terms, how many times the trajectory is rebuilt from the motion found and the fit repeated
 TIMING_ROUNDS = 3
@@ -93,7 +93,8 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
               gauge: str = "reference", motion0=None, max_iterations: int = 50, tolerance: float = 1e-3,
               progress: Callable[[int, float], None] | None = None, motion_model=None, sigma=None,
               only: dict | None = None, t0_ns: int | None = None, robust: str | None = None,
-              sandwich: bool = True, hold: Sequence[str] = (), cost_tolerance: float | None = None) -> FitResult:
+              sandwich: bool = True, hold: Sequence[str] = (), cost_tolerance: float | None = None,
+              keep_g: bool | None = None) -> FitResult:
     """Maximum likelihood of the ``free`` terms' parameters jointly with every sample's motion.
 
     samples: the readings (:class:`~imu_array_ros.model.samples.ImuSamples`: stamps (N,) int64 ns,
@@ -135,7 +136,9 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     reweighted problem; sandwich: compute ``covariance_robust`` (one more pass over the samples);
     cost_tolerance: also converged when a step lowers the cost (-log-likelihood) by less than this (default
     None: the parameter and motion steps alone decide; discovery's confirming refits need only the
-    likelihood).  Raises
+    likelihood); keep_g: the linearisations keep G_n for the motion steps (fewer passes over the samples, the
+    same steps to rounding; default None: as :func:`~imu_array_ros.fitting.problem.keep_schur` says, off
+    outside it).  Raises
     :class:`CalibrationError` (one line) when the problem cannot be solved or
     identified.
     """
@@ -143,14 +146,14 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
         return _huber(samples, model, free, robust, dict(imus=imus, reference=reference, gauge=gauge,
                       max_iterations=max_iterations, tolerance=tolerance, progress=progress,
                       motion_model=motion_model, only=only, t0_ns=t0_ns, sandwich=sandwich, hold=hold,
-                      cost_tolerance=cost_tolerance),
+                      cost_tolerance=cost_tolerance, keep_g=keep_g),
                       motion0, sigma)
     free = check_terms(free)
     if gauge not in ("reference", "mean"):
         raise CalibrationError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
     fit = imu_indexes(model.names, imus, "imus")
     ref = _reference(model, fit, reference)
-    prob = Problem(samples, model, free, fit, motion_model=motion_model, sigma=sigma, t0_ns=t0_ns)
+    prob = Problem(samples, model, free, fit, motion_model=motion_model, sigma=sigma, t0_ns=t0_ns, keep_g=keep_g)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
     motion, lin = _fit_motion_frozen(prob, model, motion)
     motion = prob.drop(~lin.ok, motion)
@@ -167,6 +170,7 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
         # and optimise again, until the parameters no longer move
         theta = prob.values(model).reshape(-1)
         prob.freeze(motion)
+        lin = None  # memory: the last linearisation (and its G) goes before the next is made
         lin = prob.linearize(model, motion)
         model, motion, lin, more, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
                                                                   max_iterations, tolerance, progress,

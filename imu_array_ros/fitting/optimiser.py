@@ -50,6 +50,7 @@ def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, l
         model, motion = new_model, new_motion
         iterations += 1
         drop = lin.cost - cost
+        lin = None  # memory: the last linearisation (and its G) goes before the next is made
         lin = prob.linearize(model, motion)
         if cost_tolerance is not None and drop < cost_tolerance:
             converged = True

@@ -4,6 +4,8 @@ and notation: :mod:`imu_array_ros.fitting`)."""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -19,12 +21,31 @@ from imu_array_ros.model.trajectory import timing_context
 from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.model.terms.timing import TimingTerm
 
-__all__ = ["Problem", "Linearization", "check_terms", "CHUNK_BYTES", "MOTION_ITERATIONS"]
+__all__ = ["Problem", "Linearization", "check_terms", "keep_schur", "CHUNK_BYTES", "KEEP_G_BYTES", "MOTION_ITERATIONS"]
 
 #: working memory per chunk of samples (Jacobians and the stacked G of the Schur complement)
 CHUNK_BYTES = 64 << 20
 #: motion-only Gauss-Newton iterations for the initial motion
 MOTION_ITERATIONS = 30
+#: the largest stacked G (N x 9 x M floats) a linearisation keeps for the motion steps that follow it
+#: (:func:`keep_schur`); above it the steps recompute it chunk by chunk as without
+KEEP_G_BYTES = 512 << 20
+_KEEP_G = contextvars.ContextVar("keep_schur", default=False)
+
+
+@contextlib.contextmanager
+def keep_schur(on: bool = True):
+    """Inside (also as a decorator): a problem made without an explicit ``keep_g`` keeps each linearisation's
+    G_n = L_n^-1 B_n (:attr:`Linearization.G`, at most ``KEEP_G_BYTES``), so the Levenberg-Marquardt motion
+    steps that follow read it instead of a Jacobian pass over every sample of their own (with timing terms as
+    costly as the linearisation).  The same step to rounding, not bit-identical (the products are associated
+    differently), which is why it is off by default: the calibrations' results stay bit-identical; discovery
+    turns it on."""
+    token = _KEEP_G.set(bool(on))
+    try:
+        yield
+    finally:
+        _KEEP_G.reset(token)
 
 
 def check_terms(free: Sequence[str]) -> tuple[str, ...]:
@@ -49,7 +70,8 @@ class Linearization:
     each parameter with the motion known); linv (N, 9, 9): L_n^-1; h (N, 9):
     L_n^-1 gx_n; ok (N,): A_n positive definite (the sample identifies its
     motion); r (N, K, 6) normalised residuals (0 on masked axes); derivs: the
-    motion derivatives held fixed in it.
+    motion derivatives held fixed in it; G (N, 9, M): G_n = L_n^-1 B_n when the problem keeps it
+    (:func:`keep_schur`), else None.
     """
 
     cost: float
@@ -61,13 +83,14 @@ class Linearization:
     ok: np.ndarray
     r: np.ndarray
     derivs: tuple
+    G: np.ndarray | None = None
 
 
 class Problem:
     """Readings, weights and the parameter layout: fitted IMUs x free terms' parameters, IMU-major."""
 
     def __init__(self, samples: ImuSamples, model: SensorModel, free: tuple[str, ...], fit: np.ndarray, *,
-                 motion_model=None, sigma=None, t0_ns: int | None = None):
+                 motion_model=None, sigma=None, t0_ns: int | None = None, keep_g: bool | None = None):
         stamps = samples.stamps
         n, k = len(stamps), model.n_imus
         if tuple(samples.names) != tuple(model.names):
@@ -105,6 +128,7 @@ class Problem:
             raise CalibrationError("stamps must increase strictly (time offsets need the motion's time derivatives)")
         per_sample = 8 * (4 * 6 * k * (9 + self.p) + 2 * self.dm * self.m + 20 * 81)
         self.chunk = int(np.clip(CHUNK_BYTES // per_sample, 16, n))
+        self.keep_g = _KEEP_G.get() if keep_g is None else bool(keep_g)  # Linearization.G (keep_schur)
 
     # ---- layout
     @property
@@ -248,6 +272,8 @@ class Problem:
         cblocks, gt = np.zeros((kf, p, p)), np.zeros((kf, p))
         linv, h = np.empty((self.n, self.dm, self.dm)), np.empty((self.n, self.dm))
         ok, r_all = np.empty(self.n, dtype=bool), np.empty_like(self.y)
+        keep = m and self.keep_g and not gauge_point and 8 * self.n * self.dm * m <= KEEP_G_BYTES
+        g_all = np.empty((self.n, self.dm, m)) if keep else None
         derivs = self.derivatives(motion)
         if gauge_point:
             derivs = (derivs[0], derivs[1], None, None)
@@ -263,13 +289,15 @@ class Problem:
                 jt = self.parameter_jacobian(jac, w)
                 accumulate_c(cblocks, gt, jt, r[:, self.cols])
                 gmat = stacked_g(jx[:, self.cols], linv[lo:hi], jt)  # (9 n, M)
+                if keep:
+                    g_all[lo:hi] = gmat.reshape(hi - lo, self.dm, m)
                 S -= gmat.T @ gmat
                 g -= gmat.T @ h[lo:hi].reshape(-1)
         if m:
             S += scipy.linalg.block_diag(*cblocks)
             g += gt.reshape(-1)
         cdiag = np.einsum("kpp->kp", cblocks).reshape(-1)[:m]
-        return Linearization(0.5 * float(np.sum(r_all * r_all)), S, g, cdiag, linv, h, ok, r_all, derivs)
+        return Linearization(0.5 * float(np.sum(r_all * r_all)), S, g, cdiag, linv, h, ok, r_all, derivs, g_all)
 
     def parameter_jacobian(self, jac, w: np.ndarray) -> np.ndarray:
         """(n, K_fit, 6, P) weighted d y / d theta of the fitted IMUs, free terms concatenated."""
@@ -279,9 +307,12 @@ class Problem:
 
     def motion_step(self, model: SensorModel, motion: np.ndarray, lin: Linearization,
                     dtheta: np.ndarray | None) -> np.ndarray:
-        """dx_n = L_n^-T (h_n - G_n dtheta) (back-substitution), (N, 9); G_n recomputed chunk by chunk."""
+        """dx_n = L_n^-T (h_n - G_n dtheta) (back-substitution), (N, 9); G_n from ``lin`` when it kept it
+        (:func:`keep_schur`), else recomputed chunk by chunk."""
         v = lin.h.copy()
-        if dtheta is not None and np.any(dtheta):
+        if dtheta is not None and np.any(dtheta) and lin.G is not None:
+            v -= np.matmul(lin.G, dtheta)
+        elif dtheta is not None and np.any(dtheta):
             dt = dtheta.reshape(len(self.fit), self.p)
             for lo, hi in self.chunks():
                 jac = model.jacobians(self.context(model, motion, lin.derivs, lo, hi), self.free)
