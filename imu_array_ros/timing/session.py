@@ -9,7 +9,11 @@ then
 * sample clocks (``sample_clock``, ``gyroscope_sample_clock``, ``accelerometer_sample_clock`` with a
   ``period``): the chips' rates relative to each other are device constants, but the whole board's
   clock drifts between sessions (tens to ~100 ppm): one common rate shift per clock term is searched
-  (+-``COMMON_SPAN_PPM``) on the sawtooths' spectra, then each chip's phase is fitted
+  (+-``COMMON_SPAN_PPM``) on the sawtooths' spectra; then each chip's own rate within +-``CHIP_SPAN_PPM`` of
+  that (on the MIMU4444BT captures the chips' rates relative to each other moved by up to ~20 ppm between
+  sessions, beyond the common shift: over a 100 s recording 1 ppm moves a 1 ms sawtooth by a tenth of its
+  period, so a rate carried over from another session, even shifted in common, put the sawtooths in the
+  wrong place and fitted worse than no clock at all); then each chip's phase is fitted
   (:func:`~imu_array_ros.timing.sawtooth.fit_phases`);
 * stamp clocks (samples with own stamps): each IMU's delay relative to the reference IMU is a straight
   line in time, offset + skew t, fitted by weighted least squares (the reference's held at 0: the
@@ -36,12 +40,16 @@ from imu_array_ros.timing.delays import ReadingDelays, reading_delays
 from imu_array_ros.timing.sawtooth import fit_phases, sawtooth_delay, spectrum
 
 __all__ = ["SessionStates", "estimate_session", "needs_session", "session_weights", "active_clocks", "CLOCK_TERMS",
-           "MIN_MOVING_S", "COMMON_SPAN_PPM", "MAX_CORRECTION_S"]
+           "MIN_MOVING_S", "COMMON_SPAN_PPM", "CHIP_SPAN_PPM", "MAX_CORRECTION_S"]
 
 #: seconds of motion below which the session states are not estimated
 MIN_MOVING_S = 2.0
 #: the board's common clock rate is searched within +- this (ppm) of the description's rates
 COMMON_SPAN_PPM = 400.0
+#: each chip's rate is then searched within +- this (ppm) of its rate with the common shift
+CHIP_SPAN_PPM = 60.0
+#: ... and kept only where it moves the sawtooth by at least this share of its period over the recording
+CHIP_MIN_DRIFT = 0.1
 #: a per-sample delay correction beyond this (s) is outside the first-order estimate: left out
 MAX_CORRECTION_S = 3e-3
 #: sample-clock terms -> the sensor whose readings they delay (None: both sensors of the chip)
@@ -54,6 +62,7 @@ _OFFSET_COLUMNS = {None: [0, 1], "accelerometer": [0], "gyroscope": [1]}
 class SessionStates:
     """model: the input model with this recording's session states; phases: clock term -> (K,) s (NaN: no
     clock); common_rate_ppm: clock term -> the shift of every chip's rate found for this session;
+    chip_rate_ppm: clock term -> (K,) each chip's further shift found for this session (0: no clock);
     stamp_offset (K,) s, stamp_skew (K,) ppm and their stds (None without own stamps); moving_seconds;
     estimated: False when there was too little motion; notes: what was done and why; delays: the last
     delays seen."""
@@ -61,6 +70,7 @@ class SessionStates:
     model: SensorModel
     phases: dict = field(default_factory=dict)
     common_rate_ppm: dict = field(default_factory=dict)
+    chip_rate_ppm: dict = field(default_factory=dict)
     stamp_offset: np.ndarray | None = None
     stamp_skew: np.ndarray | None = None
     stamp_offset_std: np.ndarray | None = None
@@ -78,6 +88,9 @@ class SessionStates:
         for term, phases in self.phases.items():
             out[f"{term}_phase_s"] = {n: float(p) for n, p in zip(names, phases) if np.isfinite(p)}
             out[f"{term}_common_rate_ppm"] = self.common_rate_ppm.get(term)
+            if term in self.chip_rate_ppm:
+                out[f"{term}_chip_rate_ppm"] = {n: float(r) for n, r, p in zip(names, self.chip_rate_ppm[term], phases)
+                                                if np.isfinite(p)}
         if self.stamp_offset is not None:
             out["stamp_clock_offset_s"] = dict(zip(names, map(float, self.stamp_offset)))
             out["stamp_clock_skew_ppm"] = dict(zip(names, map(float, self.stamp_skew)))
@@ -123,6 +136,9 @@ def estimate_session(samples: ImuSamples, model: SensorModel, *, iterations: int
                 shift = _search_common(t, d, w, clock, has)
                 clock[has, 1] += shift
                 out.common_rate_ppm[term] = shift
+                own_shift = _search_each(t, d, w, clock, has)
+                clock[:, 1] += own_shift
+                out.chip_rate_ppm[term] = own_shift
             phases, _ = fit_phases(t, d, w, clock[:, 0], clock[:, 1])
             clock[:, 2] = np.where(has, np.nan_to_num(phases), 0.0)
             out.phases[term] = np.where(has, phases, np.nan)
@@ -173,6 +189,35 @@ def _search_common(t, d, w, clock, has) -> float:
         best = cand[np.argmax(power(cand))]
         width /= 10.0
     return float(best)
+
+
+def _search_each(t, d, w, clock, has) -> np.ndarray:
+    """(K,) each chip's rate shift (ppm, within +-CHIP_SPAN_PPM) maximising its own sawtooth's spectral power;
+    0 where there is no clock, and for every chip when the span is too short for the spectrum to resolve
+    rates CHIP_SPAN_PPM apart (under 1e6 period / CHIP_SPAN_PPM s: 17 s for 1 ms clocks)."""
+    span = float(np.ptp(t[w.sum(axis=1) > 0]))
+    cols = np.flatnonzero(has)
+    if span * CHIP_SPAN_PPM * 1e-6 < float(np.max(clock[cols, 0])):
+        return np.zeros(len(has))  # the spectrum cannot resolve rates within the span (a short window)
+    step = 0.25e6 * float(np.min(clock[has, 0])) / max(min(span, 60.0), 1e-3)
+    grid = np.arange(-CHIP_SPAN_PPM, CHIP_SPAN_PPM + step, step)
+
+    def best_of(cand):  # cand (R, k) shifts per chip -> (k,) the shift with the largest power per chip
+        periods = clock[cols, 0][None] / (1.0 + (clock[cols, 1][None] + cand) * 1e-6)
+        power = np.abs(spectrum(t, d[:, cols], w[:, cols], periods)) ** 2
+        return cand[np.argmax(power, axis=0), np.arange(len(cols))]
+
+    best = best_of(np.repeat(grid[:, None], len(cols), axis=1))
+    width = step
+    for _ in range(3):
+        best = best_of(best[None] + np.linspace(-width, width, 21)[:, None])
+        width /= 10.0
+    # a shift that moves the sawtooth by less than CHIP_MIN_DRIFT of its period over the recording is within
+    # the search's own noise (a rate carried over exactly, as in a simulation): the common rate stays
+    best = np.where(np.abs(best) * 1e-6 * span >= CHIP_MIN_DRIFT * clock[cols, 0], best, 0.0)
+    out = np.zeros(len(has))
+    out[cols] = best
+    return out
 
 
 def _stamp_clocks(delays: ReadingDelays, stamp: np.ndarray, w: np.ndarray, ref: int):

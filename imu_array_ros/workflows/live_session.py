@@ -89,13 +89,17 @@ def usable(states: SessionStates) -> bool:
 
 def with_states(model: SensorModel, states: SessionStates) -> SensorModel:
     """``model`` (e.g. a reloaded calibration's) with the session states ``states`` estimated under another:
-    the common clock-rate shift and the phases on its sample clocks, the stamp clocks' offsets and skews."""
+    the common clock-rate shift, each chip's own rate shift and the phases on its sample clocks, the stamp clocks'
+    offsets and skews."""
     values = {}
     for term, phases in states.phases.items():
         clock = model.terms[term].values.copy()
         has = clock[:, 0] > 0
         if has.any():
             clock[has, 1] += float(states.common_rate_ppm.get(term) or 0.0)
+            chip = states.chip_rate_ppm.get(term)
+            if chip is not None and len(chip) == len(has):
+                clock[has, 1] += np.asarray(chip, dtype=float)[has]
             clock[:, 2] = np.where(has & np.isfinite(phases), phases, 0.0)
             values[term] = clock
     if states.stamp_offset is not None:
