@@ -76,6 +76,8 @@ def run_one(fit: str, others, args, log) -> dict:
             "discover_s": round(t_disc, 1), "apply": applied,
             "findings": [f"{f.effect} on {f.sensor}" for f in d.findings],
             "finding_values": [f.to_dict()["parameters"] for f in d.findings],
+            "rejected": [{k: r[k] for k in ("effect", "scope", "step", "reason") if k in r} for r in d.rejected],
+            "notes": list(d.notes),
             "fit_before": d.baseline.to_dict(), "fit_after": d.after.to_dict(),
             "validation": d.validation}
 
@@ -92,6 +94,9 @@ def render(runs: list[dict], header: str) -> str:
         lines.append(f"| {r['fit']} | {r['window_start_s']:g}- | {r['samples']} | {r['calibrate_s']} | "
                      f"{r['discover_s']} | {nis_moving(r['fit_before']):.4g} -> {nis_moving(r['fit_after']):.4g} | "
                      f"{r['apply']} | {'; '.join(r['findings']) or 'none'} |")
+    stops = [f"- {r['fit']}: {n}" for r in runs for n in r.get("notes", []) if "stopped" in n]
+    if stops:
+        lines += ["", "Where discovery stopped:", "", *stops]
     lines += ["", "## Held out (the other captures' moving phases)", "",
               "| fit on | scored on | NIS moving, calibration alone | with the findings | ratio | Δ log-lik |",
               "|---|---|---|---|---|---|"]
