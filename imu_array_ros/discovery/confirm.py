@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.stats
 
+from imu_array_ros.calibration.guards import implausible
 from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.scopes import geometry_groups, tie_test
 from imu_array_ros.discovery.subset import is_own, propose, scope_label, term_indexes
@@ -92,7 +93,10 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     if c.scope != "imu":
         narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha)
         if narrowed is not None:
-            return narrowed
+            fit, delta = narrowed
+    problem = implausible(fit.model, model)
+    if problem is not None:  # never report what no real sensor has: the term stands in for something else
+        return f"implausible: the exact fit takes {problem}"
     return fit, float(delta)
 
 
