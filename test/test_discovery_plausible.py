@@ -48,9 +48,11 @@ def _moved(nominal, k, dx):
 def test_an_implausible_fit_is_set_aside_not_found():
     """imu_3's accelerometer 8 mm from where the description puts it (beyond the calibrations' 5 mm bound: a
     chip does not move on its board): the data want it, discovery must not report it as a finding; the
-    rejected entry says why.  (Plausible position errors are found: the suites.)"""
+    rejected entry says why, and the search stops there.  (Plausible position errors are found: the suites.)"""
     nominal = SensorModel.from_description(load_description(CORNERS))
     opts = DiscoveryOptions(terms=("position",), **OPTIONS)
     d = discover(_recording(nominal, _moved(nominal, 2, 8e-3), 5), nominal, options=opts)
     assert not d.findings, [(f.effect, f.sensor) for f in d.findings]
     assert any("implausible" in r["reason"] and r["effect"] == "position" for r in d.rejected), d.rejected
+    # and no plausible term is then made to stand in for it (other IMUs' positions did, before the stop)
+    assert any("stopped" in n and "position on imu_3" in n for n in d.notes), d.notes

@@ -26,6 +26,9 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
 
+#: how confirm's reason starts when the exact fit is physically implausible (discovery then stops adding terms)
+IMPLAUSIBLE = "implausible"
+
 __all__ = ["confirm", "only_imus", "update_finding", "COST_TOLERANCE"]
 
 #: the exact refit stops when a step gains less log-likelihood than this: the decision reads the gain (>= half a
@@ -96,7 +99,7 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
             fit, delta = narrowed
     problem = implausible(fit.model, model)
     if problem is not None:  # never report what no real sensor has: the term stands in for something else
-        return f"implausible: the exact fit takes {problem}"
+        return f"{IMPLAUSIBLE}: the exact fit takes {problem}"
     return fit, float(delta)
 
 

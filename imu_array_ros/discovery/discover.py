@@ -38,7 +38,7 @@ import numpy as np
 from imu_array_ros.discovery.blocks import short_recording_options, time_blocks
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
-from imu_array_ros.discovery.confirm import confirm, update_finding
+from imu_array_ros.discovery.confirm import IMPLAUSIBLE, confirm, update_finding
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
@@ -342,7 +342,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         if not passing:
             say(f"step {step}: no candidate passes (level {level:.2g}); done")
             break
-        best = None
+        best = stop = None
         for c in passing:
             say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly")
             result = confirm(samples, current, accepted, c, motion, level, model, opts.alpha)
@@ -351,8 +351,18 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                 rejected.append({"effect": c.effect, "sensors": list(c.sensors), "scope": c.scope, "step": step,
                                  "reason": result})
                 retry.add(c.key)
+                if result.startswith(IMPLAUSIBLE):
+                    stop = c
+                    break
                 continue
             best = c
+            break
+        if stop is not None:
+            notes.append(f"step {step}: stopped: the most likely candidate left, {stop.effect} on {stop.sensor}, "
+                         f"is {stop.note} -- a term that needs values no real sensor has stands in for physics "
+                         f"the library lacks, and any further finding could stand in for the same; what remains "
+                         f"is reported unexplained")
+            say(f"step {step}: {stop.effect} on {stop.sensor} is {IMPLAUSIBLE}; stopping")
             break
         if best is None:
             break
