@@ -177,3 +177,15 @@ def test_effect_on_every_imu_stays_on_every_imu_with_one_noisy_imu(corners):
 
 def test_geometry_groups_are_named(corners):
     assert dict(geometry_groups(corners.positions, corners.rotations))["top"] == (0, 2, 4, 6)
+
+
+def test_leaving_out_only_the_gauge_reference_is_no_narrowing():
+    """Every IMU with its own value and the fit's gauge holding IMU 0's (as the per-axis accelerometer
+    offsets of the real captures, where 'imu_2..imu_8' was reported for all 8): dropping just the IMU the
+    gauge puts at zero says nothing about which IMUs carry the effect."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(0.0, 10.0, (4, 3))
+    d[0] = 0.0
+    gauge = np.tile(np.eye(3), (4, 1)) / 2.0
+    fit = _fit(d, [0.0, 1.0, 1.0, 1.0], gauge=gauge)
+    assert propose(fit, TERM, (0, 1, 2, 3), np.zeros((4, 3)), 0.01) is None

@@ -255,7 +255,10 @@ def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | 
     g, p = len(imus), REGISTRY[term].dim()
     found = []
     for rep in representations(fit, term, imus, base):
+        zero = _gauge_zero(rep, g, p)
         for c, zs, zd, ps in carriers(rep, g, p, alpha):
+            if zero is not None and len(c) == g - 1 and zero not in c:
+                continue  # leaves out only the IMU the gauge puts at zero: on every IMU, up to the gauge
             found.append((len(c), zs, c, zd, rep, ps))
     if not found:
         return None
@@ -269,6 +272,16 @@ def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | 
             alts.append(a)
     return Proposal(tuple(imus[j] for j in c), {imus[j]: v for j, v in ps.items()}, float(zs), int(zd),
                     float(ss), alpha / g, None if rep.zero is None else imus[rep.zero], [list(a) for a in alts])
+
+
+def _gauge_zero(rep: Representation, g: int, p: int) -> int | None:
+    """The scope position the representation's gauge holds at zero: ``rep.zero``, or in the fit's own gauge
+    the one IMU whose parameters of the term are all held (no variance); None when there is none."""
+    if rep.zero is not None:
+        return rep.zero
+    var = np.diag(rep.cov).reshape(g, p)
+    held = [j for j in range(g) if not np.any(var[j] > 0)]
+    return held[0] if len(held) == 1 else None
 
 
 def scope_label(imus, names, groups, shared: bool) -> str:
