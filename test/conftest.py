@@ -78,6 +78,26 @@ def perturbed(desc, rng, scales=None):
     return model.to_description(desc, names=[n for n, s in scales.items() if s])
 
 
+def with_change(model, term: str, value, imus):
+    """``model`` with ``value`` added to ``term``'s values on the IMUs ``imus`` (an injected effect)."""
+    v = model.terms[term].values.copy()
+    v[list(imus)] += value
+    return model.with_terms(**{term: v})
+
+
+def icosahedron_recording(nominal, model, seed: int, *, twist_s: float, still_s: float = 0.5,
+                          transition_s: float = 0.5):
+    """Readings of ``model`` along a short icosahedron session drawn for ``nominal`` from ``seed`` (rests and
+    transitions of ``still_s`` / ``transition_s`` s, then ``twist_s`` s of twisting; 100 Hz); the noise from
+    ``seed + 1``."""
+    from imu_array_ros.simulation.icosahedron import simulate_icosahedron
+    from imu_array_ros.simulation.simulator import simulate_measurements
+
+    _, truth, _ = simulate_icosahedron(nominal, np.random.default_rng(seed), rate_hz=100.0, still_s=still_s,
+                                       transition_s=transition_s, twist_s=twist_s)
+    return simulate_measurements(model, truth, np.random.default_rng(seed + 1))
+
+
 # --------------------------------------------------------------------------- node processes over real DDS
 
 

@@ -6,30 +6,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from imu_array_ros.calibration.guards import implausible
 from imu_array_ros.discovery.discover import DiscoveryOptions, discover
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
-from imu_array_ros.simulation.icosahedron import simulate_icosahedron
-from imu_array_ros.simulation.simulator import simulate_measurements
+
+from conftest import icosahedron_recording, with_change
 
 ROOT = Path(__file__).resolve().parents[1]
 CORNERS = str(ROOT / "config" / "mimu4444bt_corners.yaml")
 OPTIONS = dict(empirical=False, heldout=False, timing=False)
 
 
-def _recording(nominal, model, seed):
-    _, truth, _ = simulate_icosahedron(nominal, np.random.default_rng(seed), rate_hz=100.0, still_s=0.5,
-                                       transition_s=0.5, twist_s=3.0)
-    return simulate_measurements(model, truth, np.random.default_rng(seed + 1))
-
-
 def _gain(nominal, change):  # every IMU's gyroscope gains
-    v = nominal.terms["gyroscope_gain"].values.copy()
-    v[:] += change
-    return nominal.with_terms(gyroscope_gain=v)
+    return with_change(nominal, "gyroscope_gain", change, range(nominal.n_imus))
 
 
 def test_implausible_names_the_worst_value():
@@ -40,9 +30,7 @@ def test_implausible_names_the_worst_value():
 
 
 def _moved(nominal, k, dx):
-    v = nominal.terms["position"].values.copy()
-    v[k, 0] += dx
-    return nominal.with_terms(position=v)
+    return with_change(nominal, "position", [dx, 0.0, 0.0], [k])
 
 
 def test_an_implausible_fit_is_set_aside_not_found():
@@ -51,7 +39,7 @@ def test_an_implausible_fit_is_set_aside_not_found():
     rejected entry says why, and the search stops there.  (Plausible position errors are found: the suites.)"""
     nominal = SensorModel.from_description(load_description(CORNERS))
     opts = DiscoveryOptions(terms=("position",), **OPTIONS)
-    d = discover(_recording(nominal, _moved(nominal, 2, 8e-3), 5), nominal, options=opts)
+    d = discover(icosahedron_recording(nominal, _moved(nominal, 2, 8e-3), 5, twist_s=3.0), nominal, options=opts)
     assert not d.findings, [(f.effect, f.sensor) for f in d.findings]
     assert any("implausible" in r["reason"] and r["effect"] == "position" for r in d.rejected), d.rejected
     # and no plausible term is then made to stand in for it (other IMUs' positions did, before the stop)

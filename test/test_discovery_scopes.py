@@ -16,8 +16,8 @@ from imu_array_ros.discovery.scopes import geometry_groups
 from imu_array_ros.fitting.engine import fit_motion, score_blocks
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
-from imu_array_ros.simulation.icosahedron import simulate_icosahedron
-from imu_array_ros.simulation.simulator import simulate_measurements
+
+from conftest import icosahedron_recording, with_change
 
 ROOT = Path(__file__).resolve().parents[1]
 CORNERS = str(ROOT / "config" / "mimu4444bt_corners.yaml")
@@ -31,15 +31,7 @@ def nominal():
 
 
 def _recording(nominal, model, seed, twist_s=8.0):
-    _, truth, _ = simulate_icosahedron(nominal, np.random.default_rng(seed), rate_hz=100.0, still_s=0.5,
-                                       transition_s=0.5, twist_s=twist_s)
-    return simulate_measurements(model, truth, np.random.default_rng(seed + 1))
-
-
-def _with(nominal, term, value, imus):
-    v = nominal.terms[term].values.copy()
-    v[list(imus)] += value
-    return nominal.with_terms(**{term: v})
+    return icosahedron_recording(nominal, model, seed, twist_s=twist_s)
 
 
 def _run(nominal, samples, terms=TERMS):
@@ -74,7 +66,7 @@ def test_shared_effect_is_found_once_at_the_shared_scope(nominal):
     """The same non-linearity on every IMU, sized so that no IMU's own test passes its Bonferroni level
     while the pooled one is strong: one finding, scope 'all shared', its value within 3 std."""
     value = np.array([1.0, -0.6, 0.8]) * 4e-5
-    s = _recording(nominal, _with(nominal, "accelerometer_nonlinearity", value, range(8)), 21)
+    s = _recording(nominal, with_change(nominal, "accelerometer_nonlinearity", value, range(8)), 21)
     d = _run(nominal, s)
     first = [c for c in d.candidates if c.step == 1 and c.effect == "accelerometer_nonlinearity"]
     per_imu = [c for c in first if c.scope == "imu"]
@@ -89,14 +81,14 @@ def test_shared_effect_is_found_once_at_the_shared_scope(nominal):
 def test_group_effect_is_found_at_the_group_scope(nominal):
     """A gyroscope gain on the top side only: found as 'top shared'."""
     value = np.array([1.0, -0.6, 0.8]) * 1.5e-3
-    s = _recording(nominal, _with(nominal, "gyroscope_gain", value, (0, 2, 4, 6)), 31)
+    s = _recording(nominal, with_change(nominal, "gyroscope_gain", value, (0, 2, 4, 6)), 31)
     d = _run(nominal, s)
     assert [(f.effect, f.scope, f.imus) for f in d.findings] == [("gyroscope_gain", "top shared", (0, 2, 4, 6))]
     assert np.all(np.abs(d.findings[0].values - value) < 3 * d.findings[0].std)
 
 
 def test_one_imu_effect_stays_at_one_imu(nominal):
-    s = _recording(nominal, _with(nominal, "accelerometer_bias", np.array([0.05, -0.03, 0.04]), (5,)), 41)
+    s = _recording(nominal, with_change(nominal, "accelerometer_bias", np.array([0.05, -0.03, 0.04]), (5,)), 41)
     d = _run(nominal, s)
     assert [(f.effect, f.scope, f.k) for f in d.findings] == [("accelerometer_bias", "imu", 5)]
 
@@ -112,8 +104,8 @@ def test_nulls_find_nothing(nominal, seed):
 def test_time_offset_and_position_pair_both_found(nominal):
     """A time offset on one IMU and a position error on another: both found (the weaker tested given the
     stronger)."""
-    m = _with(nominal, "time_offset", np.array([1.5e-3, 1.5e-3]), (1,))
-    m = _with(m, "position", np.array([2e-3, -1.5e-3, 1e-3]), (6,))
+    m = with_change(nominal, "time_offset", np.array([1.5e-3, 1.5e-3]), (1,))
+    m = with_change(m, "position", np.array([2e-3, -1.5e-3, 1e-3]), (6,))
     s = _recording(nominal, m, 81, twist_s=5.0)
     d = _run(nominal, s, terms=("time_offset", "position"))
     assert sorted((f.effect, f.k) for f in d.findings) == [("position", 6), ("time_offset", 1)]

@@ -20,8 +20,8 @@ from imu_array_ros.discovery.subset import propose, restricted, scope_label, wal
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.layouts import planar_square4
 from imu_array_ros.model.sensor_model import SensorModel
-from imu_array_ros.simulation.icosahedron import simulate_icosahedron
-from imu_array_ros.simulation.simulator import simulate_measurements
+
+from conftest import icosahedron_recording, with_change
 
 ROOT = Path(__file__).resolve().parents[1]
 OPTIONS = dict(empirical=False, heldout=False, timing=False)
@@ -109,15 +109,7 @@ def test_scope_labels_name_the_imus():
 # --------------------------------------------------------------------------------------------- end to end
 
 def _recording(nominal, model, seed, twist_s=4.0):
-    _, truth, _ = simulate_icosahedron(nominal, np.random.default_rng(seed), rate_hz=100.0, still_s=0.3,
-                                       transition_s=0.3, twist_s=twist_s)
-    return simulate_measurements(model, truth, np.random.default_rng(seed + 1))
-
-
-def _with(nominal, term, value, imus):
-    v = nominal.terms[term].values.copy()
-    v[list(imus)] += value
-    return nominal.with_terms(**{term: v})
+    return icosahedron_recording(nominal, model, seed, twist_s=twist_s, still_s=0.3, transition_s=0.3)
 
 
 def _found(d):
@@ -129,7 +121,7 @@ def test_effect_on_two_of_four_imus_is_reported_on_those_two():
     reported on exactly IMUs 1, 2, one shared value within 3 std of the truth."""
     nominal = SensorModel.from_description(planar_square4())
     value = np.array([1.0, -0.6, 0.8]) * 1.5e-4
-    s = _recording(nominal, _with(nominal, "accelerometer_nonlinearity", value, (1, 2)), 5)
+    s = _recording(nominal, with_change(nominal, "accelerometer_nonlinearity", value, (1, 2)), 5)
     d = discover(s, nominal, options=DiscoveryOptions(terms=("accelerometer_nonlinearity", "accelerometer_bias",
                                                              "gyroscope_gain"), **OPTIONS))
     assert _found(d) == [("accelerometer_nonlinearity", (1, 2))]
@@ -149,7 +141,7 @@ def test_effect_on_four_corners_is_reported_on_those_four(corners):
     """A non-linearity on corners 0, 1, 2, 5 (two top, two bottom: no geometry group; evidence ~740): its pooled
     test passes at 'all own'; reported on exactly those four, not on all eight."""
     value = np.array([1.0, -0.6, 0.8]) * 2e-4
-    s = _recording(corners, _with(corners, "accelerometer_nonlinearity", value, (0, 1, 2, 5)), 13)
+    s = _recording(corners, with_change(corners, "accelerometer_nonlinearity", value, (0, 1, 2, 5)), 13)
     d = discover(s, corners, options=DiscoveryOptions(terms=("accelerometer_nonlinearity", "accelerometer_bias"),
                                                       **OPTIONS))
     assert _found(d) == [("accelerometer_nonlinearity", (0, 1, 2, 5))]
@@ -164,7 +156,7 @@ def test_effect_on_every_imu_stays_on_every_imu_with_one_noisy_imu(corners):
     noisy[3] *= 30.0
     nominal = replace(corners, acc_std=noisy)
     value = np.array([1.0, -0.6, 0.8]) * 2.5e-4
-    s = _recording(nominal, _with(nominal, "accelerometer_nonlinearity", value, range(8)), 24)
+    s = _recording(nominal, with_change(nominal, "accelerometer_nonlinearity", value, range(8)), 24)
     d = discover(s, nominal, options=DiscoveryOptions(terms=("accelerometer_nonlinearity", "accelerometer_bias"),
                                                       **OPTIONS))
     assert [(f.effect, f.scope) for f in d.findings] == [("accelerometer_nonlinearity", "all shared")]
