@@ -171,35 +171,46 @@ def _common(d: np.ndarray, saw: np.ndarray, w: np.ndarray) -> np.ndarray:
     return (np.sum(w * (d - saw), axis=1) / np.where(total > 0, total, 1.0))[:, None]
 
 
-def _search_common(t, d, w, clock, has) -> float:
-    """The common rate shift (ppm) maximising the sawtooths' summed spectral power."""
+def _span_step(t, w, clock, has) -> tuple[float, float]:
+    """The moving samples' span (s) and the rate-search step (ppm): a quarter of the spectrum's resolution
+    over at most 60 s."""
     span = float(np.ptp(t[w.sum(axis=1) > 0]))
-    step = 0.25e6 * float(np.min(clock[has, 0])) / max(min(span, 60.0), 1e-3)
-    shifts = np.arange(-COMMON_SPAN_PPM, COMMON_SPAN_PPM + step, step)
+    return span, 0.25e6 * float(np.min(clock[has, 0])) / max(min(span, 60.0), 1e-3)
 
-    def power(cand):
-        rates = clock[None, :, 1] + cand[:, None]
-        periods = np.where(has, clock[:, 0], 1.0)[None] / (1.0 + rates * 1e-6)
-        return np.sum(np.abs(spectrum(t, d[:, has], w[:, has], periods[:, has])) ** 2, axis=1)
 
-    best = shifts[np.argmax(power(shifts))]
+def _peak(best_of, grid: np.ndarray, step: float):
+    """The best of ``grid`` (R,) or (R, k) by ``best_of`` (candidates -> the best of each column), then three
+    rounds of 21 candidates around it, each ten times finer."""
+    best = best_of(grid)
     width = step
     for _ in range(3):
-        cand = best + np.linspace(-width, width, 21)
-        best = cand[np.argmax(power(cand))]
+        fine = np.linspace(-width, width, 21).reshape((21,) + (1,) * np.ndim(best))
+        best = best_of(best + fine)
         width /= 10.0
-    return float(best)
+    return best
+
+
+def _search_common(t, d, w, clock, has) -> float:
+    """The common rate shift (ppm) maximising the sawtooths' summed spectral power."""
+    _, step = _span_step(t, w, clock, has)
+    shifts = np.arange(-COMMON_SPAN_PPM, COMMON_SPAN_PPM + step, step)
+
+    def best_of(cand):
+        rates = clock[None, :, 1] + cand[:, None]
+        periods = np.where(has, clock[:, 0], 1.0)[None] / (1.0 + rates * 1e-6)
+        return cand[np.argmax(np.sum(np.abs(spectrum(t, d[:, has], w[:, has], periods[:, has])) ** 2, axis=1))]
+
+    return float(_peak(best_of, shifts, step))
 
 
 def _search_each(t, d, w, clock, has) -> np.ndarray:
     """(K,) each chip's rate shift (ppm, within +-CHIP_SPAN_PPM) maximising its own sawtooth's spectral power;
     0 where there is no clock, and for every chip when the span is too short for the spectrum to resolve
     rates CHIP_SPAN_PPM apart (under 1e6 period / CHIP_SPAN_PPM s: 17 s for 1 ms clocks)."""
-    span = float(np.ptp(t[w.sum(axis=1) > 0]))
+    span, step = _span_step(t, w, clock, has)
     cols = np.flatnonzero(has)
     if span * CHIP_SPAN_PPM * 1e-6 < float(np.max(clock[cols, 0])):
         return np.zeros(len(has))  # the spectrum cannot resolve rates within the span (a short window)
-    step = 0.25e6 * float(np.min(clock[has, 0])) / max(min(span, 60.0), 1e-3)
     grid = np.arange(-CHIP_SPAN_PPM, CHIP_SPAN_PPM + step, step)
 
     def best_of(cand):  # cand (R, k) shifts per chip -> (k,) the shift with the largest power per chip
@@ -207,11 +218,7 @@ def _search_each(t, d, w, clock, has) -> np.ndarray:
         power = np.abs(spectrum(t, d[:, cols], w[:, cols], periods)) ** 2
         return cand[np.argmax(power, axis=0), np.arange(len(cols))]
 
-    best = best_of(np.repeat(grid[:, None], len(cols), axis=1))
-    width = step
-    for _ in range(3):
-        best = best_of(best[None] + np.linspace(-width, width, 21)[:, None])
-        width /= 10.0
+    best = _peak(best_of, np.repeat(grid[:, None], len(cols), axis=1), step)
     # a shift that moves the sawtooth by less than CHIP_MIN_DRIFT of its period over the recording is within
     # the search's own noise (a rate carried over exactly, as in a simulation): the common rate stays
     best = np.where(np.abs(best) * 1e-6 * span >= CHIP_MIN_DRIFT * clock[cols, 0], best, 0.0)
