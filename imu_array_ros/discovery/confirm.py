@@ -11,6 +11,9 @@ A confirmed pooled candidate is then narrowed to the IMUs that carry it (:mod:`.
 the scope whose own values explain the pooled fit (Wald test at alpha), the exact likelihood ratio of the
 refit on those IMUs only against the pooled one, and the re-confirmation of the narrowed finding at the
 step's level.
+
+A confirmed, plausible candidate whose evidence given the earlier findings lies mostly on directions those
+findings' terms can nearly produce is not reported (:mod:`.trading`): its values trade with theirs.
 """
 
 from __future__ import annotations
@@ -22,14 +25,17 @@ from imu_array_ros.calibration.guards import implausible
 from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.scopes import geometry_groups, tie_test
 from imu_array_ros.discovery.subset import is_own, propose, scope_label, term_indexes
+from imu_array_ros.discovery.trading import trading
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
 
 #: how confirm's reason starts when the exact fit is physically implausible (discovery then stops adding terms)
 IMPLAUSIBLE = "implausible"
+#: how confirm's reason starts when the candidate trades with earlier findings (:mod:`.trading`)
+TRADES = "indistinguishable from"
 
-__all__ = ["confirm", "only_imus", "update_finding", "COST_TOLERANCE"]
+__all__ = ["confirm", "only_imus", "update_finding", "COST_TOLERANCE", "IMPLAUSIBLE", "TRADES"]
 
 #: the exact refit stops when a step gains less log-likelihood than this: the decision reads the gain (>= half a
 #: chi-square quantile, ~10-30), so the last steps that move the motion by < 1e-3 of its own sd gain nothing
@@ -75,7 +81,8 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     test accepts one value at ``alpha``, else by the per-IMU fit's gain against a chi-square with all its
     parameters.  A confirmed pooled candidate is narrowed to the IMUs that carry it (:mod:`.subset`; ``c``'s
     scope, IMUs and sensors are then changed in place and its note says why), the fit returned the refit on
-    them."""
+    them.  A reason starting with IMPLAUSIBLE: the values are beyond the calibrations' bounds; with TRADES:
+    its evidence is mostly a change of the earlier findings' values (:mod:`.trading`)."""
     pairs = [(f.effect, f.imus) for f in accepted.values()]
     try:
         fit = _refit(samples, current, pairs + [(c.effect, c.imus)], motion)
@@ -100,6 +107,9 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     problem = implausible(fit.model, model)
     if problem is not None:  # never report what no real sensor has: the term stands in for something else
         return f"{IMPLAUSIBLE}: the exact fit takes {problem}"
+    trade = trading(fit, current, accepted.values(), c.effect, c.imus)
+    if trade is not None and trade.traded:  # its values trade with the earlier findings' (.trading)
+        return trade.reason()
     return fit, float(delta)
 
 

@@ -38,7 +38,7 @@ import numpy as np
 from imu_array_ros.discovery.blocks import short_recording_options, time_blocks
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
-from imu_array_ros.discovery.confirm import IMPLAUSIBLE, confirm, update_finding
+from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, update_finding
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
@@ -320,16 +320,17 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     all_candidates, indist, rejected, levels = [], [], [], []
     accepted: dict[tuple, Finding] = {}
     fit = None  # the last joint exact fit of every finding
-    excluded, retry = set(), set()  # (term, k) / Candidate.key: for good; not confirmed: until the next finding
+    excluded, retry, traded = set(), set(), set()  # (term, k), Candidate.key: for good; not confirmed: until the
+    # next finding; trading with earlier findings (.trading): for good (later findings only add to the trade)
     scopes, tied = scopes_for(model.n_imus, geometry_groups(model.positions, model.rotations))
     own = terms if model.n_imus <= OWN_MAX_IMUS else ()
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs at {len(scopes) + model.n_imus} scopes")
     sb = score_given(samples, current, terms, motion, blocks, tied, [], own_terms=own)
     for step in range(1, opts.max_findings + 1):
         cover = {(f.effect, k) for f in accepted.values() for k in f.imus}
-        skip = cover | excluded | {(t, imus[0]) for t, scope, imus in retry if scope == "imu"}
+        skip = cover | excluded | {(t, imus[0]) for t, scope, imus in retry | traded if scope == "imu"}
         cands = evaluate_candidates(sb, model.names, fold_of_block, terms=terms, exclude=skip, step=step)
-        gone = set(retry) | {(t, sc.label, sc.imus) for t in terms for sc in scopes
+        gone = retry | traded | {(t, sc.label, sc.imus) for t in terms for sc in scopes
                              if any((t, k) in cover for k in sc.imus)
                              and (sc.kind == "own" or all((t, k) in cover for k in sc.imus))}
         cands += evaluate_scopes(sb, model.names, fold_of_block, scopes, terms=terms, exclude=gone, step=step)
@@ -345,12 +346,14 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         best = stop = None
         for c in passing:
             say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly")
-            result = confirm(samples, current, accepted, c, motion, level, model, opts.alpha)
+            key, result = c.key, confirm(samples, current, accepted, c, motion, level, model, opts.alpha)
             if isinstance(result, str):
                 c.note = result
                 rejected.append({"effect": c.effect, "sensors": list(c.sensors), "scope": c.scope, "step": step,
                                  "reason": result})
-                retry.add(c.key)
+                (traded if result.startswith(TRADES) else retry).update({key, c.key})  # as tested, as narrowed
+                if result.startswith(TRADES):
+                    indist.append({"effects": [c.effect], "sensors": [c.sensor], "reason": result})
                 if result.startswith(IMPLAUSIBLE):
                     stop = c
                     break
