@@ -37,7 +37,7 @@ from imu_array_ros.discovery.excess import (
 )
 from imu_array_ros.discovery.rigid import RigidTest, rigid_body_test
 from imu_array_ros.discovery.modes import ModeSearch, detect_modes
-from imu_array_ros.discovery.spectra import imu_spectra, line_significant, narrowest_band
+from imu_array_ros.discovery.spectra import imu_spectra, line_bins, narrowest_band
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.jsontools import json_safe
 
@@ -60,7 +60,8 @@ class Localization:
     window_ratio_by_imu (W, K), spans: [(t0, t1)] s of merged significant windows.
     freqs (F,) Hz and psd (K, 6, F): relative PSD (white noise of variance v -> v);
     floor (K, 6): the white level (mean E[r^2]).  rigid: :class:`RigidTest` or None.
-    line (K, 6): cells significant by the narrowband line test (included in ``significant``).
+    line (K, 6): cells significant by the narrowband line test (included in ``significant``); line_bins
+    (K, 6, F): the bins that test flagged.
     modes: the :class:`~imu_array_ros.discovery.modes.ModeSearch` (None when not run).
     """
 
@@ -88,6 +89,7 @@ class Localization:
     rate_hz: float = float("nan")
     line: np.ndarray | None = None
     modes: ModeSearch | None = None
+    line_bins: np.ndarray | None = None
     _groups: list | None = field(default=None, repr=False)
 
     # ---- conveniences
@@ -113,10 +115,18 @@ class Localization:
 
     def band_hz(self, cells) -> list[float]:
         """[lo, hi] Hz: narrowest band holding >= 80 % of the summed excess PSD of ``cells``
-        ((k, a) pairs or a (K, 6) mask); [0, 0] without spectra or without excess."""
+        ((k, a) pairs or a (K, 6) mask); [0, 0] without spectra or without excess.  Cells significant by the
+        line test only (no broadband excess): the span of their flagged bins (the signed excess of a line far
+        below the noise is mostly noise, and its 80 % band anywhere, DC included)."""
         if len(self.freqs) == 0:
             return [0.0, 0.0]
         m = self._cells(cells)
+        if self.line_bins is not None and self.line is not None:
+            broadband = is_significant(self.observed, self.expected, self.z_threshold)
+            hits = np.flatnonzero(self.line_bins[m].any(axis=0)) if not broadband[m].any() else []
+            if len(hits):
+                half = 0.5 * (self.freqs[1] - self.freqs[0])
+                return [max(0.0, float(self.freqs[hits[0]] - half)), float(self.freqs[hits[-1]] + half)]
         excess = np.nansum(np.where(m[..., None], self.psd - self.floor[..., None], 0.0), axis=(0, 1))
         return narrowest_band(self.freqs, excess)
 
@@ -324,7 +334,8 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
     freqs, psd = imu_spectra(r, valid, fs)
     nv = valid.sum(axis=0)
     floor = excess_ratio(e_all, nv)
-    line = line_significant(psd, floor, n)
+    bins = line_bins(psd, floor, n)
+    line = bins.any(axis=-1)
     significant = is_significant(o_all, e_all, z_threshold) | line
     search = None
     if modes:
@@ -340,7 +351,7 @@ def localize(residuals: np.ndarray, expected: np.ndarray, motion: np.ndarray, st
 
     return Localization(
         names=names, observed=o_all, expected=e_all, ratio=excess_ratio(o_all, e_all), z=excess_z(o_all, e_all),
-        significant=significant, line=line,
+        significant=significant, line=line, line_bins=bins,
         regime_observed=reg_o, regime_expected=reg_e,
         regime_ratio={regime: excess_ratio(reg_o[regime], reg_e[regime]) for regime in REGIMES},
         regime_samples={regime: reg_n[regime] for regime in REGIMES},

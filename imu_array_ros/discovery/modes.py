@@ -31,10 +31,16 @@ end) raises the floor with the PSD and is no line.
   ``FLOOR_EFFICIENCY``; the larger of two medians only raises the floor); at
   ``alpha / 4`` Bonferroni over bins x channels.
 
+* *coherent* (with the IMUs' positions and rotations, >= 4 IMUs): the largest eigenvalue of the
+  cross-spectrum of the accelerometer field no rigid motion makes, over windows of 1-8 fine bins
+  (:mod:`~imu_array_ros.discovery.coherent`): a mode spread thinly over many IMUs and a resonance
+  a few bins wide, too weak in every channel for the two tests above; its channels from their
+  coherence with the mode's reference process (:func:`~imu_array_ros.discovery.coherent.mode_channels`).
+
 Family-wise false-alarm rate of the detector on a recording: <= ``alpha`` (each
-resolution alpha / 2, each of its two tests alpha / 4)
-(:data:`MODE_ALPHA`), measured on null recordings by
-``benchmarks/discovery_modes.py``.
+resolution alpha / 2, each of its two tests alpha / 4; with the coherent test, it and
+each resolution alpha / 3) (:data:`MODE_ALPHA`), measured on null recordings by
+``benchmarks/discovery_modes.py`` and ``benchmarks/discovery_generalisation.py``.
 
 **Each mode** (runs of significant bins, 2-bin gaps merged): frequency (the
 peak bin), band (the run +- half a bin), per channel the RMS of the in-band
@@ -63,10 +69,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage, signal, stats
+from scipy import signal, stats
 
+from imu_array_ros.discovery.coherent import coherent_scan, field_basis, field_channels, mode_channels
 from imu_array_ros.discovery.modeshape import bandpass, describe_shape, heldout_model, presence
-from imu_array_ros.discovery.spectra import relative_psd
+from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor, relative_psd
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.jsontools import json_safe
 
@@ -80,7 +87,7 @@ MIN_FREQ_HZ = 0.5
 #: bins wide), each searched at alpha / 2
 RESOLUTIONS_HZ = (0.25, 1.0)
 #: bins either side of the tested one left out of its floor / used for it
-GUARD, HALF_WINDOW = 3, 24
+GUARD, HALF_WINDOW = FLOOR_GUARD, FLOOR_HALF_WINDOW
 #: effective share of the floor's bins (adjacent Hann bins are correlated; the median is 64 % efficient)
 FLOOR_EFFICIENCY = 0.5 * 0.64
 #: at most this many modes per recording (the strongest)
@@ -185,22 +192,6 @@ class ModeSearch:
                                               f"bins x channels at {self.alpha / 4:g}, Bonferroni)"})
 
 
-def _local_floor(p: np.ndarray, nu: float) -> np.ndarray:
-    """(C, F) the larger of the running medians of p over the HALF_WINDOW - GUARD bins below and above the
-    GUARD bins around the tested one (edges: the end bin repeated), made unbiased for white noise.  A line
-    must stand out of both sides: a steep coloured spectrum is no line."""
-    out = None
-    for side in (-1, 1):
-        foot = np.zeros(2 * HALF_WINDOW + 1, dtype=bool)
-        if side < 0:
-            foot[:HALF_WINDOW - GUARD] = True
-        else:
-            foot[HALF_WINDOW + GUARD + 1:] = True
-        med = ndimage.median_filter(p, footprint=foot[None, :], mode="nearest")
-        out = med if out is None else np.fmax(out, med)
-    return out / (stats.chi2.median(nu) / nu)
-
-
 def _clipped_moments(t: np.ndarray) -> tuple[float, float]:
     keep = np.isfinite(t)
     for _ in range(6):
@@ -235,7 +226,7 @@ def _scan(x, chan_ok, fs, nper, alpha) -> dict | None:
     freqs, p = relative_psd(x[:, chan_ok], fs, nperseg=nper)        # (C, F)
     if len(freqs) < 2 * HALF_WINDOW:
         return None
-    floor = _local_floor(p, nu)
+    floor = local_floor(p, nu, GUARD, HALF_WINDOW)
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = p / floor
     df = freqs[1] - freqs[0]
@@ -281,10 +272,21 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
     if n < 256 or not np.isfinite(fs) or fs <= 0 or not chan_ok.any():
         return empty
     npers = sorted({mode_segment(n, fs, res) for res in RESOLUTIONS_HZ}, reverse=True)
-    scans = [sc for sc in (_scan(x, chan_ok, fs, nper, alpha / len(npers)) for nper in npers) if sc is not None]
+    basis = None
+    if positions is not None and rotations is not None and k >= 4:
+        acc_std = None if std is None else np.asarray(std, dtype=float).reshape(k, 6)[:, :3]
+        basis = field_basis(positions, rotations, acc_std)
+        basis = basis if basis.shape[1] >= 2 else None
+    share = alpha / (len(npers) + (1 if basis is not None else 0))
+    scans = [sc for sc in (_scan(x, chan_ok, fs, nper, share) for nper in npers) if sc is not None]
     if not scans:
         return empty
     cands = sorted((c + (i,) for i, sc in enumerate(scans) for c in sc["cands"]), key=lambda c: c[0])
+    if basis is not None and scans[0]["nper"] == npers[0]:
+        co = coherent_scan(field_channels(np.where(valid, r, np.nan), basis), fs, npers[0], share)
+        if co is not None:
+            cands = sorted(cands + [(pv, lo, hi, pk, f"coherent ({w} bins)", 0) for pv, lo, hi, pk, w in co["cands"]],
+                           key=lambda c: c[0])
     modes, motion_lines, taken = [], [], []
     for pval, lo, hi, pk, test, i in cands:
         if len(modes) + len(motion_lines) >= MAX_MODES:
@@ -299,6 +301,8 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
         full_p[chan_ok], full_floor[chan_ok] = sc["p"], sc["floor"]
         mode = _describe(x, vx, full_p, full_floor, freqs, lo, hi, pk, band, fs, sc["nper"], sc["nu"], alpha,
                          k, pval, f"{test}, {df:.2g} Hz bins")
+        if test.startswith("coherent"):
+            _coherent_channels(mode, x, basis, fs, sc["nper"], lo, hi, alpha)
         excess = np.clip(sc["p"] - sc["floor"], 0, None)
         total = float(np.nansum(excess[:, sc["tested"]]))
         mode.share_of_excess = float(np.nansum(excess[:, lo:hi + 1])) / total if total > 0 else 0.0
@@ -346,6 +350,20 @@ def _describe(x, valid, p, floor, freqs, lo, hi, pk, band, fs, nper, nu, alpha, 
     return Mode(float(freqs[pk]), band, float(pval), test, amp.reshape(shape), np.full(shape, np.nan),
                 np.where(ok, phase, np.nan).reshape(shape), np.where(ok, coh, np.nan).reshape(shape),
                 [(i // 6, i % 6) for i in order])
+
+
+def _coherent_channels(mode: Mode, x, basis, fs, nper, lo, hi, alpha) -> None:
+    """A mode the coherent test found: its channels, amplitudes, phases and coherences from each channel's
+    coherence with the mode's reference process (:func:`~imu_array_ros.discovery.coherent.mode_channels`)."""
+    ch = mode_channels(x, basis, fs, nper, lo, hi, alpha)
+    shape = mode.amplitude.shape
+    mode.amplitude = ch["gain"].reshape(shape)
+    mode.phase = np.where(np.isfinite(ch["coherence"]), ch["phase"], np.nan).reshape(shape)
+    mode.coherence = ch["coherence"].reshape(shape)
+    sig = ch["significant"]
+    if not sig.any():  # the strongest coherence
+        sig = np.arange(len(sig)) == int(np.nanargmax(np.nan_to_num(ch["coherence"], nan=-1.0)))
+    mode.channels = [(int(i) // 6, int(i) % 6) for i in np.argsort(-np.where(sig, ch["gain"], -1.0)) if sig[i]]
 
 
 def _motion_features(motion: np.ndarray) -> np.ndarray:

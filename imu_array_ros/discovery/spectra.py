@@ -26,10 +26,11 @@ band and shape, by :mod:`~imu_array_ros.discovery.modes` against each channel's
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage, stats
 from scipy.signal import welch
 
-__all__ = ["LINE_ALPHA", "BAND_FRACTION", "MIN_SPECTRUM_SAMPLES", "relative_psd", "imu_spectra", "line_significant",
-           "narrowest_band"]
+__all__ = ["LINE_ALPHA", "BAND_FRACTION", "MIN_SPECTRUM_SAMPLES", "FLOOR_GUARD", "FLOOR_HALF_WINDOW", "relative_psd",
+           "imu_spectra", "line_bins", "line_significant", "local_floor", "narrowest_band"]
 
 #: family-wise level of the narrowband line test over every bin of every cell
 LINE_ALPHA = 0.01
@@ -37,6 +38,8 @@ LINE_ALPHA = 0.01
 BAND_FRACTION = 0.8
 #: spectra need at least this many samples
 MIN_SPECTRUM_SAMPLES = 64
+#: bins either side of the tested one left out of its local floor / used for it (:func:`local_floor`)
+FLOOR_GUARD, FLOOR_HALF_WINDOW = 3, 24
 
 
 def relative_psd(r: np.ndarray, fs: float, nperseg: int = 256) -> tuple[np.ndarray, np.ndarray]:
@@ -63,6 +66,26 @@ def relative_psd(r: np.ndarray, fs: float, nperseg: int = 256) -> tuple[np.ndarr
     return freqs, p
 
 
+def local_floor(p: np.ndarray, nu: float, guard: int = FLOOR_GUARD, half_window: int = FLOOR_HALF_WINDOW
+                ) -> np.ndarray:
+    """(C, F) the larger of the running medians of p (C, F) over the ``half_window - FLOOR_GUARD`` bins below
+    and above the ``guard`` bins around the tested one (edges: the end bin repeated), made unbiased for white
+    noise of nu degrees of freedom.  A line must stand out of both sides: a steep coloured spectrum is no line.
+    A wider guard (a window of several bins tested) moves the same number of floor bins outwards."""
+    span = half_window - FLOOR_GUARD
+    half = guard + span
+    out = None
+    for side in (-1, 1):
+        foot = np.zeros(2 * half + 1, dtype=bool)
+        if side < 0:
+            foot[:span] = True
+        else:
+            foot[half + guard + 1:] = True
+        med = ndimage.median_filter(p, footprint=foot[None, :], mode="nearest")
+        out = med if out is None else np.fmax(out, med)
+    return out / (stats.chi2.median(nu) / nu)
+
+
 def imu_spectra(r: np.ndarray, valid: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
     """(freqs (F,) Hz, psd (K, 6, F)): :func:`relative_psd` of the (N, K, 6) residuals where ``valid``, one IMU
     at a time (bounded memory); no spectra (F = 0) below MIN_SPECTRUM_SAMPLES samples or without a rate."""
@@ -77,14 +100,14 @@ def imu_spectra(r: np.ndarray, valid: np.ndarray, fs: float) -> tuple[np.ndarray
     return freqs, psd
 
 
-def line_significant(psd: np.ndarray, floor: np.ndarray, n: int, nperseg: int = 256) -> np.ndarray:
-    """(K, 6) True where one bin (DC and Nyquist excluded) of the relative PSD exceeds the floor beyond what
+def line_bins(psd: np.ndarray, floor: np.ndarray, n: int, nperseg: int = 256) -> np.ndarray:
+    """(K, 6, F) True at the bins (never DC nor Nyquist) where the relative PSD exceeds the floor beyond what
     white noise gives at LINE_ALPHA, Bonferroni over all bins and cells (module docstring)."""
     from scipy.stats import chi2
 
-    k6 = floor.shape
+    out = np.zeros(psd.shape, dtype=bool)
     if psd.shape[-1] < 3:
-        return np.zeros(k6, dtype=bool)
+        return out
     nper = int(min(nperseg, n))
     segments = 1 + max(0, (n - nper) // (nper // 2))
     nu = 2.0 * segments / 1.056
@@ -92,7 +115,16 @@ def line_significant(psd: np.ndarray, floor: np.ndarray, n: int, nperseg: int = 
     tests = max(1, int(np.isfinite(floor).sum()) * inner.shape[-1])
     limit = chi2.isf(LINE_ALPHA / tests, nu) / nu
     with np.errstate(invalid="ignore"):
-        return np.nan_to_num(inner / floor[..., None] > limit).any(axis=-1) & np.isfinite(floor)
+        out[..., 1:-1] = np.nan_to_num(inner / floor[..., None] > limit) & np.isfinite(floor)[..., None]
+    return out
+
+
+def line_significant(psd: np.ndarray, floor: np.ndarray, n: int, nperseg: int = 256) -> np.ndarray:
+    """(K, 6) True where one bin (DC and Nyquist excluded) of the relative PSD exceeds the floor beyond what
+    white noise gives at LINE_ALPHA, Bonferroni over all bins and cells (module docstring)."""
+    if psd.shape[-1] < 3:
+        return np.zeros(floor.shape, dtype=bool)
+    return line_bins(psd, floor, n, nperseg).any(axis=-1)
 
 
 def narrowest_band(freqs: np.ndarray, excess: np.ndarray, fraction: float = BAND_FRACTION) -> list[float]:
