@@ -34,6 +34,7 @@ import numpy as np
 
 from imu_array_ros.calibration.timing import CLOCK_PERIOD
 from imu_array_ros.fitting.engine import fit_motion
+from imu_array_ros.fitting.reading_rates import RATES, keep_rates, reading_rates
 from imu_array_ros.fusion.model_fusion import ModelFusion
 from imu_array_ros.timing.clocks import MIN_SNR, SENSOR_CLOCKS, find_sample_clocks
 from imu_array_ros.timing.delays import reading_delays
@@ -49,6 +50,47 @@ __all__ = ["TimingDiscovery", "ClockFinding", "timing_stage", "session_model", "
 NULL_MEASURED = {"chips": 240, "max_snr": 4.33, "above_threshold": 0, "binomial_95_upper": 0.0124}
 #: |omega_dot| bins (rad/s^2) of the evidence plot's residual curve
 _BINS = 12
+#: the reading rates (:func:`_rates_decision`) are kept when their likelihood-ratio test passes at RATES_ALPHA and
+#: they gain at least RATES_EFFECT times what chance gives: a practical size, so that small errors of the session's
+#: phases (a few us: ~1.4x chance on 8 s of simulated twisting) do not switch on six states per sample, which cost
+#: time offsets most of their precision on smooth motion; the real captures gain 10^3-10^4 times chance
+RATES_ALPHA = 1e-3
+RATES_EFFECT = 2.0
+
+
+def _rates_decision(samples, out: TimingDiscovery, motion, loglik, say) -> None:
+    """With the chips' clocks known, whether this recording wants each sample's reading rates
+    (:mod:`imu_array_ros.fitting.reading_rates`): the likelihood-ratio of the ML motion with them against
+    without, 2 Delta log-lik ~ chi2(6 per sample with its motion identified) by chance, kept at RATES_ALPHA and
+    RATES_EFFECT times chance;
+    the rest of the enclosing :func:`~imu_array_ros.fitting.reading_rates.rates_scope` (``workflows.discover``)
+    then fits with them.  Nothing happens outside such a scope."""
+    from scipy.stats import chi2
+
+    if not keep_rates(False):
+        return
+    say("timing: the readings' own rates within the chips' clock spread")
+    if loglik is None:
+        motion, loglik, _ = fit_motion(samples, out.model, motion)
+    with reading_rates(True):
+        motion1, loglik1, _ = fit_motion(samples, out.model, motion)
+    dof = RATES * int(np.count_nonzero(samples.valid(out.model).reshape(len(samples), -1).sum(axis=1) >= 15))
+    gain = float(loglik1 - loglik)
+    p = float(chi2.sf(2 * gain, dof)) if dof else 1.0
+    kept = p < RATES_ALPHA and gain >= RATES_EFFECT * dof / 2
+    out.rates = {"delta_loglik": gain, "chance_delta_loglik": dof / 2, "dof": dof, "p": p, "alpha": RATES_ALPHA,
+                 "effect": RATES_EFFECT, "kept": kept}
+    if kept:
+        keep_rates(True)
+        out.motion = motion1
+        out.notes.append(f"the readings' own rates within the chips' clock spread (6 per sample, profiled with the "
+                         f"motion): log-likelihood +{gain:.4g}, chance +{dof / 2:.4g} (p = {p:.2g} < {RATES_ALPHA:g}): "
+                         "the motion changes within the clock spread by more than the read rate follows; every fit "
+                         "below carries them (NIS counts them as states)")
+    else:
+        out.notes.append(f"the readings' own rates within the chips' clock spread: log-likelihood +{gain:.4g}, chance "
+                         f"+{dof / 2:.4g} (p = {p:.2g}; kept at p < {RATES_ALPHA:g} and {RATES_EFFECT:g}x chance): "
+                         "not needed")
 
 
 def false_alarm_bound(rates: int = 10_000) -> float:
@@ -96,6 +138,8 @@ class TimingDiscovery:
     notes: list = field(default_factory=list)
     #: the ML motion under ``model`` when the clocks were kept (so the discovery need not fit it again)
     motion: object = field(default=None, repr=False)
+    #: the reading rates' test (:func:`_rates_decision`), when made
+    rates: dict = field(default_factory=dict)
 
     @property
     def used(self) -> bool:
@@ -113,7 +157,7 @@ class TimingDiscovery:
                 "findings": [f.to_dict() for f in self.findings],
                 "snr": {s: [float(x) for x in v] for s, v in self.snr.items()},
                 "delta_loglik": self.delta_loglik, "loglik_before": self.loglik_before,
-                "loglik_after": self.loglik_after,
+                "loglik_after": self.loglik_after, "reading_rates": dict(self.rates),
                 "false_finding_control": {
                     "test": f"sawtooth spectral peak >= {MIN_SNR:g} x the spectrum's median over the searched rates",
                     "false_alarm_rate_per_chip_bound": false_alarm_bound(),
@@ -132,6 +176,7 @@ def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, l
         session = estimate_session(samples, model)
         out.model = session.model
         out.notes.append("the description has sample clocks: not searched; " + "; ".join(session.notes))
+        _rates_decision(samples, out, motion, None, say)
         return out
     say(f"timing: searching every chip's gyroscope and accelerometer for a sample clock of {period * 1e3:g} ms")
     try:
@@ -165,10 +210,12 @@ def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, l
     say("timing: log-likelihood of the clocks at the ML motion")
     if motion is None or residuals is None or loglik is None:
         motion, loglik, residuals = fit_motion(samples, model, motion)
-    motion1, loglik1, r1 = fit_motion(samples, clocked, motion)
+    with reading_rates(False):  # like for like: the clocks' own gain, not that of the reading rates they allow
+        motion1, loglik1, r1 = fit_motion(samples, clocked, motion)
     out.loglik_before, out.loglik_after = float(loglik), float(loglik1)
     if out.delta_loglik > 0:
         out.model, out.motion = clocked, motion1
+        _rates_decision(samples, out, motion1, loglik1, say)
     else:
         out.notes.append(f"the clocks found ({', '.join(f'{f.imu} {f.sensor}' for f in out.findings)}) do not "
                          f"raise the log-likelihood ({out.delta_loglik:.4g}): rejected")

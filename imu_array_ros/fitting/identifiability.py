@@ -48,7 +48,9 @@ def noise_information(prob: Problem, model: SensorModel, motion: np.ndarray, lin
             moved[sel] += sign * d
             jac.append(model.jacobians(prob.context_at(model, moved, lin.derivs, sel), prob.free))
         djt = 0.5 * (prob.parameter_jacobian(jac[0], w) - prob.parameter_jacobian(jac[1], w))
-        jx = prob.motion_jacobian(0.5 * (jac[0].motion + jac[1].motion)[:, prob.cols], w[:, prob.cols], motion, sel)
+        cols = prob.rates(model, prob.context_at(model, motion, lin.derivs, sel))
+        jx = prob.motion_jacobian(0.5 * (jac[0].motion + jac[1].motion)[:, prob.cols], w[:, prob.cols], motion, sel,
+                                  None if cols is None else cols[:, prob.cols])
         dk = per_imu(djt)
         blocks += np.matmul(dk.transpose(0, 2, 1), dk)
         gmat = stacked_g(jx, lin.linv[sel], djt)

@@ -14,6 +14,7 @@ import scipy.linalg
 
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.motion_models import RigidMotion
+from imu_array_ros.fitting.reading_rates import RATES, chip_clock, rate_columns, rates_on
 from imu_array_ros.fitting.schur import accumulate_c, factor, gram, stacked_g
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
@@ -116,7 +117,9 @@ class Problem:
             self.w = np.where(valid, 1.0 / np.where(valid, sigma, 1.0), 0.0)
         self.valid = valid
         self.mm = RigidMotion() if motion_model is None else motion_model
-        self.dm = self.mm.dim
+        # each sample's reading rates as motion coordinates after the motion model's (reading_rates)
+        self.clock = chip_clock(model) if motion_model is None and rates_on() else None
+        self.dm = self.mm.dim + (RATES if self.clock else 0)
         self.used = np.ones(n, dtype=bool)
         self.sizes = [REGISTRY[t].dim() for t in free]
         self.p = sum(self.sizes)
@@ -199,22 +202,59 @@ class Problem:
                                    f"and {parameters} parameters (no degrees of freedom left); record longer")
         return dof
 
-    def check_motion(self, motion0) -> np.ndarray:
-        """The motion model's coordinates of an (N, 9) initial motion [omega, omega_dot, s]."""
+    def check_motion(self, motion0, model: SensorModel | None = None) -> np.ndarray:
+        """The motion model's coordinates of an (N, 9) initial motion [omega, omega_dot, s]; with reading rates,
+        each sample's rates are the least-squares ones given that motion under ``model`` (default: the
+        problem's), as at the joint optimum (they enter linearly)."""
         motion = np.array(motion0, dtype=float)
         if motion.shape != (self.n, 9) or not np.isfinite(motion).all():
             raise CalibrationError(f"motion0 must be finite with shape {(self.n, 9)}, got {motion.shape}")
-        return self.mm.initial(motion)
+        return self.with_rates(self.mm.initial(motion), self.model0 if model is None else model)
+
+    def with_rates(self, z: np.ndarray, model: SensorModel) -> np.ndarray:
+        """Motion coordinates ``z`` of the motion model, with the reading rates appended (least squares given
+        the motion) when the problem carries them."""
+        if not self.clock:
+            return z
+        z = np.concatenate([z, np.zeros((len(z), RATES))], axis=1)
+        derivs = self.derivatives(z)
+        for lo, hi in self.chunks():
+            ctx = self.context(model, z, derivs, lo, hi)
+            acc, gyr = model.predict(ctx)
+            w = self.w[lo:hi]
+            r = (w * (self.y[lo:hi] - np.concatenate([acc, gyr], axis=2))).reshape(hi - lo, -1)
+            c = (rate_columns(model, ctx, self.clock) * w[..., None]).reshape(hi - lo, -1, RATES)
+            ctc = np.matmul(c.transpose(0, 2, 1), c)
+            ctc += 1e-12 * np.trace(ctc, axis1=1, axis2=2)[:, None, None] * np.eye(RATES) + 1e-300 * np.eye(RATES)
+            z[lo:hi, -RATES:] = np.linalg.solve(ctc, np.matmul(c.transpose(0, 2, 1), r[..., None]))[..., 0]
+        return z
 
     def expand(self, z: np.ndarray, sel=slice(None)) -> np.ndarray:
         """(n, 9) motion [omega, omega_dot, s] of the samples ``sel`` from their coordinates ``z[sel]``."""
-        return self.mm.expand(z[sel], sel)
+        zs = z[sel]
+        return self.mm.expand(zs[:, :self.mm.dim] if self.clock else zs, sel)
 
-    def motion_jacobian(self, jac_motion: np.ndarray, w: np.ndarray, z: np.ndarray, sel) -> np.ndarray:
-        """(n, K, 6, dm) weighted d y / d z from the model's (n, K, 6, 9) d y / d x."""
+    def rates(self, model: SensorModel, ctx) -> np.ndarray | None:
+        """(n, K, 6, RATES) d y / d (reading rates) of the samples of ``ctx`` (unweighted), None without them."""
+        return rate_columns(model, ctx, self.clock) if self.clock else None
+
+    def rate_shift(self, cols: np.ndarray | None, z: np.ndarray, sel) -> np.ndarray | float:
+        """(n, K, 6) what the reading rates add to the predictions of the samples ``sel`` (0 without them)."""
+        if cols is None:
+            return 0.0
+        return np.matmul(cols, z[sel][:, None, -RATES:, None])[..., 0]
+
+    def motion_jacobian(self, jac_motion: np.ndarray, w: np.ndarray, z: np.ndarray, sel,
+                        cols: np.ndarray | None = None) -> np.ndarray:
+        """(n, K, 6, dm) weighted d y / d z from the model's (n, K, 6, 9) d y / d x and, with reading rates, their
+        columns ``cols`` (:meth:`rates`, the same IMUs as ``jac_motion``)."""
         jx = jac_motion * w[..., None]
-        d = self.mm.jacobian(z[sel], sel)
-        return jx if d is None else np.matmul(jx, d[:, None])
+        zs = z[sel]
+        d = self.mm.jacobian(zs[:, :self.mm.dim] if self.clock else zs, sel)
+        jx = jx if d is None else np.matmul(jx, d[:, None])
+        if self.clock:
+            jx = np.concatenate([jx, cols * w[..., None]], axis=3)
+        return jx
 
     # ---- evaluation
     def chunks(self):
@@ -256,8 +296,10 @@ class Problem:
         """(N, K, 6) normalised residuals w (y - h), 0 on masked axes, with the motion derivatives ``derivs``."""
         out = np.empty_like(self.y)
         for lo, hi in self.chunks():
-            acc, gyr = model.predict(self.context(model, motion, derivs, lo, hi))
-            out[lo:hi] = self.w[lo:hi] * (self.y[lo:hi] - np.concatenate([acc, gyr], axis=2))
+            ctx = self.context(model, motion, derivs, lo, hi)
+            acc, gyr = model.predict(ctx)
+            shift = self.rate_shift(self.rates(model, ctx), motion, slice(lo, hi))
+            out[lo:hi] = self.w[lo:hi] * (self.y[lo:hi] - np.concatenate([acc, gyr], axis=2) - shift)
         return out
 
     def linearize(self, model: SensorModel, motion: np.ndarray, *, free: bool = True,
@@ -278,10 +320,12 @@ class Problem:
         if gauge_point:
             derivs = (derivs[0], derivs[1], None, None)
         for lo, hi in self.chunks():
-            jac = model.jacobians(self.context(model, motion, derivs, lo, hi), self.free if m else ())
+            ctx = self.context(model, motion, derivs, lo, hi)
+            jac = model.jacobians(ctx, self.free if m else ())
             w = self.w[lo:hi]
-            r = w * (self.y[lo:hi] - jac.predicted)
-            jx = self.motion_jacobian(jac.motion, w, motion, slice(lo, hi))  # (n, K, 6, dm)
+            cols = self.rates(model, ctx)
+            r = w * (self.y[lo:hi] - jac.predicted - self.rate_shift(cols, motion, slice(lo, hi)))
+            jx = self.motion_jacobian(jac.motion, w, motion, slice(lo, hi), cols)  # (n, K, 6, dm)
             linv[lo:hi], ok[lo:hi] = factor(gram(jx))
             h[lo:hi] = np.einsum("nij,nkrj,nkr->ni", linv[lo:hi], jx, r, optimize=True)
             r_all[lo:hi] = r
@@ -315,10 +359,13 @@ class Problem:
         elif dtheta is not None and np.any(dtheta):
             dt = dtheta.reshape(len(self.fit), self.p)
             for lo, hi in self.chunks():
-                jac = model.jacobians(self.context(model, motion, lin.derivs, lo, hi), self.free)
+                ctx = self.context(model, motion, lin.derivs, lo, hi)
+                jac = model.jacobians(ctx, self.free)
                 w = self.w[lo:hi]
                 u = np.einsum("nkrp,kp->nkr", self.parameter_jacobian(jac, w), dt)  # J_t dtheta per IMU
-                jx = self.motion_jacobian(jac.motion[:, self.cols], w[:, self.cols], motion, slice(lo, hi))
+                cols = self.rates(model, ctx)
+                jx = self.motion_jacobian(jac.motion[:, self.cols], w[:, self.cols], motion, slice(lo, hi),
+                                          None if cols is None else cols[:, self.cols])
                 bdt = np.einsum("nkri,nkr->ni", jx, u)
                 v[lo:hi] -= np.einsum("nij,nj->ni", lin.linv[lo:hi], bdt)
         return np.einsum("nji,nj->ni", lin.linv, v)
@@ -336,7 +383,8 @@ class Problem:
             return np.linalg.solve(mat, rhs[..., None])[..., 0]
         omega = average(self.raw[..., 3:], model.gyro_std)
         s = average(self.raw[..., :3], model.acc_std)
-        return self.mm.initial(np.concatenate([omega, motion_derivative(self.stamps, omega), s], axis=1))
+        z = self.mm.initial(np.concatenate([omega, motion_derivative(self.stamps, omega), s], axis=1))
+        return np.concatenate([z, np.zeros((len(z), RATES))], axis=1) if self.clock else z
 
     def fit_motion(self, model: SensorModel, motion: np.ndarray, tolerance: float = 1e-4):
         """Motion-only Gauss-Newton for fixed parameters (batched 9x9 steps), step halving per sample.

@@ -113,9 +113,12 @@ def sample_influence(prob, model, motion: np.ndarray, lin, reduce: np.ndarray) -
     of ``prob`` at (model, motion)), chunk by chunk; sum_n u_n = lin.g."""
     out = np.zeros((prob.n, reduce.shape[1]))
     for lo, hi in prob.chunks():
-        jac = model.jacobians(prob.context(model, motion, lin.derivs, lo, hi), prob.free)
+        ctx = prob.context(model, motion, lin.derivs, lo, hi)
+        jac = model.jacobians(ctx, prob.free)
         w = prob.w[lo:hi]
-        jx = prob.motion_jacobian(jac.motion[:, prob.cols], w[:, prob.cols], motion, slice(lo, hi))
+        cols = prob.rates(model, ctx)
+        jx = prob.motion_jacobian(jac.motion[:, prob.cols], w[:, prob.cols], motion, slice(lo, hi),
+                                  None if cols is None else cols[:, prob.cols])
         jt = prob.parameter_jacobian(jac, w)  # (n, K_fit, 6, P)
         gk = g_per_imu(jx, lin.linv[lo:hi], jt)[1]  # (n, K_fit, d, P)
         u = np.einsum("nkrp,nkr->nkp", jt, lin.r[lo:hi, prob.cols]) - np.einsum("nkip,ni->nkp", gk, lin.h[lo:hi])

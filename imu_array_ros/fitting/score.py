@@ -84,7 +84,7 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
     blocks = np.asarray(blocks, dtype=np.int64).reshape(-1)
     if blocks.shape != (prob.n,) or blocks.min() < 0 or np.any(np.diff(blocks) < 0):
         raise CalibrationError("blocks must give a non-decreasing block index >= 0 for every sample")
-    z = prob.check_motion(motion)
+    z = prob.check_motion(motion, model)
     derivs = prob.derivatives(z)
     nb, p = int(blocks[-1]) + 1, prob.p
     g, S = np.zeros((nb, k, p)), np.zeros((nb, k, p, p))
@@ -99,11 +99,13 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
     mask = np.zeros(prob.y.shape, dtype=bool)
     for lo, hi, pieces in _chunks(blocks, prob.chunk):
         # per-sample quantities of the whole chunk at once (one Jacobian call), then per-block sums
-        jac = model.jacobians(prob.context(model, z, derivs, lo, hi), terms)
-        linv, ok = factor(gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi))))
+        ctx = prob.context(model, z, derivs, lo, hi)
+        jac = model.jacobians(ctx, terms)
+        cols = prob.rates(model, ctx)
+        linv, ok = factor(gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi), cols)))
         w = prob.w[lo:hi] * ok[:, None, None]  # a sample that does not identify its motion tells nothing
-        r = w * (prob.y[lo:hi] - jac.predicted)
-        jx = prob.motion_jacobian(jac.motion, w, z, slice(lo, hi))
+        r = w * (prob.y[lo:hi] - jac.predicted - prob.rate_shift(cols, z, slice(lo, hi)))
+        jx = prob.motion_jacobian(jac.motion, w, z, slice(lo, hi), cols)
         h = np.einsum("nij,nkrj,nkr->ni", linv, jx, r, optimize=True)
         jt = prob.parameter_jacobian(jac, w)
         mk, gk_all = g_per_imu(jx, linv, jt)  # (n, K, 6, 9): rows (L^-1 phi)^T; (n, K, 9, P) G_n,k

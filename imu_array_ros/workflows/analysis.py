@@ -8,6 +8,7 @@ import numpy as np
 
 from imu_array_ros.discovery.discover import Discovery, DiscoveryOptions
 from imu_array_ros.discovery.discover import discover as run_discovery
+from imu_array_ros.fitting.reading_rates import rates_scope
 from imu_array_ros.fusion.residuals import ResidualReport, normalized_residuals
 from imu_array_ros.fusion.stream import fuse_chunked
 from imu_array_ros.model.description import ArrayDescription
@@ -52,7 +53,10 @@ def discover(samples: ImuSamples, desc: ArrayDescription, *, options: DiscoveryO
     """Mismatch discovery (:func:`imu_array_ros.discovery.discover.discover`) on ``samples`` under every term
     of ``desc``; ``sim``: the user's own simulation of the same run; ``validate``: (label, samples) of other
     recordings to score the findings on.  ``findings_calibration(result, samples)`` turns the findings into a
-    calibration to install."""
-    return run_discovery(samples, as_model(desc), options=options, sim=sim, validate=validate, progress=progress)
+    calibration to install.  Its fits carry each sample's reading rates when the chips' sample clocks are known and
+    the recording wants them (:mod:`imu_array_ros.fitting.reading_rates`; discovery's timing stage decides, and
+    the decision holds for this call only)."""
+    with rates_scope():
+        return run_discovery(samples, as_model(desc), options=options, sim=sim, validate=validate, progress=progress)
 
 
