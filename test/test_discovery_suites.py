@@ -145,3 +145,16 @@ def test_scorer_vibration_and_null():
     n = _built("null")
     assert score(n, _discovery(unexplained=[entry]))["correct"]
     assert not score(n, _discovery([_finding("gyroscope_bias", 0)]))["correct"]
+
+
+def test_magnitudes_of_a_time_offset_on_every_imu_are_modulo_the_gauge_of_time():
+    b = _built("shared", [Effect("time_offset", (0, 1, 2, 3), (0.0,) * 2, 100.0)])
+    b.values[0] = np.array([1e-3, 3e-3])  # truth: accelerometer 1 ms, gyroscope 3 ms
+    f = SimpleNamespace(effect="time_offset", k=0, sensor=NAMES[0], imus=(0, 1, 2, 3), values=np.array([0.0, 2e-3]),
+                        std=np.array([1e-5, 1e-5]), to_dict=lambda: {"sensors": list(NAMES)})
+    assert score(b, _discovery([f]))["max_abs_z"]["time_offset@imu_01"] < 1e-6  # shifted by 1 ms: the gauge
+    f.values = np.array([0.0, 2.5e-3])  # the lag is wrong by 0.5 ms = 50 sigma
+    assert score(b, _discovery([f]))["max_abs_z"]["time_offset@imu_01"] > 20
+    one = SimpleNamespace(**{**vars(f), "imus": (0,)})  # on one IMU the others fix the gauge: no shift removed
+    one.values = np.array([0.0, 2e-3])
+    assert score(b, _discovery([one]))["max_abs_z"]["time_offset@imu_01"] > 50

@@ -441,15 +441,22 @@ def _found(d, names) -> dict[str, set[int]]:
 
 
 def _magnitudes(d, built: BuiltScenario) -> dict[str, float | None]:
-    """max |estimate - truth| / std per finding on an injected (term, IMU)."""
+    """max |estimate - truth| / std per finding on an injected (term, IMU); a time offset on every IMU modulo the
+    gauge of time (a shift of every delay, absorbed by the motion: the differences' weighted mean removed)."""
     out = {}
     truth = {(e.term, k): v for e, v in zip(built.effects, built.values) for k in e.imus}
+    n_imus = len(built.nominal.names)
     for f in d.findings:
         v = truth.get((f.effect, f.k))
         if v is None or np.shape(f.values) != np.shape(v):
             continue
+        diff, std = np.asarray(f.values, dtype=float) - v, np.asarray(f.std, dtype=float)
+        if f.effect == "time_offset" and len(getattr(f, "imus", ()) or ()) == n_imus:
+            w = np.where(np.isfinite(std) & (std > 0), 1.0 / np.where(std > 0, std, 1.0) ** 2, 0.0)
+            if w.sum() > 0:
+                diff = diff - np.sum(w * np.nan_to_num(diff)) / w.sum()
         with np.errstate(invalid="ignore", divide="ignore"):
-            z = np.abs(np.asarray(f.values) - v) / np.asarray(f.std)
+            z = np.abs(diff) / std
         out[f"{f.effect}@{f.sensor}"] = float(np.nanmax(z)) if np.isfinite(z).any() else None
     return out
 
