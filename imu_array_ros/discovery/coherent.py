@@ -8,28 +8,32 @@ over 32 IMUs of oracle evidence 280 leaves at most 2.2 x the floor in one channe
 and bin).  Its cross-spectral matrix over the array, however, is rank one: this
 test adds the channels coherently, with the shape they share, as the oracle does.
 
-**Channels.**  The accelerometer residual field in the array frame (each IMU's
-normalised residual rotated by its R_k: still white, unit variance) projected on
-an orthonormal basis of the functions of position *not affine* in it (the
-complement of 1, x, y, z over the IMU positions, rank-aware: V0 = K - 4, K - 3
-when the array is planar).  The fitted motion absorbs affine fields only
-(specific force, angular acceleration, centripetal terms), so these 3 V0 channels
-hold what no rigid motion can: the mode's non-rigid part, in white noise.
+**Channels.**  The accelerometer residuals (normalised: white, unit variance) on an
+orthonormal basis of the fields no rigid motion makes and smooth over the array
+(:func:`field_basis`): orthogonal to every field affine in the position, which the
+fitted motion absorbs (specific force, angular acceleration, centripetal terms), within
+the quadratic ones (3, 9 and 15 channels on the 4 planar, 8 corner and 32 IMUs): the
+mode's non-rigid part, in white noise.
 
 **Statistic.**  Welch segments (Hann, 50 % overlap, ~0.25 Hz bins as the fine scan
 of :mod:`~imu_array_ros.discovery.modes`), every channel divided by its local floor
 (:func:`~imu_array_ros.discovery.spectra.local_floor`, the guard widened by the
 window: a resonance does not raise its own floor); for windows of ``WIDTHS`` bins
 the largest eigenvalue of the floor-whitened cross-spectral matrix summed over the
-window's bins and segments, divided by their number.
+window's bins and segments, divided by their number, and then by the larger of the
+running medians of that eigenvalue over the windows below and above it
+(:func:`_side_floor`): a misfit coherent across channels over a broad band (the
+coloured noise of one IMU projects on several channels at once; a drift) raises its
+neighbours as much as itself, a line only itself.  The lowest window, whose lower
+side is itself, never stands out (the DC end is bias and drift territory).
 
-**Null law**, per width: the statistic over every window tested (0.5 Hz to
-Nyquist) is mostly noise; its upper tail beyond the 75th percentile is taken as
-exponential with the median excess (robust to the lines it holds): p = 0.25 exp(-(t -
-q75) / beta), beta = median(t - q75 | t > q75) / ln 2.  The largest eigenvalue of a
-Wishart matrix has a tail lighter than exponential, so this is conservative; a
-coloured misfit (lines that follow the motion) raises the tail and with it the
-threshold.  Bonferroni over windows and widths.
+**Null law**, per width: the same statistic on NULL_RUNS white-noise recordings of
+the same channel and segment counts (:func:`null_law`, fixed seed, cached): empirical
+up to its 99th percentile, beyond it an exponential tail with its mean excess there
+(conservative: the tail of a largest eigenvalue is lighter).  The recording's own bulk
+of windows (median, interquartile range) is mapped on the null's when that lowers the
+statistic (a misfit that widens the bulk raises the threshold; the bulk's scatter
+never lowers it).  Bonferroni over windows and widths.
 """
 
 from __future__ import annotations
@@ -37,8 +41,9 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+from scipy import ndimage
 
-from imu_array_ros.discovery.spectra import local_floor
+from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor
 
 __all__ = ["WIDTHS", "field_basis", "field_channels", "null_law", "coherent_scan", "mode_channels"]
 
@@ -139,9 +144,30 @@ def _statistics(x: np.ndarray, tested: np.ndarray) -> dict[int, np.ndarray]:
         stat = np.full(tuple(lead) + (f_n,), np.nan)
         if len(ok):
             gw = (cs[..., ok + w, :, :] - cs[..., ok, :, :]) / w
-            stat[..., ok] = _largest_eigenvalue(gw.reshape(-1, c, c)).reshape(tuple(lead) + (len(ok),))
+            lam = _largest_eigenvalue(gw.reshape(-1, c, c)).reshape(tuple(lead) + (len(ok),))
+            stat[..., ok] = lam / _side_floor(lam, 3 + w)
         out[w] = stat
     return out
+
+
+def _side_floor(lam: np.ndarray, guard: int) -> np.ndarray:
+    """(..., W) the larger of the running medians of lam (..., W) over the FLOOR_HALF_WINDOW - FLOOR_GUARD windows
+    below and above the ``guard`` ones around each (edges: the end window repeated): the eigenvalue a window must
+    stand out of.  A misfit coherent across the channels over a broad band (coloured noise of a few IMUs, a
+    drift) raises its neighbours' eigenvalues as much as its own; a line raises its own."""
+    span = FLOOR_HALF_WINDOW - FLOOR_GUARD
+    half = guard + span
+    flat = lam.reshape(-1, lam.shape[-1])
+    out = None
+    for side in (-1, 1):
+        foot = np.zeros(2 * half + 1, dtype=bool)
+        if side < 0:
+            foot[:span] = True
+        else:
+            foot[half + guard + 1:] = True
+        med = ndimage.median_filter(flat, footprint=foot[None, :], mode="nearest")
+        out = med if out is None else np.fmax(out, med)
+    return np.maximum(out, 1e-300).reshape(lam.shape)
 
 
 @functools.lru_cache(maxsize=64)
