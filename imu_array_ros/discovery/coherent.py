@@ -41,9 +41,8 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from scipy import ndimage
 
-from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor
+from imu_array_ros.discovery.spectra import FLOOR_HALF_WINDOW, local_floor, side_medians
 
 __all__ = ["WIDTHS", "field_basis", "field_channels", "null_law", "coherent_scan", "mode_channels"]
 
@@ -155,18 +154,7 @@ def _side_floor(lam: np.ndarray, guard: int) -> np.ndarray:
     below and above the ``guard`` ones around each (edges: the end window repeated): the eigenvalue a window must
     stand out of.  A misfit coherent across the channels over a broad band (coloured noise of a few IMUs, a
     drift) raises its neighbours' eigenvalues as much as its own; a line raises its own."""
-    span = FLOOR_HALF_WINDOW - FLOOR_GUARD
-    half = guard + span
-    flat = lam.reshape(-1, lam.shape[-1])
-    out = None
-    for side in (-1, 1):
-        foot = np.zeros(2 * half + 1, dtype=bool)
-        if side < 0:
-            foot[:span] = True
-        else:
-            foot[half + guard + 1:] = True
-        med = ndimage.median_filter(flat, footprint=foot[None, :], mode="nearest")
-        out = med if out is None else np.fmax(out, med)
+    out = side_medians(lam.reshape(-1, lam.shape[-1]), guard, FLOOR_HALF_WINDOW)
     return np.maximum(out, 1e-300).reshape(lam.shape)
 
 

@@ -72,6 +72,12 @@ def local_floor(p: np.ndarray, nu: float, guard: int = FLOOR_GUARD, half_window:
     and above the ``guard`` bins around the tested one (edges: the end bin repeated), made unbiased for white
     noise of nu degrees of freedom.  A line must stand out of both sides: a steep coloured spectrum is no line.
     A wider guard (a window of several bins tested) moves the same number of floor bins outwards."""
+    return side_medians(p, guard, half_window) / (stats.chi2.median(nu) / nu)
+
+
+def side_medians(p: np.ndarray, guard: int = FLOOR_GUARD, half_window: int = FLOOR_HALF_WINDOW) -> np.ndarray:
+    """(C, F) the larger of the running medians of p (C, F) along its last axis over the ``half_window -
+    FLOOR_GUARD`` entries below and above the ``guard`` ones around each (edges: the end entry repeated)."""
     span = half_window - FLOOR_GUARD
     half = guard + span
     out = None
@@ -83,7 +89,7 @@ def local_floor(p: np.ndarray, nu: float, guard: int = FLOOR_GUARD, half_window:
             foot[half + guard + 1:] = True
         med = ndimage.median_filter(p, footprint=foot[None, :], mode="nearest")
         out = med if out is None else np.fmax(out, med)
-    return out / (stats.chi2.median(nu) / nu)
+    return out
 
 
 def imu_spectra(r: np.ndarray, valid: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
