@@ -91,14 +91,30 @@ def test_window_filling_up(recording):
 
 def test_snapshot_is_a_consistent_copy_while_the_window_moves(recording):
     """Snapshots from another thread while the executor thread adds: always a contiguous run of
-    the recording, oldest first, and never changed afterwards."""
+    the recording, oldest first, and never changed afterwards.
+
+    The reader checks each snapshot as it takes it and keeps only the verdicts: holding on to every
+    snapshot grew without bound when the feeding thread was slow (24 GB on a loaded 2-core machine)."""
     desc, samples, *_ = recording
     window = SampleWindow(desc, window_samples=250)
-    taken, stop = [], threading.Event()
+    seen, bad, kept, stop = [0], [], [], threading.Event()
+
+    def check(s):
+        stamps, accel = s.stamps, s.accel
+        if not len(stamps):
+            return
+        lo = int(np.searchsorted(samples.stamps, stamps[0]))
+        if not (np.array_equal(stamps, samples.stamps[lo:lo + len(stamps)])
+                and np.array_equal(accel, samples.accel[lo:lo + len(stamps)])):
+            bad.append(int(stamps[0]))
 
     def reader():
         while not stop.is_set():
-            taken.append(window.snapshot())
+            s = window.snapshot()
+            check(s)
+            seen[0] += 1
+            if len(kept) < 20 and seen[0] % 5 == 0:
+                kept.append(s)  # a few, to check again after the window moved on
 
     t = threading.Thread(target=reader)
     t.start()
@@ -107,14 +123,11 @@ def test_snapshot_is_a_consistent_copy_while_the_window_moves(recording):
     finally:
         stop.set()
         t.join()
-    assert len(taken) > 10
-    for s in taken[::max(1, len(taken) // 50)]:
-        stamps, accel = s.stamps, s.accel
-        if not len(stamps):
-            continue
-        lo = int(np.searchsorted(samples.stamps, stamps[0]))
-        np.testing.assert_array_equal(stamps, samples.stamps[lo:lo + len(stamps)])
-        np.testing.assert_array_equal(accel, samples.accel[lo:lo + len(stamps)])
+    assert seen[0] > 10
+    assert not bad, f"{len(bad)} of {seen[0]} snapshots were not a contiguous run of the recording"
+    for s in kept:  # never changed afterwards
+        check(s)
+    assert not bad
     s = window.snapshot()
     stamps, accel = s.stamps, s.accel
     accel[:] = 0.0
