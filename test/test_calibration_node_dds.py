@@ -186,9 +186,34 @@ def test_calibration_reaches_the_fusion_node(dds, caller, tmp_path):
     rows = np.searchsorted(samples.stamps, samples.stamps[0] + (got["stamps"] - samples.stamps[0]) % period)
     np.testing.assert_array_equal((got["stamps"] - samples.stamps[rows]) % period, 0)
     window = ImuSamples(got["stamps"], samples.accel[rows], samples.gyro[rows], samples.names)
-    want, _ = build_fusion(load_array(ARRAY32, out)[0]).fuse(window)
+    calibrated_fusion = build_fusion(load_array(ARRAY32, out)[0])
+    want, _ = calibrated_fusion.fuse(window)
     old, _ = build_fusion(nominal).fuse(window)
     np.testing.assert_array_equal(want.stamps, got["stamps"])
+    # On a loaded machine DDS can drop a message (a reliable keep-last history overwritten before the fusion
+    # node took it); the node then fuses that sample without the silent IMU once its sync timeout passes, and
+    # counts it as incomplete.  Such a row must be the offline fusion without one IMU (each is tried), and
+    # there are no more of them than the node counted.
+    fields = ("omega", "omega_dot", "specific_force")
+    close = lambda f, i, j: all(np.allclose(got[n][i], getattr(f, n)[j], rtol=1e-9, atol=1e-9)  # noqa: E731
+                                for n in fields)
+    off = [i for i in range(len(want.stamps)) if not close(want, i, i)]
+    incomplete = int(fusion_diag.get("incomplete_samples", 0)) if isinstance(fusion_diag, dict) else 0
+    assert len(off) <= incomplete, (f"{len(off)} samples differ from the offline fusion, the node counted "
+                                    f"{incomplete} incomplete: {off}; fusion node: {fusion_diag}")
+    for i in off:
+        for k in range(len(nominal.names)):
+            acc, gyr = window.accel[i:i + 1].copy(), window.gyro[i:i + 1].copy()
+            acc[:, k] = gyr[:, k] = np.nan
+            alone, _ = calibrated_fusion.fuse(ImuSamples(window.stamps[i:i + 1], acc, gyr, window.names))
+            if close(alone, i, 0):
+                for n in fields:
+                    getattr(want, n)[i] = getattr(alone, n)[0]
+                print(f"sample {i}: fused without {nominal.names[k]} (a message lost under load), as offline")
+                break
+        else:
+            raise AssertionError(f"sample {i} is neither the offline fusion nor it without one IMU; "
+                                 f"fusion node: {fusion_diag}")
     for name in ("omega", "omega_dot", "specific_force"):
         np.testing.assert_allclose(got[name], getattr(want, name), rtol=1e-9, atol=1e-9,
                                    err_msg=f"{name}; fusion node: {fusion_diag}")
