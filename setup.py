@@ -17,7 +17,7 @@ EXTRAS = {
     "bayes": BAYES,
     "noise": NOISE,
     "all": PLOTS + BAYES + NOISE,
-    "test": ["pytest>=7.4", "hypothesis>=6.0"] + PLOTS + BAYES + NOISE,  # the suite also tests the plots, the sampler, the noise
+    "test": ["pytest>=7.4", "pytest-xdist>=3.5", "hypothesis>=6.0"] + PLOTS + BAYES + NOISE,  # the suite also tests the plots, the sampler, the noise
 }
 
 setup(

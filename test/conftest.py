@@ -114,3 +114,38 @@ def dds(monkeypatch, tmp_path):
         yield procs
     finally:
         procs.close()
+
+
+# --------------------------------------------------------------------------- parallel runs (pytest-xdist)
+
+#: what marks a test module as talking ROS (rclpy in the test process, or node processes over DDS)
+_ROS_WORDS = ("rclpy", "dds_env", "pick_domain", "DdsProcesses")
+
+
+def _talks_ros(path: Path, cache: dict = {}) -> bool:  # noqa: B006 - one answer per module per session
+    if path not in cache:
+        text = path.read_text(encoding="utf-8")
+        cache[path] = any(w in text for w in _ROS_WORDS) or "(dds," in text or "(dds)" in text
+    return cache[path]
+
+
+def pytest_configure(config):
+    """In an xdist worker, one BLAS thread (for its child processes too): the workers already fill the cores,
+    and OpenBLAS threads waiting on each other's cores cost more than they give on small products."""
+    import os
+
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        for key in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[key] = "1"
+        from threadpoolctl import threadpool_limits
+
+        config._imu_array_blas = threadpool_limits(limits=1, user_api="blas")  # held for the session
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under ``-n N --dist loadgroup`` every test that talks ROS runs in one worker, one after another:
+    the DDS tests keep the machine's other cores to their node processes' rhythm and never share a
+    domain, while the numerical tests spread over the other workers."""
+    for item in items:
+        if "dds" in getattr(item, "fixturenames", ()) or _talks_ros(Path(str(item.fspath))):
+            item.add_marker(pytest.mark.xdist_group("ros"))
