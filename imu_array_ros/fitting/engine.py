@@ -134,9 +134,9 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     (:func:`~imu_array_ros.fitting.robust.huber_sigma`, each axis' scale from its median absolute residual):
     readings far out count linearly instead of quadratically; nis/loglik "after" are then those of the
     reweighted problem; sandwich: compute ``covariance_robust`` (one more pass over the samples);
-    cost_tolerance: also converged when a step lowers the cost (-log-likelihood) by less than this (default
-    None: the parameter and motion steps alone decide; discovery's confirming refits need only the
-    likelihood); keep_g: the linearisations keep G_n for the motion steps (fewer passes over the samples, the
+    cost_tolerance: also converged when a step lowers the cost (-log-likelihood) by less than this, and with
+    timing terms no further trajectory round after one that gains less (default None: the parameter and
+    motion steps alone decide; discovery's confirming refits need only the likelihood); keep_g: the linearisations keep G_n for the motion steps (fewer passes over the samples, the
     same steps to rounding; default None: as :func:`~imu_array_ros.fitting.problem.keep_schur` says, off
     outside it).  Raises
     :class:`CalibrationError` (one line) when the problem cannot be solved or
@@ -172,10 +172,13 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
         prob.freeze(motion)
         lin = None  # memory: the last linearisation (and its G) goes before the next is made
         lin = prob.linearize(model, motion)
+        start = lin.cost
         model, motion, lin, more, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
                                                                   max_iterations, tolerance, progress,
                                                                   cost_tolerance)
         iterations += more
+        if cost_tolerance is not None and start - lin.cost < cost_tolerance:
+            break  # the trajectory has settled as far as the likelihood the caller asks about goes
         s_z, _ = gauge_fix.reduce(lin.S, lin.g)
         std = np.sqrt(np.clip(np.diag(gauge_fix.expand_covariance(inverse(s_z))), 0.0, None))
         moved = np.abs(prob.values(model).reshape(-1) - theta)
@@ -207,7 +210,10 @@ def _fit_motion_frozen(prob: Problem, model: SensorModel, motion: np.ndarray):
         return prob.fit_motion(model, motion)
     for _ in range(2):
         prob.freeze(motion)
-        motion, lin = prob.fit_motion(model, motion)
+        new, lin = prob.fit_motion(model, motion)
+        if new is motion:  # no step taken: already the ML motion on its own trajectory, lin is the one below
+            return motion, lin
+        motion = new
     prob.freeze(motion)
     return motion, prob.linearize(model, motion, free=False)
 
