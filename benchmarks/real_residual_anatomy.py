@@ -41,6 +41,7 @@ import numpy as np
 
 from benchmarks.harness import DATA, RESULTS, load_average, machine_header, say, single_threaded_blas, write_results
 from benchmarks.real_discovery_heldout import ARRAY, CAPTURES, moving_phase
+from imu_array_ros.fitting.reading_rates import age_columns
 
 OUT = RESULTS / "real_residual_anatomy"
 BANDS = ((0, 1), (1, 3), (3, 6), (6, 10), (10, 15), (15, 20), (20, 25), (25, 32))
@@ -159,21 +160,14 @@ def extra_states(s, *blocks: np.ndarray) -> dict:
 
 
 def own_rate_columns(s) -> np.ndarray:
-    n, k = s["age"].shape
-    centred = s["age"] - s["age"].mean(axis=1, keepdims=True)
-    cols = np.zeros((n, k, 6, 3))
-    cols[:, :, 3:, :] = centred[:, :, None, None] * s["rot"].transpose(0, 2, 1)[None] / s["std"][None, :, 3:, None]
-    return cols
+    """The gyroscopes' own rate: the engine's rho_g columns (:func:`age_columns`), normalised."""
+    return age_columns(s["age"], s["rot"].transpose(0, 2, 1))[..., 0:3] / s["std"][None, :, :, None]
 
 
 def accel_rate_columns(s) -> np.ndarray:
     """The accelerometers' own rate: (age of the chip's gyroscope clock - the sample's mean) times a free
-    array-frame 3-vector, as if each chip sampled its accelerometer on the same clock."""
-    n, k = s["age"].shape
-    centred = s["age"] - s["age"].mean(axis=1, keepdims=True)
-    cols = np.zeros((n, k, 6, 3))
-    cols[:, :, :3, :] = centred[:, :, None, None] * s["rot"].transpose(0, 2, 1)[None] / s["std"][None, :, :3, None]
-    return cols
+    array-frame 3-vector, as if each chip sampled its accelerometer on the same clock (the engine's rho_a)."""
+    return age_columns(s["age"], s["rot"].transpose(0, 2, 1))[..., 3:6] / s["std"][None, :, :, None]
 
 
 def placebo(s, seed: int = 1):

@@ -31,7 +31,7 @@ import numpy as np
 
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["reading_rates", "rates_on", "rates_scope", "keep_rates", "chip_clock", "rate_columns", "RATES"]
+__all__ = ["reading_rates", "rates_on", "rates_scope", "keep_rates", "chip_clock", "rate_columns", "age_columns", "RATES"]
 
 #: motion coordinates added per sample: rho_g (3), rho_a (3)
 RATES = 6
@@ -91,10 +91,15 @@ def rate_columns(model: SensorModel, ctx, clock: str) -> np.ndarray:
     clocked chips) in the gyroscope rows (columns 0-2) and the accelerometer rows (columns 3-5); zero on chips
     without a clock."""
     term = model.terms[clock]
-    on = term.values[:, 0] > 0
-    age = -term.delay(ctx, "gyroscope")  # (n, K)
+    return age_columns(-term.delay(ctx, "gyroscope"), ctx.rot_t, term.values[:, 0] > 0)
+
+
+def age_columns(age: np.ndarray, rot_t: np.ndarray, on: np.ndarray | None = None) -> np.ndarray:
+    """:func:`rate_columns` from the readings' ages (n, K) s and R_k^T (K, 3, 3); ``on`` (K,) the clocked
+    chips (default all): the others' columns are zero and their ages are left out of the mean."""
+    on = np.ones(age.shape[1], dtype=bool) if on is None else np.asarray(on, dtype=bool)
     centred = np.where(on[None], age - age[:, on].mean(axis=1, keepdims=True), 0.0)
-    block = centred[:, :, None, None] * ctx.rot_t[None]  # (n, K, 3, 3)
+    block = centred[:, :, None, None] * rot_t[None]  # (n, K, 3, 3)
     out = np.zeros(age.shape + (6, RATES))
     out[:, :, 3:, 0:3] = block
     out[:, :, 0:3, 3:6] = block
