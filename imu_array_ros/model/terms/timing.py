@@ -129,9 +129,8 @@ def _rate_along(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarra
         v = d_omega
     else:
         omega, _, _ = ctx.trajectory(when)
-        w, dw = skew(omega), skew(d_omega)
-        lever_dot = dw @ w + w @ dw + skew(d_omega_dot)  # matmuls: einsum runs these as loops
-        v = d_s + (lever_dot @ ctx.positions[:, :, None])[..., 0]
+        p = ctx.positions[None]  # d/dt [w x (w x p) + w_dot x p], written out as cross products
+        v = d_s + _cross(d_omega, _cross(omega, p)) + _cross(omega, _cross(d_omega, p)) + _cross(d_omega_dot, p)
     return _to_sensor(ctx, v)
 
 
