@@ -39,7 +39,8 @@ class GyroscopeGSensitivity(Term):
 
     def d_positions(self, x, ctx, sensor):
         """G d a / d p = G R^T C."""
-        return np.einsum("kij,kmj,nml->nkil", self.values.reshape(-1, 3, 3), ctx.rotations, ctx.lever)
+        return np.einsum("kij,kmj,nml->nkil", self.values.reshape(-1, 3, 3), ctx.rotations, ctx.lever,
+                         optimize=True)
 
     def d_motion(self, x, ctx, sensor):
         j = np.einsum("kji,nkjl->nkil", ctx.rotations, ctx.force_jacobian(ctx.positions))
