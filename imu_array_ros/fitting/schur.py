@@ -25,17 +25,19 @@ def factor(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ridge keeps the factor finite (such samples are dropped after the initial
     motion fit, weight 0).
     """
-    d = np.sqrt(np.einsum("nii->ni", a))
+    diag = np.einsum("nii->ni", a)
+    d = np.sqrt(diag)
     d = np.where(d > 0, d, 1.0)
     an = a / (d[:, :, None] * d[:, None, :])
     eye = np.eye(a.shape[-1])
+    ok = ~(diag <= 0).any(axis=1)  # a coordinate no reading informs (e.g. a dropped sample): not identified
+    rest = np.flatnonzero(ok)
     try:  # An - rtol I positive definite <=> smallest eigenvalue > rtol: one Cholesky, 5x cheaper than eigvalsh
-        if not np.isfinite(an).all():
+        if not np.isfinite(an[rest]).all():
             raise np.linalg.LinAlgError
-        np.linalg.cholesky(an - MOTION_RTOL * eye)
-        ok = np.ones(len(a), dtype=bool)
+        np.linalg.cholesky(an[rest] - MOTION_RTOL * eye)
     except np.linalg.LinAlgError:  # some sample is not identified: which ones
-        ok = np.linalg.eigvalsh(an)[:, 0] > MOTION_RTOL
+        ok[rest] = np.linalg.eigvalsh(an[rest])[:, 0] > MOTION_RTOL
     an[~ok] += eye
     lower = np.linalg.cholesky(an)
     return np.linalg.inv(lower) / d[:, None, :], ok
