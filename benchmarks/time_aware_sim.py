@@ -226,7 +226,7 @@ def pair_job(args: dict) -> dict:
     from imu_array_ros.simulation.clocks import mimu_like_clocks, new_session
     from imu_array_ros.simulation.motion import TwistTrajectory
     from imu_array_ros.simulation.simulator import simulate_trajectory
-    from imu_array_ros.workflows.calibrate import calibrate
+    from imu_array_ros.workflows.calibrations import calibrate
     from imu_array_ros.workflows.fusion import fuse
 
     seed, run = args["seed"], args["run"]

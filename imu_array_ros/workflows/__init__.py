@@ -22,7 +22,7 @@ if TYPE_CHECKING:  # what a type checker (and test_architecture's layer check) s
     from imu_array_ros.calibration.result import Calibration, Installed
     from imu_array_ros.workflows.analysis import DiscoveryOptions, discover, residuals
     from imu_array_ros.workflows.arrays import as_model, check_fusable, load_array
-    from imu_array_ros.workflows.calibrate import METHODS, calibrate, findings_calibration, install
+    from imu_array_ros.workflows.calibrations import METHODS, calibrate, findings_calibration, install
     from imu_array_ros.workflows.fusion import FusedRecording, build_fusion, fuse, fuse_recording
     from imu_array_ros.workflows.recordings import (MOTIONS, Simulated, icosahedron_seconds, import_openshoe,
                                                     read_imu_recording, simulate)
@@ -33,7 +33,7 @@ EXPORTS = {
     **dict.fromkeys(("read_imu_recording", "import_openshoe", "simulate", "Simulated", "MOTIONS", "icosahedron_seconds"),
                     "imu_array_ros.workflows.recordings"),
     **dict.fromkeys(("build_fusion", "fuse", "fuse_recording", "FusedRecording"), "imu_array_ros.workflows.fusion"),
-    **dict.fromkeys(("calibrate", "install", "findings_calibration", "METHODS"), "imu_array_ros.workflows.calibrate"),
+    **dict.fromkeys(("calibrate", "install", "findings_calibration", "METHODS"), "imu_array_ros.workflows.calibrations"),
     **dict.fromkeys(("Calibration", "Installed"), "imu_array_ros.calibration.result"),
     **dict.fromkeys(("residuals", "discover", "DiscoveryOptions"), "imu_array_ros.workflows.analysis"),
 }
