@@ -22,7 +22,7 @@ import numpy as np
 import scipy.stats
 
 from imu_array_ros.calibration.guards import implausible
-from imu_array_ros.discovery.explain import Candidate
+from imu_array_ros.discovery.explain import BIC_GAP, Candidate
 from imu_array_ros.discovery.scopes import geometry_groups, tie_test
 from imu_array_ros.discovery.subset import is_own, propose, scope_label, term_indexes
 from imu_array_ros.discovery.trading import trading
@@ -35,7 +35,11 @@ IMPLAUSIBLE = "implausible"
 #: how confirm's reason starts when the candidate trades with earlier findings (:mod:`.trading`)
 TRADES = "indistinguishable from"
 
-__all__ = ["confirm", "only_imus", "update_finding", "COST_TOLERANCE", "IMPLAUSIBLE", "TRADES"]
+__all__ = ["confirm", "settle_ties", "tied", "only_imus", "update_finding", "COST_TOLERANCE", "IMPLAUSIBLE", "TRADES",
+           "TIE_MAX"]
+
+#: at most this many candidates of one tie are confirmed exactly (the first-ranked included)
+TIE_MAX = 3
 
 #: the exact refit stops when a step gains less log-likelihood than this: the decision reads the gain (>= half a
 #: chi-square quantile, ~10-30), so the last steps that move the motion by < 1e-3 of its own sd gain nothing
@@ -186,3 +190,36 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
     c.scope, c.imus, c.sensors, c.k = label, tuple(sub), tuple(names), int(sub[0])
     c.sensor = f"{label} ({', '.join(names)})"
     return fit_c, float(delta_c)
+
+
+def tied(c: Candidate, passing: list) -> list:
+    """The passing candidates ranked after ``c`` whose scores tie with c's: the same dof and a BIC within
+    ``BIC_GAP`` of c's (at most ``TIE_MAX`` - 1). The score test is a first-order approximation: within the gap
+    it does not order them, and on mirror-image scopes (e.g. an array's top and bottom) rounding alone would."""
+    after = passing[passing.index(c) + 1:]
+    return [o for o in after if o.dof == c.dof and o.delta_bic - c.delta_bic < BIC_GAP][:TIE_MAX - 1]
+
+
+def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say, notes: list, rejected: list):
+    """(candidate, result) kept among ``c`` (confirmed: ``result`` = (fit, gain)) and the candidates tied with it
+    (:func:`tied`), each confirmed exactly by ``confirm_one(candidate)``: the largest exact log-likelihood gain
+    wins. A note says which were tied and what each gained; a tied candidate the exact fit does not confirm goes
+    to ``rejected`` with its reason."""
+    best, gains = c, [(c, result[1])]
+    for o in tied(c, passing):
+        say(f"step {step}: {o.effect} on {o.sensor} scores as {c.effect} on {c.sensor} does (BIC within "
+            f"{o.delta_bic - c.delta_bic:.2g}): testing it exactly too")
+        r = confirm_one(o)
+        if isinstance(r, str):
+            o.note = r
+            rejected.append({"effect": o.effect, "sensors": list(o.sensors), "scope": o.scope, "step": step,
+                             "reason": r})
+            continue
+        gains.append((o, r[1]))
+        if r[1] > result[1]:
+            best, result = o, r
+    if len(gains) > 1:
+        told = "; ".join(f"{o.effect} on {o.sensor} +{g:.4g}" for o, g in gains)
+        notes.append(f"step {step}: the score test could not order {len(gains)} candidates (same dof, BIC within "
+                     f"{BIC_GAP:g}); their exact log-likelihood gains: {told}; kept {best.effect} on {best.sensor}")
+    return best, result

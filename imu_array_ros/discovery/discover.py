@@ -38,7 +38,7 @@ import numpy as np
 from imu_array_ros.discovery.blocks import short_recording_options, time_blocks
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
-from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, update_finding
+from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, settle_ties, update_finding
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
@@ -358,7 +358,8 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                     stop = c
                     break
                 continue
-            best = c
+            best, result = settle_ties(c, result, passing, lambda o: confirm(
+                samples, current, accepted, o, motion, level, model, opts.alpha), step, say, notes, rejected)
             break
         if stop is not None:
             notes.append(f"step {step}: stopped: the most likely candidate left, {stop.effect} on {stop.sensor}, "

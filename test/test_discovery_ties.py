@@ -1,0 +1,49 @@
+"""Candidates whose scores tie: discovery confirms each exactly and keeps the largest exact gain."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imu_array_ros.discovery.confirm import TIE_MAX, settle_ties, tied
+from imu_array_ros.discovery.explain import BIC_GAP, Candidate
+
+
+def _cand(effect, sensor, dof, bic, k=0):
+    return Candidate(effect=effect, k=k, sensor=sensor, statistic=-bic, dof=dof, lrt_p=1e-9, robust_p=1e-9,
+                     delta_loglik=-bic / 2, delta_bic=bic, heldout=1.0, theta=np.zeros(dof))
+
+
+def test_only_same_dof_within_the_gap_are_tied():
+    c = _cand("axis_offsets", "top", 9, -2.76e6)
+    near = _cand("axis_offsets", "bottom", 9, -2.76e6 + 0.4 * BIC_GAP)
+    other_dof = _cand("accelerometer_gain", "all", 3, -2.76e6 + 0.1)
+    far = _cand("axis_offsets", "imu_8", 9, -2.76e6 + 2 * BIC_GAP)
+    earlier = _cand("axis_offsets", "imu_1", 9, -2.76e6 - 1.0)  # ranked before c: tested already, not tied
+    passing = [earlier, c, near, other_dof, far]
+    assert tied(c, passing) == [near]
+    many = [c] + [_cand("axis_offsets", f"imu_{i}", 9, -2.76e6 + 0.01 * i) for i in range(6)]
+    assert len(tied(c, many)) == TIE_MAX - 1
+
+
+def test_the_larger_exact_gain_wins_and_the_note_says_so():
+    c = _cand("axis_offsets", "top", 9, -2.76e6)
+    near = _cand("axis_offsets", "bottom", 9, -2.76e6 + 1.0)
+    refused = _cand("axis_offsets", "outer", 9, -2.76e6 + 2.0)
+    gains = {"bottom": ("fit-bottom", 1.457e6), "outer": "not confirmed by the exact fit: ..."}
+    tried, notes, rejected, said = [], [], [], []
+
+    def confirm_one(o):
+        tried.append(o.sensor)
+        return gains[o.sensor]
+
+    best, result = settle_ties(c, ("fit-top", 1.429e6), [c, near, refused], confirm_one, 2, said.append, notes,
+                               rejected)
+    assert tried == ["bottom", "outer"] and best is near and result == ("fit-bottom", 1.457e6)
+    assert len(notes) == 1 and "kept axis_offsets on bottom" in notes[0] and "+1.429e+06" in notes[0]
+    assert [r["scope"] for r in rejected] == ["imu"] and refused.note.startswith("not confirmed")
+    # the first one kept when it gains more; no tie, no note, no extra exact fit
+    best, _ = settle_ties(c, ("fit-top", 2e6), [c, near], confirm_one, 2, said.append, notes := [], [])
+    assert best is c and "kept axis_offsets on top" in notes[0]
+    tried.clear()
+    best, _ = settle_ties(c, ("fit-top", 2e6), [c], confirm_one, 2, said.append, notes := [], [])
+    assert best is c and not notes and not tried
