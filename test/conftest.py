@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -118,15 +119,15 @@ def dds(monkeypatch, tmp_path):
 
 # --------------------------------------------------------------------------- parallel runs (pytest-xdist)
 
-#: what marks a test module as talking ROS (rclpy in the test process, or node processes over DDS)
+#: what marks a test module as talking ROS (rclpy in the test process, or node processes over DDS); a module
+#: with a test using the ``dds`` fixture, directly or through another fixture, is known by the fixture closures
 _ROS_WORDS = ("rclpy", "dds_env", "pick_domain", "DdsProcesses")
 
 
-def _talks_ros(path: Path, cache: dict = {}) -> bool:  # noqa: B006 - one answer per module per session
-    if path not in cache:
-        text = path.read_text(encoding="utf-8")
-        cache[path] = any(w in text for w in _ROS_WORDS) or "(dds," in text or "(dds)" in text
-    return cache[path]
+@functools.cache
+def _talks_ros(path: Path) -> bool:
+    text = path.read_text(encoding="utf-8")
+    return any(w in text for w in _ROS_WORDS)
 
 
 def pytest_configure(config):
@@ -135,17 +136,21 @@ def pytest_configure(config):
     import os
 
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        for key in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ[key] = "1"
+        from dds_harness import ONE_THREAD
         from threadpoolctl import threadpool_limits
+
+        os.environ.update(ONE_THREAD)
 
         config._imu_array_blas = threadpool_limits(limits=1, user_api="blas")  # held for the session
 
 
 def pytest_collection_modifyitems(config, items):
-    """Under ``-n N --dist loadgroup`` every test that talks ROS runs in one worker, one after another:
-    the DDS tests keep the machine's other cores to their node processes' rhythm and never share a
-    domain, while the numerical tests spread over the other workers."""
+    """Under ``-n N --dist loadgroup`` every test of a module that talks ROS runs in one worker, one after
+    another: the DDS tests keep the machine's other cores to their node processes' rhythm and never share a
+    domain (and their module's real-time tests, e.g. the fake device's clock, keep a quiet core too), while the
+    numerical tests spread over the other workers."""
+    dds_modules = {Path(str(item.fspath)) for item in items if "dds" in getattr(item, "fixturenames", ())}
     for item in items:
-        if "dds" in getattr(item, "fixturenames", ()) or _talks_ros(Path(str(item.fspath))):
+        path = Path(str(item.fspath))
+        if path in dds_modules or _talks_ros(path):
             item.add_marker(pytest.mark.xdist_group("ros"))

@@ -33,7 +33,7 @@ COME_UP_S = 90.0
 _SHM = "/dev/shm/fastrtps_"
 #: numerical libraries one thread per process: several node processes on a small machine do not starve each
 #: other (a calibration's BLAS threads cannot hold a replay driver up on a 2-core machine)
-_ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
 def pick_domain() -> int:
@@ -46,7 +46,7 @@ def pick_domain() -> int:
 def dds_env(domain: int) -> dict:
     """The environment of a process in ``domain``, localhost only, unbuffered output, one-thread numerics."""
     return dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                PYTHONUNBUFFERED="1", **_ONE_THREAD)
+                PYTHONUNBUFFERED="1", **ONE_THREAD)
 
 
 def _shm_files(pid: int | str) -> set[str]:

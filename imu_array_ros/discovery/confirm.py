@@ -35,8 +35,8 @@ IMPLAUSIBLE = "implausible"
 #: how confirm's reason starts when the candidate trades with earlier findings (:mod:`.trading`)
 TRADES = "indistinguishable from"
 
-__all__ = ["confirm", "settle_ties", "tied", "only_imus", "update_finding", "COST_TOLERANCE", "IMPLAUSIBLE", "TRADES",
-           "TIE_MAX"]
+__all__ = ["confirm", "settle_ties", "tied", "rejection", "only_imus", "update_finding", "COST_TOLERANCE",
+           "IMPLAUSIBLE", "TRADES", "TIE_MAX"]
 
 #: at most this many candidates of one tie are confirmed exactly (the first-ranked included)
 TIE_MAX = 3
@@ -192,6 +192,11 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
     return fit_c, float(delta_c)
 
 
+def rejection(c: Candidate, step: int, reason: str) -> dict:
+    """The report's record of a candidate the exact fit did not confirm."""
+    return {"effect": c.effect, "sensors": list(c.sensors), "scope": c.scope, "step": step, "reason": reason}
+
+
 def tied(c: Candidate, passing: list) -> list:
     """The passing candidates ranked after ``c`` whose scores tie with c's: the same dof and a BIC within
     ``BIC_GAP`` of c's (at most ``TIE_MAX`` - 1). The score test is a first-order approximation: within the gap
@@ -212,8 +217,7 @@ def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say
         r = confirm_one(o)
         if isinstance(r, str):
             o.note = r
-            rejected.append({"effect": o.effect, "sensors": list(o.sensors), "scope": o.scope, "step": step,
-                             "reason": r})
+            rejected.append(rejection(o, step, r))
             continue
         gains.append((o, r[1]))
         if r[1] > result[1]:

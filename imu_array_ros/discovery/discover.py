@@ -38,7 +38,7 @@ import numpy as np
 from imu_array_ros.discovery.blocks import short_recording_options, time_blocks
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
-from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, settle_ties, update_finding
+from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, rejection, settle_ties, update_finding
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
@@ -349,8 +349,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             key, result = c.key, confirm(samples, current, accepted, c, motion, level, model, opts.alpha)
             if isinstance(result, str):
                 c.note = result
-                rejected.append({"effect": c.effect, "sensors": list(c.sensors), "scope": c.scope, "step": step,
-                                 "reason": result})
+                rejected.append(rejection(c, step, result))
                 (traded if result.startswith(TRADES) else retry).update({key, c.key})  # as tested, as narrowed
                 if result.startswith(TRADES):
                     indist.append({"effects": [c.effect], "sensors": [c.sensor], "reason": result})

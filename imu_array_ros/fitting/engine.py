@@ -136,7 +136,8 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     reweighted problem; sandwich: compute ``covariance_robust`` (one more pass over the samples);
     cost_tolerance: also converged when a step lowers the cost (-log-likelihood) by less than this, and with
     timing terms no further trajectory round after one that gains less (default None: the parameter and
-    motion steps alone decide; discovery's confirming refits need only the likelihood); keep_g: the linearisations keep G_n for the motion steps (fewer passes over the samples, the
+    motion steps alone decide; discovery's confirming refits need only the likelihood); keep_g: the
+    linearisations keep G_n for the motion steps (fewer passes over the samples, the
     same steps to rounding; default None: as :func:`~imu_array_ros.fitting.problem.keep_schur` says, off
     outside it).  Raises
     :class:`CalibrationError` (one line) when the problem cannot be solved or

@@ -31,7 +31,8 @@ import numpy as np
 
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["reading_rates", "rates_on", "rates_scope", "keep_rates", "chip_clock", "rate_columns", "age_columns", "RATES"]
+__all__ = ["reading_rates", "rates_on", "rates_scope", "keep_rates", "chip_clock", "rate_columns", "age_columns",
+           "RATES"]
 
 #: motion coordinates added per sample: rho_g (3), rho_a (3)
 RATES = 6

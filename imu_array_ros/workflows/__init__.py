@@ -33,7 +33,8 @@ EXPORTS = {
     **dict.fromkeys(("read_imu_recording", "import_openshoe", "simulate", "Simulated", "MOTIONS", "icosahedron_seconds"),
                     "imu_array_ros.workflows.recordings"),
     **dict.fromkeys(("build_fusion", "fuse", "fuse_recording", "FusedRecording"), "imu_array_ros.workflows.fusion"),
-    **dict.fromkeys(("calibrate", "install", "findings_calibration", "METHODS"), "imu_array_ros.workflows.calibrations"),
+    **dict.fromkeys(("calibrate", "install", "findings_calibration", "METHODS"),
+                    "imu_array_ros.workflows.calibrations"),
     **dict.fromkeys(("Calibration", "Installed"), "imu_array_ros.calibration.result"),
     **dict.fromkeys(("residuals", "discover", "DiscoveryOptions"), "imu_array_ros.workflows.analysis"),
 }
