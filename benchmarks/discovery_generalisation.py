@@ -13,7 +13,8 @@ noisy recording (a pair: its weak partner's).  Every recording is analysed with 
 
 Scored (:func:`imu_array_ros.simulation.suites.score`): correct = exactly the injected terms, each on exactly
 its IMUs (per-IMU findings or one finding at the shared/group scope), nothing else; vibration: located (an
-unexplained entry holding its frequency and its largest-amplitude IMU) and no finding at all; null: no finding.
+unexplained entry holding its frequency and a largest-amplitude IMU, several when the shape ties) and no finding
+at all; null: no finding.
 Detection probability per class and evidence bin with Clopper-Pearson 95 % intervals.
 
 Runs in a pool of ``--workers`` processes, one BLAS thread each.  Writes
@@ -266,6 +267,10 @@ def render(res: dict, out: Path, base: dict | None = None) -> None:
     if pairs:
         text += (f"Pairs: strong partner found on its IMU {sum(r['detected'][0] for r in pairs)}/{len(pairs)}, "
                  f"weak partner {sum(r['detected'][1] for r in pairs)}/{len(pairs)}.\n")
+    named = [r for r in rows if r.get("named_alternative")]
+    text += (f"Wrong answers whose finding discovery itself named indistinguishable from the truth (a tie of exact "
+             f"gains within ln(1/alpha); counted wrong above): {len(named)}"
+             + (f" ({', '.join(r['scenario'].split(':')[0] for r in named)})" if named else "") + ".\n")
     z = [v for r in rows for v in r["max_abs_z"].values() if v is not None]
     if z:
         text += f"Magnitudes of findings on injected (term, IMU): {sum(v <= 3 for v in z)}/{len(z)} within 3 sigma.\n"
@@ -295,7 +300,9 @@ def render(res: dict, out: Path, base: dict | None = None) -> None:
                 f"{', '.join(u['sensors'][:3])}{' ...' if len(u['sensors']) > 3 else ''} {'/'.join(u['axes'])} "
                 f"{u['band_hz'][0]:.3g}-{u['band_hz'][1]:.3g} Hz" for u in r["unexplained"]) or "none")
         name = r["scenario"].replace("|", "\\|")
-        text += (f"| {name} | {ev} | {found} | {'yes' if r['correct'] else '**no**'} | "
+        verdict = "yes" if r["correct"] else ("**no** (truth named indistinguishable)" if r.get("named_alternative")
+                                              else "**no**")
+        text += (f"| {name} | {ev} | {found} | {verdict} | "
                  f"{r['seconds']:.0f} |\n")
     write_results(out.with_suffix(".md"), text)
     _plot(rows, classes, out.with_suffix(".png"))

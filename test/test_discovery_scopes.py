@@ -39,10 +39,28 @@ def _run(nominal, samples, terms=TERMS):
 
 
 def test_geometry_groups_of_the_corner_array(nominal):
-    """Top (z > 0, sensor z up) and bottom (flipped) sides; every corner is as far from the centroid, so no
-    outer ring."""
+    """Top (z > 0, sensor z up) and bottom (flipped) sides, the front/back (x) and left/right (y) halves;
+    every corner is as far from the centroid, so no outer ring."""
     groups = dict(geometry_groups(nominal.positions, nominal.rotations))
-    assert groups == {"top": (0, 2, 4, 6), "bottom": (1, 3, 5, 7)}
+    c = nominal.positions - nominal.positions.mean(axis=0)
+    assert groups["top"] == (0, 2, 4, 6) and groups["bottom"] == (1, 3, 5, 7)
+    for name, axis, sign in (("front", 0, 1), ("back", 0, -1), ("left", 1, 1), ("right", 1, -1)):
+        assert groups[name] == tuple(np.flatnonzero(sign * c[:, axis] > 0).tolist())
+    assert set(groups) == {"top", "bottom", "front", "back", "left", "right"}
+
+
+def test_geometry_groups_leave_the_mid_line_out_and_name_a_group_once():
+    """A flat 3 x 3 grid, every sensor up: no sides; the halves leave the middle row / column out; the
+    outer ring (the 8 IMUs farther than the median, the corners) is named; no group holds every IMU."""
+    xy = np.array([(x, y) for x in (-0.01, 0.0, 0.01) for y in (-0.01, 0.0, 0.01)])
+    positions = np.column_stack([xy, np.zeros(9)])
+    groups = geometry_groups(positions, np.tile(np.eye(3), (9, 1, 1)))
+    named = dict(groups)
+    assert "top" not in named and "bottom" not in named
+    assert named["front"] == (6, 7, 8) and named["back"] == (0, 1, 2)
+    assert named["left"] == (2, 5, 8) and named["right"] == (0, 3, 6)
+    assert named["outer"] == (0, 2, 6, 8)
+    assert len({imus for _, imus in groups}) == len(groups)
 
 
 def test_score_blocks_cross_imu_information_is_consistent(nominal):

@@ -133,6 +133,23 @@ def test_scorer_shared_scope_per_imu_or_shared_finding():
     assert not score(g, _discovery([_finding("accelerometer_gain", range(4))]))["correct"]
 
 
+def test_scorer_names_a_wrong_answer_whose_stated_alternative_is_the_truth():
+    """The effect on IMUs 0, 1 reported on 2, 3 with 'indistinguishable from 0, 1': not correct, but the named
+    alternative is; an alternative that is also wrong, or none, is not marked."""
+    g = _built("group", [Effect("gyroscope_bias", (0, 1), (0.0,) * 3, 400.0)])
+    d = _discovery([_finding("gyroscope_bias", (2, 3))])
+    assert not score(g, d)["correct"] and not score(g, d)["named_alternative"]
+    alt = lambda ks: {"effect": "gyroscope_bias", "sensors": [NAMES[k] for k in ks]}  # noqa: E731
+    d.indistinguishable = [{"effects": ["gyroscope_bias"] * 2, "alternatives": [alt((2, 3)), alt((0, 1))]}]
+    r = score(g, d)
+    assert not r["correct"] and r["named_alternative"]
+    d.indistinguishable = [{"effects": ["gyroscope_bias"] * 2, "alternatives": [alt((2, 3)), alt((1, 2))]}]
+    assert not score(g, d)["named_alternative"]
+    right = _discovery([_finding("gyroscope_bias", (0, 1))])
+    right.indistinguishable = [{"effects": ["gyroscope_bias"] * 2, "alternatives": [alt((0, 1)), alt((2, 3))]}]
+    assert score(g, right)["correct"] and not score(g, right)["named_alternative"]
+
+
 def test_scorer_vibration_and_null():
     vib = Vibration(20.0, 0.5, (0.0, 0.0, 1.0), (0.5, -1.0, 0.5, -0.5), 100.0)
     b = _built("vibration", vibration=vib)
@@ -142,6 +159,9 @@ def test_scorer_vibration_and_null():
     elsewhere = dict(entry, band_hz=[1.0, 5.0])
     assert not score(b, _discovery(unexplained=[elsewhere]))["correct"]
     assert not score(b, _discovery(unexplained=[dict(entry, sensors=["imu_03"])]))["correct"]
+    tie = _built("vibration", vibration=Vibration(20.0, 0.5, (0.0, 0.0, 1.0), (1.0, 0.5, -1.0, 0.5), 100.0))
+    assert score(tie, _discovery(unexplained=[dict(entry, sensors=["imu_03"])]))["correct"]  # imu_01, imu_03 tie
+    assert not score(tie, _discovery(unexplained=[dict(entry, sensors=["imu_02", "imu_04"])]))["correct"]
     n = _built("null")
     assert score(n, _discovery(unexplained=[entry]))["correct"]
     assert not score(n, _discovery([_finding("gyroscope_bias", 0)]))["correct"]

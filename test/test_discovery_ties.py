@@ -47,3 +47,31 @@ def test_the_larger_exact_gain_wins_and_the_note_says_so():
     tried.clear()
     best, _ = settle_ties(c, ("fit-top", 2e6), [c], confirm_one, 2, said.append, notes := [], [])
     assert best is c and not notes and not tried
+
+
+def test_gains_within_ln_one_over_alpha_are_reported_indistinguishable():
+    """A tie whose exact gains differ by less than ln(1/alpha) is not settled by the larger one alone: both are
+    named indistinguishable (complementary scopes of one term: what the data fix is the difference); a gap of
+    ln(1/alpha) or more is settled silently."""
+    left = _cand("gyroscope_bias", "left shared (imu_00, imu_01)", 3, -440.0)
+    left.imus = (0, 1)
+    right = _cand("gyroscope_bias", "right shared (imu_02, imu_03)", 3, -439.0)
+    right.imus = (2, 3)
+    for gap, alike in ((0.5, True), (np.log(100.0) + 1e-6, False)):
+        left.note = right.note = ""
+        indist, notes = [], []
+        best, result = settle_ties(left, ("fit-left", 223.9), [left, right], lambda o: ("fit-right", 223.9 + gap),
+                                   1, lambda text: None, notes, [], alpha=0.01, indist=indist, n_imus=4)
+        assert best is right and result[0] == "fit-right"
+        assert bool(indist) == alike and ("indistinguishable from" in right.note) == alike
+        if alike:
+            (e,) = indist
+            assert e["sensors"] == [right.sensor, left.sensor] and abs(e["delta_loglik_gap"] - gap) < 1e-9
+            assert "complements" in e["reason"] and "left shared" in right.note
+    # not complements (overlapping scopes): indistinguishable, without the common-value reason
+    top = _cand("gyroscope_bias", "imu_00,imu_02 shared", 3, -439.5)
+    top.imus = (0, 2)
+    indist = []
+    settle_ties(left, ("fit-left", 223.9), [left, top], lambda o: ("fit-top", 224.0), 1, lambda text: None, [], [],
+                alpha=0.01, indist=indist, n_imus=4)
+    assert len(indist) == 1 and "complements" not in indist[0]["reason"]

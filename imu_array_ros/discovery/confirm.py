@@ -205,11 +205,14 @@ def tied(c: Candidate, passing: list) -> list:
     return [o for o in after if o.dof == c.dof and o.delta_bic - c.delta_bic < BIC_GAP][:TIE_MAX - 1]
 
 
-def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say, notes: list, rejected: list):
+def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say, notes: list, rejected: list, *,
+                alpha: float = 0.01, indist: list | None = None, n_imus: int | None = None):
     """(candidate, result) kept among ``c`` (confirmed: ``result`` = (fit, gain)) and the candidates tied with it
     (:func:`tied`), each confirmed exactly by ``confirm_one(candidate)``: the largest exact log-likelihood gain
     wins. A note says which were tied and what each gained; a tied candidate the exact fit does not confirm goes
-    to ``rejected`` with its reason."""
+    to ``rejected`` with its reason.  A confirmed one whose gain is within ln(1/alpha) of the kept one's (a
+    likelihood ratio below 1/alpha: the recording does not tell them apart) is appended to ``indist`` (the
+    report's "indistinguishable" entries) and named in the kept candidate's note: the finding may as well be it."""
     best, gains = c, [(c, result[1])]
     for o in tied(c, passing):
         say(f"step {step}: {o.effect} on {o.sensor} scores as {c.effect} on {c.sensor} does (BIC within "
@@ -226,4 +229,24 @@ def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say
         told = "; ".join(f"{o.effect} on {o.sensor} +{g:.4g}" for o, g in gains)
         notes.append(f"step {step}: the score test could not order {len(gains)} candidates (same dof, BIC within "
                      f"{BIC_GAP:g}); their exact log-likelihood gains: {told}; kept {best.effect} on {best.sensor}")
+    close = [(o, g) for o, g in gains if o is not best and result[1] - g < np.log(1.0 / alpha)]
+    for o, g in close:
+        why = _alike(best, o, result[1] - g, alpha, n_imus)
+        if indist is not None:
+            indist.append({"effects": [best.effect, o.effect], "sensors": [best.sensor, o.sensor], "reason": why,
+                           "delta_loglik_gap": float(result[1] - g), "step": step,
+                           "alternatives": [{"effect": x.effect, "sensors": list(x.sensors)} for x in (best, o)]})
+        best.note = (best.note + "; " if best.note else "") + f"indistinguishable from {o.effect} on {o.sensor}: {why}"
     return best, result
+
+
+def _alike(best: Candidate, o: Candidate, gap: float, alpha: float, n_imus: int | None) -> str:
+    """Why two confirmed candidates of a tie are indistinguishable (their exact gains ``gap`` apart)."""
+    why = (f"their exact log-likelihood gains differ by {gap:.3g} < ln(1/alpha) = {np.log(1.0 / alpha):.3g} (a "
+           f"likelihood ratio below {1.0 / alpha:g}): the recording does not tell them apart")
+    a, b = set(best.imus), set(o.imus)
+    if best.effect == o.effect and n_imus is not None and not a & b and len(a | b) == n_imus:
+        why += (f"; the two scopes are complements, so {best.effect} on one differs from the opposite value on "
+                f"the other only by a value common to every IMU, which the motion nearly absorbs: what the data "
+                f"fix is the difference between the two sides")
+    return why

@@ -358,7 +358,8 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                     break
                 continue
             best, result = settle_ties(c, result, passing, lambda o: confirm(
-                samples, current, accepted, o, motion, level, model, opts.alpha), step, say, notes, rejected)
+                samples, current, accepted, o, motion, level, model, opts.alpha), step, say, notes, rejected,
+                alpha=opts.alpha, indist=indist, n_imus=model.n_imus)
             break
         if stop is not None:
             notes.append(f"step {step}: stopped: the most likely candidate left, {stop.effect} on {stop.sensor}, "

@@ -52,8 +52,10 @@ class Scope:
 
 def geometry_groups(positions: np.ndarray, rotations: np.ndarray) -> list[tuple[str, tuple[int, ...]]]:
     """[(name, IMU indexes)] of the groups the layout suggests: "top"/"bottom" (z of the position about
-    the centroid, or else the sensor z axis pointing up or down in the array frame) and "outer"/"inner"
-    (distance from the centroid above the median, when the distances differ); each with 2..K-1 IMUs."""
+    the centroid, or else the sensor z axis pointing up or down in the array frame), the board's halves
+    "front"/"back" and "left"/"right" (x and y of the position about the centroid, REP-103: x forward, y left;
+    IMUs on the mid-line in neither) and "outer"/"inner" (distance from the centroid above the median, when
+    the distances differ); each with 2..K-1 IMUs, a group the same as an earlier one named once."""
     p = np.asarray(positions, dtype=float)
     k = len(p)
     c = p - p.mean(axis=0)
@@ -65,6 +67,9 @@ def geometry_groups(positions: np.ndarray, rotations: np.ndarray) -> list[tuple[
     else:
         side = up > 0
     out += [("top", side), ("bottom", ~side)]
+    for axis, (plus, minus) in ((0, ("front", "back")), (1, ("left", "right"))):
+        if np.ptp(c[:, axis]) > GEOMETRY_TOL:
+            out += [(plus, c[:, axis] > GEOMETRY_TOL / 2), (minus, c[:, axis] < -GEOMETRY_TOL / 2)]
     d = np.linalg.norm(c, axis=1)
     if np.ptp(d) > GEOMETRY_TOL:
         outer = d > np.median(d)

@@ -43,8 +43,9 @@ per IMU or one finding at a group/shared scope: a finding covers the IMUs of its
 ``sensors``), and nothing else; each effect is also scored on its own
 (``detected``: its term found on exactly its IMUs), the power curves of the
 pairs use the weak partner.  Vibration: *located* (an unexplained entry whose
-band holds the mode's frequency and whose IMUs include the largest-amplitude
-one) and nothing forced (no finding at all).  Null: correct without a finding.
+band holds the mode's frequency and whose IMUs include a largest-amplitude
+one: symmetric shapes tie) and nothing forced (no finding at all); details in
+:mod:`.suite_score`.  Null: correct without a finding.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ import numpy as np
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 from imu_array_ros.simulation.perturb import TERM_TEST_SIZES
+from imu_array_ros.simulation.suite_score import score
 
 __all__ = ["CLASSES", "ARRAYS", "RATES", "LIBRARY_TERMS", "SHARED_TERMS", "Effect", "Vibration", "SuiteScenario",
            "BuiltScenario", "draw_suite", "draw_scenario", "build", "score", "array_description", "UnsizableEffect"]
@@ -427,74 +429,3 @@ def build(sc: SuiteScenario, *, attempts: int = 6) -> BuiltScenario:
         targets.append(vib.evidence)
         samples = noisy
     return BuiltScenario(sc, samples, nominal, true, effects, values, targets, nf, oracle, amplitude, notes)
-
-
-# --------------------------------------------------------------------------------------------- scoring
-
-def _found(d, names) -> dict[str, set[int]]:
-    """term -> the IMUs its findings cover (a finding's ``sensors`` in the report schema)."""
-    out: dict[str, set[int]] = {}
-    for f in d.findings:
-        sensors = f.to_dict().get("sensors") or [f.sensor]
-        out.setdefault(f.effect, set()).update(names.index(s) for s in sensors)
-    return out
-
-
-def _magnitudes(d, built: BuiltScenario) -> dict[str, float | None]:
-    """max |estimate - truth| / std per finding on an injected (term, IMU); a time offset on every IMU modulo the
-    gauge of time (a shift of every delay, absorbed by the motion: the differences' weighted mean removed)."""
-    out = {}
-    truth = {(e.term, k): v for e, v in zip(built.effects, built.values) for k in e.imus}
-    n_imus = len(built.nominal.names)
-    for f in d.findings:
-        v = truth.get((f.effect, f.k))
-        if v is None or np.shape(f.values) != np.shape(v):
-            continue
-        diff, std = np.asarray(f.values, dtype=float) - v, np.asarray(f.std, dtype=float)
-        if f.effect == "time_offset" and len(getattr(f, "imus", ()) or ()) == n_imus:
-            w = np.where(np.isfinite(std) & (std > 0), 1.0 / np.where(std > 0, std, 1.0) ** 2, 0.0)
-            if w.sum() > 0:
-                diff = diff - np.sum(w * np.nan_to_num(diff)) / w.sum()
-        with np.errstate(invalid="ignore", divide="ignore"):
-            z = np.abs(diff) / std
-        out[f"{f.effect}@{f.sensor}"] = float(np.nanmax(z)) if np.isfinite(z).any() else None
-    return out
-
-
-def score(built: BuiltScenario, d) -> dict:
-    """How discovery ``d`` (a Discovery: ``findings`` with ``effect``, ``sensor``, ``k``, ``values``, ``std``
-    and ``to_dict()["sensors"]``; ``unexplained`` entries with ``sensors`` and ``band_hz``) did on ``built``."""
-    sc = built.scenario
-    names = list(built.nominal.names)
-    found = _found(d, names)
-    truth: dict[str, set[int]] = {}
-    for e in built.effects:
-        truth.setdefault(e.term, set()).update(e.imus)
-    label = lambda t, ks: f"{t}@{','.join(names[k] for k in sorted(ks))}"  # noqa: E731
-    out = {"scenario": sc.name, "class": sc.cls, "variant": sc.variant, "array": sc.array, "rate_hz": sc.rate_hz,
-           "still_poses": sc.still_poses, "duration_s": sc.duration_s,
-           "injected": [label(e.term, e.imus) for e in built.effects],
-           "found": [label(t, ks) for t, ks in sorted(found.items())],
-           "detected": [found.get(e.term) == set(e.imus) for e in built.effects],
-           "false_findings": [label(t, ks - truth.get(t, set())) for t, ks in sorted(found.items())
-                              if ks - truth.get(t, set())],
-           "evidence_target": built.oracle_target, "evidence_noise_free": built.oracle_noise_free,
-           "evidence": built.oracle, "max_abs_z": _magnitudes(d, built),
-           "indistinguishable": [e.get("effects") for e in d.indistinguishable],
-           "unexplained_entries": len(d.unexplained), "notes": built.notes}
-    out["correct"] = found == truth
-    if sc.vibration is not None:
-        vib = sc.vibration
-        lead = names[int(np.argmax(np.abs(vib.shape)))]
-        f = vib.frequency_hz
-        out["vibration"] = {"frequency_hz": f, "amplitude": built.amplitude, "lead_imu": lead,
-                            "shape": list(vib.shape)}
-        out["located"] = any(lead in e["sensors"] and e["band_hz"][0] <= f <= e["band_hz"][1]
-                             for e in d.unexplained)
-        out["unexplained"] = [{"sensors": e["sensors"], "axes": e["axes"], "band_hz": e["band_hz"]}
-                              for e in d.unexplained]
-        out["detected"] = [out["located"]]
-        out["correct"] = out["located"] and not found
-    out["power_evidence"] = min(built.oracle) if built.oracle else None
-    out["power_detected"] = bool(out["correct"])
-    return out
