@@ -178,3 +178,22 @@ def test_magnitudes_of_a_time_offset_on_every_imu_are_modulo_the_gauge_of_time()
     one = SimpleNamespace(**{**vars(f), "imus": (0,)})  # on one IMU the others fix the gauge: no shift removed
     one.values = np.array([0.0, 2e-3])
     assert score(b, _discovery([one]))["max_abs_z"]["time_offset@imu_01"] > 50
+
+
+def test_magnitudes_of_a_pooled_gain_are_its_change_from_nominal():
+    """A pooled finding reports the change from the nominal model (a gain's nominal is 1), a per-IMU one the
+    model's value: both compared with the truth in their own convention."""
+    b = _built("group", [Effect("accelerometer_gain", (1, 3), (0.0,) * 3, 100.0)])
+    b.values[0] = np.array([1.002, 0.999, 1.001])
+    b = BuiltScenario(b.scenario, None, SimpleNamespace(names=NAMES, terms={
+        "accelerometer_gain": SimpleNamespace(values=np.ones((4, 3)))}), None, b.effects, b.values, b.oracle_target,
+        b.oracle_noise_free, b.oracle)
+    std = np.full(3, 1e-4)
+    label = "imu_02,imu_04 shared"
+    pooled = SimpleNamespace(effect="accelerometer_gain", k=1, sensor=label, scope=label, imus=(1, 3),
+                             values=np.array([0.002, -0.001, 0.001]), std=std,
+                             to_dict=lambda: {"sensors": ["imu_02", "imu_04"]})
+    assert score(b, _discovery([pooled]))["max_abs_z"][f"accelerometer_gain@{label}"] < 1e-6
+    own = SimpleNamespace(effect="accelerometer_gain", k=1, sensor="imu_02", values=np.array([1.0023, 0.999, 1.001]),
+                          std=std, to_dict=lambda: {"sensors": ["imu_02"]})
+    assert abs(score(b, _discovery([own]))["max_abs_z"]["accelerometer_gain@imu_02"] - 3.0) < 1e-6

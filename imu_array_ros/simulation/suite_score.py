@@ -34,7 +34,9 @@ def _found(d, names) -> dict[str, set[int]]:
 
 def _magnitudes(d, built: BuiltScenario) -> dict[str, float | None]:
     """max |estimate - truth| / std per finding on an injected (term, IMU); a time offset on every IMU modulo the
-    gauge of time (a shift of every delay, absorbed by the motion: the differences' weighted mean removed)."""
+    gauge of time (a shift of every delay, absorbed by the motion: the differences' weighted mean removed).  A
+    pooled finding's values are the change from the nominal model (discover.Finding), a per-IMU one's the
+    model's values: each is compared with the truth in its own convention."""
     out = {}
     truth = {(e.term, k): v for e, v in zip(built.effects, built.values) for k in e.imus}
     n_imus = len(built.nominal.names)
@@ -42,6 +44,8 @@ def _magnitudes(d, built: BuiltScenario) -> dict[str, float | None]:
         v = truth.get((f.effect, f.k))
         if v is None or np.shape(f.values) != np.shape(v):
             continue
+        if getattr(f, "scope", "imu") != "imu":  # a change from the nominal value (a gain's nominal is 1)
+            v = v - np.asarray(built.nominal.terms[f.effect].values[f.k], dtype=float)
         diff, std = np.asarray(f.values, dtype=float) - v, np.asarray(f.std, dtype=float)
         if f.effect == "time_offset" and len(getattr(f, "imus", ()) or ()) == n_imus:
             w = np.where(np.isfinite(std) & (std > 0), 1.0 / np.where(std > 0, std, 1.0) ** 2, 0.0)
