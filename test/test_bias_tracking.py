@@ -183,3 +183,15 @@ def test_many_bias_jumps_share_one_console_line():
     assert len(listed) == MAX_JUMP_LINES and "a (5.0 sigma)" in listed[0], notes
     assert len(notes) == 1 + MAX_JUMP_LINES + 1 and f"{jumps - MAX_JUMP_LINES} more updates" in notes[-1], notes
     assert notes[-1].endswith(f"{10 * jumps} s"), notes[-1]
+
+
+def test_session_notes_are_prefixed_once():
+    """Each session state's note is one console line that says 'session states' once."""
+    from types import SimpleNamespace
+
+    from imu_array_ros.workflows.fusion import session_notes
+
+    notes = session_notes(SimpleNamespace(notes=["session states estimated from 114 s of motion",
+                                                 "imu_1 gyroscope clock phase 0.3 ms"]), None)
+    assert notes == ["session states estimated from 114 s of motion",
+                     "session states: imu_1 gyroscope clock phase 0.3 ms"]

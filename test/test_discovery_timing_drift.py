@@ -209,3 +209,20 @@ def test_backward_elimination_drops_a_finding_the_others_make_redundant(nominal,
     kept, dropped, _, _, _ = eliminate.backward_eliminate(None, nominal, found, _fake_fit(nominal, 8.0, 20.0),
                                                           np.zeros((4, 9)), levels, 0.01)
     assert len(kept) == 2 and not dropped and len(calls) == 1
+
+
+def test_exact_fits_say_their_progress_and_the_cap_is_noted(nominal, monkeypatch):
+    """The exact refits say their iterations (throttled; here every one) and a search ended by max_findings
+    says so in the notes; a search that ends by itself does not."""
+    from imu_array_ros.discovery import confirm
+
+    monkeypatch.setattr(confirm, "PROGRESS_S", 0.0)
+    said = []
+    opts = DiscoveryOptions(terms=BIAS_TERMS, empirical=False, heldout=False, timing=False, max_findings=1)
+    d = discover(_session(_with(nominal, bias=True)), nominal, options=opts, progress=said.append)
+    assert len(d.findings) == 1
+    assert any(t.startswith("exact fit of ") and ": iteration 1, cost " in t for t in said)
+    assert any("stopped at its cap of 1 findings" in n for n in d.notes)
+    opts.max_findings = 4
+    d = discover(_session(_with(nominal, bias=True)), nominal, options=opts)
+    assert len(d.findings) == 2 and not any("cap of" in n for n in d.notes)

@@ -18,6 +18,8 @@ findings' terms can nearly produce is not reported (:mod:`.trading`): its values
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.stats
 
@@ -40,6 +42,9 @@ __all__ = ["confirm", "settle_ties", "tied", "rejection", "only_imus", "update_f
 
 #: at most this many candidates of one tie are confirmed exactly (the first-ranked included)
 TIE_MAX = 3
+
+#: an exact refit says its iteration and cost at most this often (s): on a whole capture one takes minutes
+PROGRESS_S = 30.0
 
 #: the exact refit stops when a step gains less log-likelihood than this: the decision reads the gain (>= half a
 #: chi-square quantile, ~10-30), so the last steps that move the motion by < 1e-3 of its own sd gain nothing
@@ -69,15 +74,28 @@ def update_finding(f, fit, model: SensorModel, alpha: float) -> None:
     f.shared = f.tie["p"] >= alpha
 
 
-def _refit(samples, current: SensorModel, pairs, motion):
+def _ticker(say, label: str):
+    """A fit_terms progress callback that says ``label``'s iteration and cost at most every PROGRESS_S."""
+    if say is None:
+        return None
+    last = [time.monotonic()]
+
+    def tick(iteration: int, cost: float) -> None:
+        if time.monotonic() - last[0] >= PROGRESS_S:
+            last[0] = time.monotonic()
+            say(f"{label}: iteration {iteration}, cost {cost:.8g}")
+    return tick
+
+
+def _refit(samples, current: SensorModel, pairs, motion, progress=None):
     only = only_imus(pairs)
     imus = sorted({k for ks in only.values() for k in ks})
     return fit_terms(samples, current, list(only), imus=imus, only=only, motion0=motion, max_iterations=30,
-                     sandwich=False, cost_tolerance=COST_TOLERANCE)  # CRB only: no sandwich pass
+                     sandwich=False, cost_tolerance=COST_TOLERANCE, progress=progress)  # CRB only: no sandwich
 
 
 def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level: float, model: SensorModel,
-             alpha: float):
+             alpha: float, say=None):
     """Exact refit of every finding so far plus ``c`` (the engine, ``only``: a pooled candidate with each IMU's
     own value); (FitResult, delta loglik) or a reason string when the exact likelihood ratio does not confirm
     the candidate.  A shared scope is confirmed by the gain of the shared value: the per-IMU fit's gain less
@@ -85,11 +103,13 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     test accepts one value at ``alpha``, else by the per-IMU fit's gain against a chi-square with all its
     parameters.  A confirmed pooled candidate is narrowed to the IMUs that carry it (:mod:`.subset`; ``c``'s
     scope, IMUs and sensors are then changed in place and its note says why), the fit returned the refit on
-    them.  A reason starting with IMPLAUSIBLE: the values are beyond the calibrations' bounds; with TRADES:
-    its evidence is mostly a change of the earlier findings' values (:mod:`.trading`)."""
+    them.  say(text): progress lines of the long exact fits.  A reason starting with IMPLAUSIBLE: the values are
+    beyond the calibrations' bounds; with TRADES: its evidence is mostly a change of the earlier findings' values
+    (:mod:`.trading`)."""
     pairs = [(f.effect, f.imus) for f in accepted.values()]
     try:
-        fit = _refit(samples, current, pairs + [(c.effect, c.imus)], motion)
+        fit = _refit(samples, current, pairs + [(c.effect, c.imus)], motion,
+                     _ticker(say, f"exact fit of {c.effect} on {c.sensor}"))
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
     delta = fit.loglik_after - fit.loglik_before
@@ -105,7 +125,7 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
         return (f"not confirmed by the exact fit: log-likelihood gain {gain:.3g} < {need:.3g} "
                 f"(the score test's first-order gain was {c.delta_loglik:.3g})")
     if c.scope != "imu":
-        narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha)
+        narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha, say)
         if narrowed is not None:
             fit, delta = narrowed
     problem = implausible(fit.model, model)
@@ -121,7 +141,8 @@ def _free(fit) -> int:
     return int(np.sum(np.diag(fit.covariance) > 0))
 
 
-def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motion, level, model, alpha):
+def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motion, level, model, alpha,
+            say=None):
     """(fit, delta) of ``c`` narrowed to the IMUs that carry it (:mod:`.subset`), ``c`` changed in place; None
     (``c`` as it was, its note saying why when a subset was tried) when the scope stands."""
     term, imus = c.effect, tuple(c.imus)
@@ -134,7 +155,8 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
     names = [model.names[k] for k in sub]
     tried = f"narrowing to {', '.join(names)} (the fewest IMUs of the scope the Wald test at alpha = {alpha:g} accepts)"
     try:
-        fit_c = _refit(samples, current, pairs + [(term, sub)], motion)
+        fit_c = _refit(samples, current, pairs + [(term, sub)], motion,
+                       _ticker(say, f"exact fit of {term} narrowed to {', '.join(names)}"))
     except CalibrationError as err:
         c.note = f"{tried}: the exact refit failed ({err}); the scope stands"
         return None

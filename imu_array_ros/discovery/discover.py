@@ -346,7 +346,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         best = stop = None
         for c in passing:
             say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly")
-            key, result = c.key, confirm(samples, current, accepted, c, motion, level, model, opts.alpha)
+            key, result = c.key, confirm(samples, current, accepted, c, motion, level, model, opts.alpha, say)
             if isinstance(result, str):
                 c.note = result
                 rejected.append(rejection(c, step, result))
@@ -358,7 +358,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                     break
                 continue
             best, result = settle_ties(c, result, passing, lambda o: confirm(
-                samples, current, accepted, o, motion, level, model, opts.alpha), step, say, notes, rejected,
+                samples, current, accepted, o, motion, level, model, opts.alpha, say), step, say, notes, rejected,
                 alpha=opts.alpha, indist=indist, n_imus=model.n_imus)
             break
         if stop is not None:
@@ -391,6 +391,8 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         motion = _fill(fit.motion, motion)
         motion, _, _ = fit_motion(samples, current, motion)
         if step == opts.max_findings:  # no step left to test candidates: residuals only
+            notes.append(f"the search stopped at its cap of {opts.max_findings} findings (max_findings, "
+                         f"--max-findings): candidates were not re-tested after the last one; more may pass")
             sb = _residuals_only(samples, current, motion, blocks)
             break
         say(f"step {step + 1}: re-scoring every candidate given the {len(accepted)} findings")

@@ -63,7 +63,8 @@ def _timed(samples: ImuSamples, fusion: ModelFusion) -> tuple[ModelFusion, Sessi
 def session_notes(session: SessionStates | None, biases: BiasTrack | None) -> list[str]:
     """The notes of the session states estimated (gyroscope biases, then timing), one console line each."""
     out = [] if biases is None else list(biases.notes())
-    return out + ([] if session is None else [f"session states: {n}" for n in session.notes])
+    return out + ([] if session is None else [n if n.startswith("session states") else f"session states: {n}"
+                                              for n in session.notes])
 
 
 @dataclass
