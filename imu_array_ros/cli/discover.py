@@ -132,6 +132,8 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
         if not d.findings and not (d.timing is not None and d.timing.used):
             info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
         else:
+            info(quiet, f"--apply: checking the findings' calibration against the recording before writing "
+                        f"{apply} (a fit of the whole recording)")
             try:
                 installed = workflows.findings_calibration(d, samples, source=str(recording),
                                                            start=workflows.as_model(desc)).install(desc, apply)

@@ -260,7 +260,8 @@ def check_report_directory(directory, inputs, force: bool, *, kind: str, option:
     d = Path(directory)
     label = kind.removeprefix("imu_array_ros ")  # e.g. "calibration report"
     if unnamed(d):
-        raise OutputError(f"{d}: {option} must name a directory, not {str(d)!r}")
+        raise OutputError(f"{d}: {option} must name a new or empty directory of its own, not {str(d)!r} (a "
+                          f"current, parent or root directory)")
     if d.is_symlink():
         raise OutputError(f"{d}: {option} is a symbolic link; give the real path")
     if d.exists() and not d.is_dir():
