@@ -307,3 +307,24 @@ def test_atomic_file_failure_leaves_nothing(tmp_path):
     atomic_write_text(f, "2")
     assert f.read_text() == "2" and oct(f.stat().st_mode & 0o777) == "0o644"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "f.json"]
+
+
+@pytest.mark.parametrize("command", [["calibrate", "noise"], ["calibrate", "fit", "--terms", "gyroscope_bias"],
+                                     ["discover"]])
+def test_an_out_holding_other_imus_is_refused_before_the_work(bag, tmp_path, capsys, monkeypatch, command):
+    """--out (--apply for discover) holding a description of other IMUs is refused, with --force too, before
+    any calibration or discovery runs; the file is kept as it was."""
+    from imu_array_ros import workflows
+
+    def never(*args, **kwargs):
+        raise AssertionError("the work ran before the output was checked")
+
+    monkeypatch.setattr(workflows, "calibrate", never)
+    monkeypatch.setattr(workflows, "discover", never)
+    other = tmp_path / "other.yaml"
+    other.write_bytes((REPO / "config" / "mimu4444bt_corners.yaml").read_bytes())
+    before = other.read_bytes()
+    target = ["--apply", other, "--report", tmp_path / "report"] if command == ["discover"] else ["--out", other]
+    assert_user_error(cli(capsys, *command, bag, "--array", ARRAY32, *target, "--force", "-q"),
+                      "description of other IMUs", str(other))
+    assert other.read_bytes() == before

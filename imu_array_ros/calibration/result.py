@@ -44,7 +44,8 @@ from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.util.files import atomic_write_bytes, atomic_write_text
 from imu_array_ros.version import __version__
 
-__all__ = ["Calibration", "Scorer", "SumScorer", "Installed", "install_description", "backup_path", "provenance",
+__all__ = ["Calibration", "Scorer", "SumScorer", "Installed", "install_description", "check_install_target",
+           "backup_path", "provenance",
            "fit_statistics", "LOGLIK_TOLERANCE"]
 
 #: a file on disk counts as better only when its log-likelihood is higher by more than this (a
@@ -164,13 +165,28 @@ class Calibration:
                                    new_score=new_score, data=self.data)
 
 
+def check_install_target(out: str | Path, names) -> None:
+    """Refuse, before any work, what :func:`install_description` refuses whatever the result: ``out`` not a
+    regular file, or a description of other IMUs than ``names`` (an unreadable file is a backup, not refused)."""
+    out = Path(out)
+    if out.is_symlink() or (out.exists() and not out.is_file()):
+        raise OutputError(f"{out}: not a regular file; not replaced")
+    if out.exists():
+        try:
+            previous = load_description(out)
+        except ConfigError:
+            return
+        if tuple(previous.names) != tuple(names):
+            raise OutputError(f"{out}: holds a description of other IMUs ({', '.join(previous.names[:4])}...); "
+                              "not replaced")
+
+
 def install_description(new: ArrayDescription, out: str | Path, *, score=None,
                         new_score: float | None = None, data: str = "window") -> Installed:
     """Write ``new`` to ``out`` unless the description already there scores higher than ``new_score``
     under ``score(description)`` (module docstring); ``data`` names what was scored, for the message."""
     out = Path(out)
-    if out.is_symlink() or (out.exists() and not out.is_file()):
-        raise OutputError(f"{out}: not a regular file; not replaced")
+    check_install_target(out, new.names)
     previous_score = None
     if out.exists():
         try:
@@ -178,9 +194,6 @@ def install_description(new: ArrayDescription, out: str | Path, *, score=None,
         except ConfigError:
             previous = None  # unreadable: not a good calibration; kept as the backup
         if previous is not None:
-            if tuple(previous.names) != tuple(new.names):
-                raise OutputError(f"{out}: holds a description of other IMUs ({', '.join(previous.names[:4])}...); "
-                                  "not replaced")
             if score is not None and new_score is not None:
                 previous_score = float(score(previous))
                 if np.isfinite(previous_score) and previous_score > new_score + LOGLIK_TOLERANCE:

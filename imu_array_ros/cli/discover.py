@@ -16,6 +16,7 @@ import argparse
 from pathlib import Path
 
 from imu_array_ros import workflows
+from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, as_flags, parse_list, \
     positive_float, positive_int
 from imu_array_ros.cli.progress import Progress, info
@@ -100,6 +101,8 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
         apply = check_output(apply, inputs, "yaml", force, option="--apply",
                              other_outputs=[("--report", report)])  # not the report directory, nor inside it
     desc, _ = workflows.load_array(array, calibration)
+    if apply is not None:
+        check_install_target(apply, desc.names)  # refused before the work, not after
 
     samples = _read(recording, desc, str(recording), quiet)
     info(quiet, f"read {len(samples.stamps)} array samples of {len(desc.imus)} IMUs from {recording}")

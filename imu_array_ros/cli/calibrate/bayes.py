@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from imu_array_ros import workflows
+from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.calibration import bayes
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, install
 from imu_array_ros.cli.options import add_force_quiet, as_flags, non_negative_float, non_negative_int, positive_float, \
@@ -125,6 +126,7 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
     with as_flags(FLAGS):
         settings.check()
     desc, data = read_array_recording(recording, array, calibration, quiet, imus=[reference])
+    check_install_target(out, desc.names)  # refused before the work, not after
     with about(recording), as_flags(FLAGS):
         cal = workflows.calibrate("bayes", data, desc, n_samples=samples, settings=settings, reference=reference,
                                   prior=prior, prior_std=prior_std, accel_std=accel_std,

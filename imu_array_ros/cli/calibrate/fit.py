@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from imu_array_ros import workflows
+from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.cli.calibrate.common import add_calibration_inputs, check_outputs, install
 from imu_array_ros.cli.options import add_force_quiet, parse_list, positive_int, read_array_recording
 from imu_array_ros.cli.progress import info
@@ -69,6 +70,7 @@ def run(recording: Path, *, array: Path, terms: str, out: Path, calibration: Pat
     imu_list = parse_list(imus)
     desc, samples = read_array_recording(recording, array, calibration, quiet,
                                          imus=[*(imu_list or []), reference])
+    check_install_target(out, desc.names)  # refused before the work, not after
 
     def progress(iteration: int, cost: float) -> None:
         info(quiet, f"fitting: iteration {iteration}, cost {cost:.6g}")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from imu_array_ros import workflows
+from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.calibration.plots import plot_geometry
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, check_outputs, install
 from imu_array_ros.cli.options import add_force_quiet, non_negative_float, positive_float, positive_int, \
@@ -73,6 +74,7 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
     """Calibrate the accelerometer positions on (a window of) ``recording``; install at ``out``."""
     out, plot = check_outputs(out, plot, [recording, array, calibration], force)
     desc, samples = read_array_recording(recording, array, calibration, quiet, imus=[reference])
+    check_install_target(out, desc.names)  # refused before the work, not after
     samples = _window(samples, recording, start, duration, quiet)
 
     def progress(iteration: int, loglik: float) -> None:

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from imu_array_ros import workflows
+from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, add_still_options, check_outputs, \
     install, still_options
 from imu_array_ros.cli.options import add_force_quiet, read_array_recording
@@ -55,6 +56,7 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
     require("allantools", "noise", "imu-array calibrate noise")
     options = still_options(gravity, still_gyro, still_accel, still_min_duration)
     desc, samples = read_array_recording(recording, array, calibration, quiet)
+    check_install_target(out, desc.names)  # refused before the work, not after
     with about(recording):
         cal = workflows.calibrate("noise", samples, desc, progress=lambda text: info(quiet, text),
                                   source=str(recording), **options)

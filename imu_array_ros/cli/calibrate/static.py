@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from imu_array_ros import workflows
+from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.calibration.plots import plot_static
 from imu_array_ros.calibration.report import check_report_dir, write_calibration_report
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, add_still_options, check_outputs, \
@@ -89,6 +90,7 @@ def calibrate_stages(kind: str, recording: Path, *, array: Path, out: Path, cali
         require("matplotlib", "plots", f"--report {report}")
     read = [read_array_recording(r, array, calibration, quiet, imus=[reference]) for r in recordings]
     desc, samples = read[0][0], [s for _, s in read]
+    check_install_target(out, desc.names)  # refused before the work, not after
     name = recordings[0] if len(recordings) == 1 else Path(", ".join(map(str, recordings)))
     with about(name):
         cal = workflows.calibrate(kind, samples[0] if len(samples) == 1 else samples, desc, reference=reference,
