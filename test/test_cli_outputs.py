@@ -309,8 +309,8 @@ def test_atomic_file_failure_leaves_nothing(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "f.json"]
 
 
-@pytest.mark.parametrize("command", [["calibrate", "noise"], ["calibrate", "fit", "--terms", "gyroscope_bias"],
-                                     ["discover"]])
+@pytest.mark.parametrize("command", [["calibrate", m] for m in ("noise", "geometry", "static", "all", "bayes")]
+                         + [["calibrate", "fit", "--terms", "gyroscope_bias"], ["discover"]])
 def test_an_out_holding_other_imus_is_refused_before_the_work(bag, tmp_path, capsys, monkeypatch, command):
     """--out (--apply for discover) holding a description of other IMUs is refused, with --force too, before
     any calibration or discovery runs; the file is kept as it was."""
