@@ -292,7 +292,7 @@ def test_calibrate_bayes_writes_the_posterior_and_the_report(bayes_recording, ca
     cov = np.array(record["position_covariance"]["imu_01"])
     assert cov.shape == (3, 3) and np.allclose(np.sqrt(np.diag(cov)), std[0], rtol=1e-6)
     assert set(p.name for p in rep.iterdir()) >= {"diagnostics.json", "diagnostics.md", "ellipses.png", "trace.png",
-                                                  "autocorr.png"}
+                                                  "autocorr.png", "manifest.json"}
     # again without --force: refused, nothing touched
     before = out.read_bytes()
     assert_user_error(cli(capsys, "calibrate", "bayes", d / "twist", "--array", d / "array.yaml", "--out", out,
@@ -320,6 +320,20 @@ def test_calibrate_bayes_report_must_be_a_directory(bayes_recording, capsys, tmp
     assert_user_error(cli(capsys, "calibrate", "bayes", d / "twist", "--array", d / "array.yaml", "--out",
                           tmp_path / "c.yaml", "--report", tmp_path / "file", "-q"), "must be a directory")
     assert not (tmp_path / "c.yaml").exists()
+
+
+def test_calibrate_bayes_report_follows_the_report_directory_rule(bayes_recording, capsys, tmp_path):
+    """--report as for calibrate all and discover: a directory holding an input or other files is refused, even
+    with --force, before any work; nothing is written."""
+    d, _ = bayes_recording
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    for rep in (d, other):
+        before = sorted(p.name for p in rep.iterdir())
+        assert_user_error(cli(capsys, "calibrate", "bayes", d / "twist", "--array", d / "array.yaml", "--out",
+                              tmp_path / "c.yaml", "--report", rep, "--force", "-q"), str(rep))
+        assert sorted(p.name for p in rep.iterdir()) == before and not (tmp_path / "c.yaml").exists()
 
 
 def test_still_recording_is_a_clear_error(capsys, tmp_path):

@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 
 from imu_array_ros import workflows
-from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.calibration import bayes
+from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, install
 from imu_array_ros.cli.options import add_force_quiet, as_flags, non_negative_float, non_negative_int, positive_float, \
     positive_int, read_array_recording
 from imu_array_ros.cli.progress import info
-from imu_array_ros.errors import OutputError
-from imu_array_ros.io.outputs import check_output
+from imu_array_ros.io.outputs import check_output, check_report_directory, write_report_manifest
 from imu_array_ros.model.reference import reference_index
 from imu_array_ros.util.extras import require
 
@@ -85,23 +84,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return sp
 
 
-def _check_report(report: Path, inputs: list, force: bool, out: Path) -> None:
-    """Check every file ``--report`` writes (a directory, created if missing), before any work."""
-    if report.exists() and not report.is_dir():
-        raise OutputError(f"{report}: --report must be a directory (it is a file)")
-    if not report.exists():
-        check_output(report, inputs, "json", False, option="--report", other_outputs=[("--out", out)])
-    json_name, md_name = bayes.BAYES_REPORT_TEXT
-    check_output(report / json_name, inputs, "json", force, option="--report")
-    for name in (md_name, bayes.BAYES_REPORT_NETCDF):
-        f = report / name
-        if f.exists() and not force:
-            raise OutputError(f"{f}: exists; pass --force to replace the report in {report}")
-        if f.exists() and not (report / json_name).exists():
-            raise OutputError(f"{f}: exists without a {json_name} beside it; it is not one of our reports, "
-                              "choose another --report")
-    for name in bayes.BAYES_REPORT_PNGS:
-        check_output(report / name, inputs, "png", force, option="--report")
+#: the kind of report --report writes (its manifest.json), and the files of a report from before manifests
+REPORT_KIND = "imu_array_ros bayes report"
+LEGACY_FILES = (*bayes.BAYES_REPORT_TEXT, bayes.BAYES_REPORT_NETCDF, *bayes.BAYES_REPORT_PNGS)
 
 
 def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, samples: int = 50,
@@ -113,8 +98,9 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
     """Posterior of the accelerometer positions (carlsson2021 PmMH) from ``samples`` samples of ``recording``."""
     inputs = [recording, array, calibration]
     out = check_output(out, inputs, "yaml", force)
-    if report is not None:
-        _check_report(Path(report), inputs, force, out)
+    if report is not None:  # the rule of every report directory (docs/cli.md): before any work
+        report = check_report_directory(report, inputs, force, kind=REPORT_KIND, other_outputs=[("--out", out)],
+                                        legacy=LEGACY_FILES)
     # the [bayes] extra (and [plots] for the report) before any work, not after minutes of sampling
     if scheduler not in (None, "serial"):
         require("distributed", "bayes", f"--scheduler {scheduler}")
@@ -147,5 +133,6 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
     install(cal, desc, out, recording, quiet, summary=False)
     if report is not None:
         paths = bayes.write_report(post, report, extra={"recording": str(recording), "out": str(out)})
+        paths.append(write_report_manifest(report, REPORT_KIND, [p.name for p in paths]))
         info(quiet, f"wrote {len(paths)} report files in {report}")
     return 0
