@@ -305,3 +305,19 @@ def test_an_existing_output_is_kept_without_force(capsys, tmp_path, array32):
     assert set(yaml.safe_load(out.read_text())) == {f"imu{n}" for n in range(32)}
     rc, _ = _run(capsys, "export", "kalibr", array32[1], "--out", array32[1], "--rate", RATE, "--force")
     assert rc != 0 and load_description(array32[1]).names == array32[0].names  # an input is never replaced
+
+
+def test_export_after_a_noise_calibration_that_saw_no_random_walk_says_so(capsys, tmp_path):
+    """A description whose noise calibration measured no random walk (NaN: the rests were too short) is not
+    told to run the noise calibration again, but why it saw none and which options give one."""
+    desc = load_description(REPO / "config" / "planar4.yaml")
+    imus = [imu.with_noise({f"{s}.noise_std": np.full(3, 0.01), f"{s}.bias_random_walk": np.full(3, np.nan)})
+            for imu in desc.imus for s in ("accelerometer",)]
+    imus = [imu.with_noise({**imu.noise, "gyroscope.noise_std": np.full(3, 1e-3),
+                            "gyroscope.bias_random_walk": np.full(3, np.nan)}) for imu in imus]
+    path = tmp_path / "noise.yaml"
+    save_description(desc.with_imus(imus), path)
+    out = tmp_path / "k.yaml"
+    line = _refused(capsys, out, "export", "kalibr", path, "--out", out, "--rate", RATE)
+    assert "did not see one" in line and "run 'imu-array calibrate noise'" not in line, line
+    assert "--random-walk-accel" in line and "--random-walk-gyro" in line, line

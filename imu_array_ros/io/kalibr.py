@@ -158,9 +158,13 @@ def _check_random_walks(desc: ArrayDescription, fallback: dict) -> None:
     lacking = [(s, names[0]) for s, names in without.items() if names]
     if lacking:
         what = " and ".join(f"the {s} (imu {name!r} and maybe others)" for s, name in lacking)
+        by_name = {imu.name: imu for imu in desc.imus}
+        measured = all(f"{s}.bias_random_walk" in by_name[name].noise for s, name in lacking)
+        how = ("the noise calibration it holds did not see one (its still intervals were too short for the "
+               "random walk to show): calibrate noise on a longer still recording" if measured else
+               "run 'imu-array calibrate noise' on a still recording")
         raise ConfigError(f"{desc.source}: Kalibr requires a bias_random_walk (> 0), which the description does not "
-                          f"give for {what}: run 'imu-array calibrate noise' on a still recording, or give "
-                          + " and ".join(flags[s] for s, _ in lacking))
+                          f"give for {what}: {how}, or give " + " and ".join(flags[s] for s, _ in lacking))
 
 
 def kalibr_from_description(desc: ArrayDescription, *, rate: float, topic_prefix: str = "/imu_array",
