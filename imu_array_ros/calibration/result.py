@@ -165,20 +165,23 @@ class Calibration:
                                    new_score=new_score, data=self.data)
 
 
-def check_install_target(out: str | Path, names) -> None:
+def check_install_target(out: str | Path, names) -> ArrayDescription | None:
     """Refuse, before any work, what :func:`install_description` refuses whatever the result: ``out`` not a
-    regular file, or a description of other IMUs than ``names`` (an unreadable file is a backup, not refused)."""
+    regular file, or a description of other IMUs than ``names``.  Returns the description on file (None: no
+    file, or one that is no readable description -- not a good calibration, kept as the backup)."""
     out = Path(out)
     if out.is_symlink() or (out.exists() and not out.is_file()):
         raise OutputError(f"{out}: not a regular file; not replaced")
-    if out.exists():
-        try:
-            previous = load_description(out)
-        except ConfigError:
-            return
-        if tuple(previous.names) != tuple(names):
-            raise OutputError(f"{out}: holds a description of other IMUs ({', '.join(previous.names[:4])}...); "
-                              "not replaced")
+    if not out.exists():
+        return None
+    try:
+        previous = load_description(out)
+    except ConfigError:
+        return None
+    if tuple(previous.names) != tuple(names):
+        raise OutputError(f"{out}: holds a description of other IMUs ({', '.join(previous.names[:4])}...); "
+                          "not replaced")
+    return previous
 
 
 def install_description(new: ArrayDescription, out: str | Path, *, score=None,
@@ -186,20 +189,14 @@ def install_description(new: ArrayDescription, out: str | Path, *, score=None,
     """Write ``new`` to ``out`` unless the description already there scores higher than ``new_score``
     under ``score(description)`` (module docstring); ``data`` names what was scored, for the message."""
     out = Path(out)
-    check_install_target(out, new.names)
+    previous = check_install_target(out, new.names)
     previous_score = None
-    if out.exists():
-        try:
-            previous = load_description(out)
-        except ConfigError:
-            previous = None  # unreadable: not a good calibration; kept as the backup
-        if previous is not None:
-            if score is not None and new_score is not None:
-                previous_score = float(score(previous))
-                if np.isfinite(previous_score) and previous_score > new_score + LOGLIK_TOLERANCE:
-                    raise CalibrationError(
-                        f"{out}: not replaced: the calibration on file fits this {data} better "
-                        f"(log-likelihood {previous_score:.10g} > {new_score:.10g} of the new one)")
+    if previous is not None and score is not None and new_score is not None:
+        previous_score = float(score(previous))
+        if np.isfinite(previous_score) and previous_score > new_score + LOGLIK_TOLERANCE:
+            raise CalibrationError(
+                f"{out}: not replaced: the calibration on file fits this {data} better "
+                f"(log-likelihood {previous_score:.10g} > {new_score:.10g} of the new one)")
     backup = None
     try:
         if out.exists():
