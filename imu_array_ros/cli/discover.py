@@ -18,8 +18,9 @@ from pathlib import Path
 from imu_array_ros import workflows
 from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, as_flags, parse_list, \
-    positive_float, positive_int
+    non_negative_int, positive_float, positive_int
 from imu_array_ros.cli.progress import Progress, info
+from imu_array_ros.discovery.blocks import SEARCH_READINGS
 from imu_array_ros.discovery.report import PLOTS, write_report
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.outputs import check_output, check_report_directory, write_report_manifest
@@ -53,6 +54,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     sp.add_argument("--block", type=positive_float, default=0.5, metavar="SECONDS",
                     help="time block of the robust test and the held-out folds, s (default 0.5)")
     sp.add_argument("--max-findings", type=positive_int, default=8, help="cap on the findings (default 8)")
+    sp.add_argument("--search-readings", type=non_negative_int, default=SEARCH_READINGS, metavar="N",
+                    help=f"a recording of more readings (samples x IMUs) is searched first on every k-th time block "
+                         f"(k the least within N), then on the whole recording only for what that subsample has too "
+                         f"little evidence for; 0: always the whole recording (default {SEARCH_READINGS})")
     sp.add_argument("--no-plots", action="store_true", help="no PNG plots (report.md and report.json only)")
     sp.add_argument("--no-empirical", action="store_true", help="do not model the unexplained residual")
     add_force_quiet(sp, force="replace an existing report in --report and an existing --apply YAML (only files of "
@@ -81,13 +86,15 @@ def _nis(value: float) -> str:
 
 def run(recording: Path, *, array: Path, report: Path, calibration: Path | None = None, sim: Path | None = None,
         apply: Path | None = None, validate: list[Path] | None = None, terms: str | None = None,
-        alpha: float = 0.01, block: float = 0.5, max_findings: int = 8, no_plots: bool = False,
+        alpha: float = 0.01, block: float = 0.5, max_findings: int = 8, search_readings: int = SEARCH_READINGS,
+        no_plots: bool = False,
         no_empirical: bool = False, force: bool = False, quiet: bool = False) -> int:
     """Mismatch discovery on ``recording`` with the description ``array`` (``calibration``: its calibrated values)."""
     validate = list(validate or [])
     inputs = [recording, array, calibration, sim, *validate]
     options = workflows.DiscoveryOptions(terms=tuple(parse_list(terms)) if terms else None, alpha=alpha,
-                                         block_s=block, max_findings=max_findings, empirical=not no_empirical)
+                                         block_s=block, max_findings=max_findings, empirical=not no_empirical,
+                                         search_readings=search_readings or None)
     try:
         options.candidate_terms()
     except CalibrationError as err:

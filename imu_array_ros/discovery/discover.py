@@ -15,13 +15,22 @@
    profiled out, block-robust test, held-out blocks, BIC); greedy selection at a
    Bonferroni-corrected level, each finding confirmed by an exact refit
    (:func:`~imu_array_ros.fitting.engine.fit_terms` with ``only``), and
-   confounded candidates reported as indistinguishable.
+   confounded candidates reported as indistinguishable (:mod:`.search`).  A
+   recording of more than ``search_readings`` readings is searched first on
+   every k-th time block (:func:`~.blocks.search_subsample`): its strong
+   effects are confirmed by refits of a k-th of the samples.  When the
+   subsample runs out of candidates, the whole recording is scored given its
+   findings and the search goes on there if a candidate passes, so an effect
+   too weak for the subsample is still found; the subsample's steps spend
+   half of alpha, that look the other half.  Findings fitted on the subsample
+   are scored on the blocks it left out (their held-out check).
 5. **Model what the library lacks** (:mod:`.empirical`): cells still in excess
    after the findings get a sparse regression on motion features, scored on
    held-out blocks, reported apart from the physical findings.
 6. **Show the fit improve**: log-likelihood and NIS (still / moving) before and
    after, on the recording, on held-out blocks (the findings refitted on half of
-   the blocks, scored on the other half, both ways) and on validation recordings.
+   the blocks, scored on the other half, both ways; or the blocks a subsample
+   search left out) and on validation recordings.
 
 Everything is computed by the same fitting engine the calibrations use, so a
 finding applied to the description (``--apply``) is a calibration result like
@@ -35,17 +44,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from imu_array_ros.discovery.blocks import short_recording_options, time_blocks
-from imu_array_ros.discovery.drift import drift_confounded
-from imu_array_ros.discovery.explain import Candidate, confounded, evaluate_candidates, evaluate_scopes
-from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, rejection, settle_ties, update_finding
+from imu_array_ros.discovery.blocks import SEARCH_READINGS, search_subsample, short_recording_options, time_blocks
+from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.eliminate import backward_eliminate
-from imu_array_ros.discovery.heldout import heldout_gain
-from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, score_given, scopes_for
+from imu_array_ros.discovery.heldout import complement_gain, heldout_gain
+from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, scopes_for
+from imu_array_ros.discovery.search import (NONE_PASS, UNCONFIRMED, SearchData, SearchSpace, SearchState, fill,
+                                            greedy_search, rescore, residuals_only)
 from imu_array_ros.discovery.threads import on_one_blas_thread
 from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.fitting.engine import fit_motion, keep_schur, score_blocks
+from imu_array_ros.fitting.engine import fit_motion, keep_schur
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, candidate_names, term_names
@@ -54,6 +63,10 @@ __all__ = ["DiscoveryOptions", "Discovery", "Finding", "discover", "fit_summary"
 
 #: near saturation: |reading| above this share of the clip level
 NEAR_SATURATION = 0.9
+#: the part of the family-wise false-finding rate alpha the steps on a long recording's subsample spend; the
+#: look at the whole recording at the step the subsample ran out on spends the rest, so that the first false
+#: finding, at whichever step and look, has probability <= alpha
+SUBSAMPLE_SHARE = 0.5
 
 
 @dataclass
@@ -62,7 +75,8 @@ class DiscoveryOptions:
     per recording; block_s: time block (s) of the robust test and the held-out folds; folds: interleaved folds;
     max_findings: cap on the greedy steps; still_threshold: |omega| (rad/s) below which a sample is still;
     empirical: model the unexplained residual; heldout: exact held-out check of the final findings;
-    timing: search for sample clocks the model lacks (:mod:`.timing`)."""
+    timing: search for sample clocks the model lacks (:mod:`.timing`); search_readings: a recording of more
+    readings (samples x IMUs) is searched on an evenly spread subsample of its blocks first (None: never)."""
 
     terms: tuple[str, ...] | None = None
     alpha: float = 0.01
@@ -73,6 +87,7 @@ class DiscoveryOptions:
     empirical: bool = True
     heldout: bool = True
     timing: bool = True
+    search_readings: int | None = SEARCH_READINGS
 
     def candidate_terms(self) -> tuple[str, ...]:
         names = candidate_names() if self.terms is None else list(self.terms)
@@ -173,7 +188,7 @@ def _summarise(residuals, expected, motion, loglik, still_threshold) -> FitSumma
 def fit_summary(samples, model: SensorModel, *, still_threshold: float = 0.2, motion0=None):
     """(FitSummary, motion, ScoreBlocks-like residuals/expected) of ``samples`` under ``model`` at its ML motion."""
     motion, _, _ = fit_motion(samples, model, motion0)
-    sb = _residuals_only(samples, model, motion, np.zeros(len(samples.stamps), dtype=np.int64))
+    sb = residuals_only(samples, model, motion, np.zeros(len(samples.stamps), dtype=np.int64))
     return _summarise(sb.residuals, sb.expected, motion, sb.loglik, still_threshold), motion, sb
 
 
@@ -288,7 +303,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     say("fitting the motion with the model as given")
     motion, base_ll, base_r = fit_motion(samples, model)
     base_motion = motion
-    sb = _residuals_only(samples, model, motion, blocks)
+    sb = residuals_only(samples, model, motion, blocks)
     baseline = _summarise(sb.residuals, sb.expected, motion, sb.loglik, opts.still_threshold)
     timings["fit"] = time.perf_counter() - t0
 
@@ -315,102 +330,56 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             motion = timing.motion if timing.motion is not None else fit_motion(samples, current, motion)[0]
         timings["timing"] = time.perf_counter() - t1
 
-    # 4. explain
+    # 4. explain (.search): on a long recording first on an evenly spread subsample of its blocks
     t1 = time.perf_counter()
-    all_candidates, indist, rejected, levels = [], [], [], []
-    accepted: dict[tuple, Finding] = {}
-    fit = None  # the last joint exact fit of every finding
-    excluded, retry, traded = set(), set(), set()  # (term, k), Candidate.key: for good; not confirmed: until the
-    # next finding; trading with earlier findings (.trading): for good (later findings only add to the trade)
     scopes, tied = scopes_for(model.n_imus, geometry_groups(model.positions, model.rotations))
-    own = terms if model.n_imus <= OWN_MAX_IMUS else ()
+    space = SearchSpace(model, terms, scopes, tied, terms if model.n_imus <= OWN_MAX_IMUS else (), opts.alpha,
+                        opts.max_findings, opts.block_s)
+    state = SearchState(current, lambda c, delta, step: Finding(c.effect, c.k, c.sensor, np.zeros(0), np.zeros(0),
+                                                                c, delta, step, c.scope, c.imus), notes=notes)
+    whole = SearchData(samples, motion, blocks, fold_of_block)
+    start_model, start_motion = current, motion
+    sub = search_subsample(blocks, model.n_imus, opts.search_readings, opts.folds)
+    data, data_label = whole, None
+    if sub is not None:
+        index, sub_blocks, k = sub
+        data = SearchData(samples.select(index), motion[index], sub_blocks,
+                          np.arange(int(sub_blocks[-1]) + 1) % opts.folds, f"the subsample (every {_nth(k)} block)",
+                          SUBSAMPLE_SHARE)
+        data_label = data.label
+        say(f"searching {len(index)} of {len(stamps)} samples first (every {_nth(k)} time block of {opts.block_s:g} "
+            f"s): the recording holds more than {opts.search_readings} readings")
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs at {len(scopes) + model.n_imus} scopes")
-    sb = score_given(samples, current, terms, motion, blocks, tied, [], own_terms=own)
-    for step in range(1, opts.max_findings + 1):
-        cover = {(f.effect, k) for f in accepted.values() for k in f.imus}
-        skip = cover | excluded | {(t, imus[0]) for t, scope, imus in retry | traded if scope == "imu"}
-        cands = evaluate_candidates(sb, model.names, fold_of_block, terms=terms, exclude=skip, step=step)
-        gone = retry | traded | {(t, sc.label, sc.imus) for t in terms for sc in scopes
-                             if any((t, k) in cover for k in sc.imus)
-                             and (sc.kind == "own" or all((t, k) in cover for k in sc.imus))}
-        cands += evaluate_scopes(sb, model.names, fold_of_block, scopes, terms=terms, exclude=gone, step=step)
-        if not cands:
-            break
-        level = opts.alpha / len(cands)
-        levels.append(level)
-        passing = sorted((c for c in cands if c.passes(level)), key=lambda c: c.delta_bic)
-        all_candidates += cands if step == 1 else passing  # every tested candidate once, then the passing ones
-        if not passing:
-            say(f"step {step}: no candidate passes (level {level:.2g}); done")
-            break
-        best = stop = None
-        for c in passing:
-            say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly")
-            key, result = c.key, confirm(samples, current, accepted, c, motion, level, model, opts.alpha, say)
-            if isinstance(result, str):
-                c.note = result
-                rejected.append(rejection(c, step, result))
-                (traded if result.startswith(TRADES) else retry).update({key, c.key})  # as tested, as narrowed
-                if result.startswith(TRADES):
-                    indist.append({"effects": [c.effect], "sensors": [c.sensor], "reason": result})
-                if result.startswith(IMPLAUSIBLE):
-                    stop = c
-                    break
-                continue
-            best, result = settle_ties(c, result, passing, lambda o: confirm(
-                samples, current, accepted, o, motion, level, model, opts.alpha, say), step, say, notes, rejected,
-                alpha=opts.alpha, indist=indist, n_imus=model.n_imus)
-            break
-        if stop is not None:
-            notes.append(f"step {step}: stopped: the most likely candidate left, {stop.effect} on {stop.sensor}, "
-                         f"is {stop.note} -- a term that needs values no real sensor has stands in for physics "
-                         f"the library lacks, and any further finding could stand in for the same; what remains "
-                         f"is reported unexplained")
-            say(f"step {step}: {stop.effect} on {stop.sensor} is {IMPLAUSIBLE}; stopping")
-            break
-        if best is None:
-            break
-        fit, delta = result
-        best.accepted = True
-        retry = set()  # the model changed: candidates the exact fit did not confirm are tested again
-        for other in confounded(sb, best, passing, level) + drift_confounded(sb, best, level, opts.block_s):
-            indist.append({"effects": [best.effect, other["effect"]], "sensors": [best.sensor],
-                           "reason": other.get("reason") or (
-                               f"after the motion is profiled out their signatures correlate "
-                               f"{other['correlation']:.3f}; BIC gap {other['delta_bic_gap']:.1f} "
-                               f"(< 10) and {other['effect']} adds nothing once {best.effect} is in "
-                               f"(score {other['added_statistic']:.3g}); reported as {best.effect}"),
-                           "correlation": other["correlation"], "delta_bic_gap": other["delta_bic_gap"]})
-            excluded.add((other["effect"], best.k))
-        current = fit.model
-        accepted[best.key] = Finding(best.effect, best.k, best.sensor, np.zeros(0), np.zeros(0), best, delta,
-                                     step, best.scope, best.imus)
-        for f in accepted.values():  # every finding's values and std from the latest joint fit
-            update_finding(f, fit, model, opts.alpha)
-        say(f"step {step}: found {best.effect} on {best.sensor}: log-likelihood +{delta:.4g}")
-        motion = _fill(fit.motion, motion)
-        motion, _, _ = fit_motion(samples, current, motion)
-        if step == opts.max_findings:  # no step left to test candidates: residuals only
-            notes.append(f"the search stopped at its cap of {opts.max_findings} findings (max_findings, "
-                         f"--max-findings): candidates were not re-tested after the last one; more may pass")
-            sb = _residuals_only(samples, current, motion, blocks)
-            break
-        say(f"step {step + 1}: re-scoring every candidate given the {len(accepted)} findings")
-        sb = None  # memory: the last step's blocks go before the next ones are made
-        sb = score_given(samples, current, terms, motion, blocks, tied, [(f.effect, f.imus) for f in accepted.values()],
-                         own_terms=own)
-    findings = sorted(accepted.values(), key=lambda f: f.step)
+    sb, why = greedy_search(data, rescore(data, state, space), state, space, say)
+    if data is not whole and why in (NONE_PASS, UNCONFIRMED):
+        say("looking at the whole recording for effects the subsample has too little evidence for")
+        whole.motion = fit_motion(samples, state.current, motion)[0]
+        whole.first_share, before = 1.0 - SUBSAMPLE_SHARE, len(state.accepted)
+        sb_whole, why = greedy_search(whole, rescore(whole, state, space), state, space, say)
+        if len(state.accepted) > before:  # the search went on on the whole recording: its fits are the whole's
+            data, sb = whole, sb_whole
+    findings = sorted(state.accepted.values(), key=lambda f: f.step)
+    current, motion, fit = state.current, data.motion, state.fit
     if len(findings) > 1:  # every finding re-tested given all the others (.eliminate)
         say(f"backward: re-testing each of the {len(findings)} findings given the others")
-        findings, dropped, _, current, motion = backward_eliminate(samples, model, findings, fit, motion, levels,
-                                                                   opts.alpha, say)
+        findings, dropped, _, current, motion = backward_eliminate(data.samples, model, findings, fit, motion,
+                                                                   state.levels, opts.alpha, say)
         if dropped:
-            rejected += dropped
+            state.rejected += dropped
             gone = "; ".join(f"{r['effect']} on {', '.join(r['sensors'])}" for r in dropped)
             notes.append(f"backward elimination dropped {gone}: no longer significant given the other findings "
                          f"(see rejected)")
-            motion, _, _ = fit_motion(samples, current, motion)
-            sb = _residuals_only(samples, current, motion, blocks)
+            motion, _, _ = fit_motion(data.samples, current, motion)
+            sb = residuals_only(data.samples, current, motion, data.blocks)
+    if data is not whole:  # the whole recording under the findings fitted on the subsample
+        notes.append(f"searched on {data.label}: {len(data.samples.stamps)} of {len(stamps)} samples; the "
+                     f"findings' values, std and evidence are the subsample's (a fit of the whole recording would "
+                     f"narrow their std by about {np.sqrt(len(stamps) / len(data.samples.stamps)):.2g}x); the other "
+                     f"blocks are their held-out check")
+        say("fitting the whole recording's motion with the findings")
+        motion, _, _ = fit_motion(samples, current, fill(whole.motion, start_motion))
+        sb = residuals_only(samples, current, motion, blocks)
+    all_candidates, indist, rejected, levels = state.candidates, state.indist, state.rejected, state.levels
     timings["explain"] = time.perf_counter() - t1
 
     # 5-6. after, unexplained, held out
@@ -423,7 +392,11 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         say("modelling the unexplained residual empirically")
         unexplained, empirical = _unexplained(loc_after, sb, motion, samples, current, blocks, fold_of_block)
     heldout = {}
-    if opts.heldout and findings:
+    if opts.heldout and findings and data is not whole:
+        say("held-out blocks: scoring the findings on the blocks the subsample left out")
+        start_r = residuals_only(samples, start_model, start_motion, blocks).residuals
+        heldout = complement_gain(sb.residuals, start_r, index, data.label)
+    elif opts.heldout and findings:
         say("held-out blocks: refitting the findings on half of the blocks, scoring on the other half")
         heldout = heldout_gain(samples, model, findings, blocks, base_motion, base_r)
     validation = []
@@ -434,24 +407,23 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     timings["total"] = time.perf_counter() - t0
     settings = {"terms": list(terms), "alpha": opts.alpha, "block_s": opts.block_s, "folds": opts.folds,
                 "max_findings": opts.max_findings, "still_threshold": opts.still_threshold,
-                "candidates_per_step": [int(round(opts.alpha / lv)) for lv in levels],
+                "candidates_per_step": list(state.counts),
                 "level_per_step": levels, "samples": int(len(stamps)), "imus": list(model.names),
                 "false_finding_rate": (f"family-wise <= {opts.alpha:g} per recording (Bonferroni: each step tests "
                                        f"its m candidates at {opts.alpha:g}/m, both the score test and the "
-                                       f"block-robust test, and needs a positive held-out gain)")}
+                                       f"block-robust test, and needs a positive held-out gain)"
+                                       + ("" if sub is None else
+                                          f"; searched first on {data_label}: its steps test at "
+                                          f"{SUBSAMPLE_SHARE:g} alpha/m, the look at the whole recording at the "
+                                          f"step it ran out on at the other {1 - SUBSAMPLE_SHARE:g} alpha/m")),
+                "search_readings": opts.search_readings,
+                "search_subsample": None if sub is None else {
+                    "every_kth_block": int(sub[2]), "samples": int(len(sub[0])), "label": data_label,
+                    "searched_on": "the whole recording" if data is whole else "the subsample",
+                    "alpha_share": SUBSAMPLE_SHARE}}
     return Discovery(model.names, current, baseline, after, findings, all_candidates, indist, rejected,
                      loc_before, loc_after, unexplained, empirical, heldout, validation, settings, timings, levels,
                      notes, sim_source, timing)
-
-
-def _residuals_only(samples, model: SensorModel, motion, blocks):
-    """score_blocks of one small term: its normalised residuals, their expectation and the log-likelihood (which
-    do not depend on the terms scored) without the cost of every candidate's information."""
-    return score_blocks(samples, model, ("accelerometer_bias",), motion, blocks)
-
-
-def _fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
-    return np.where(np.isfinite(new), new, old)
 
 
 def _validate(label, other, model: SensorModel, found: SensorModel, still_threshold) -> dict:
@@ -491,3 +463,7 @@ def _unexplained(loc, sb, motion, samples, model, blocks, fold_of_block):
         if "mode" in e:  # a narrowband mode (discovery/modes.py): its shape, presence and held-out model
             out[-1]["mode"] = e["mode"]
     return out, models
+
+
+def _nth(k: int) -> str:
+    return {1: "", 2: "2nd", 3: "3rd"}.get(k, f"{k}th")

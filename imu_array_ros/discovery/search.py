@@ -1,0 +1,205 @@
+"""Discovery's greedy forward search (step 4 of :func:`~.discover.discover`), on the data it is given.
+
+Every step scores every candidate (each registered term on one IMU and at every pooled scope) given the findings
+so far, tests them at a Bonferroni-corrected level, and confirms the most likely by an exact refit (:mod:`.confirm`:
+ties, narrowing, trading, plausibility).  The search runs on a :class:`SearchData`: the recording, or an evenly
+spread subsample of its time blocks (:func:`~.blocks.search_subsample`) that a long recording is searched on first.
+:class:`SearchState` carries what the search found and ruled out, so that a search ended on the subsample can go on
+on the whole recording with the same findings (:func:`~.discover.discover` decides when).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, rejection, settle_ties, update_finding
+from imu_array_ros.discovery.drift import drift_confounded
+from imu_array_ros.discovery.explain import confounded, evaluate_candidates, evaluate_scopes
+from imu_array_ros.discovery.scopes import score_given
+from imu_array_ros.fitting.engine import fit_motion, score_blocks
+from imu_array_ros.model.sensor_model import SensorModel
+
+__all__ = ["SearchData", "SearchState", "SearchSpace", "greedy_search", "residuals_only", "fill", "rescore",
+           "NONE_PASS", "UNCONFIRMED", "CAP", "STOPPED"]
+
+#: why a search ended: no candidate passed the step's level (or none was left to test)
+NONE_PASS = "none pass"
+#: every passing candidate failed its exact confirmation
+UNCONFIRMED = "unconfirmed"
+#: the cap on findings was reached
+CAP = "cap"
+#: the most likely candidate left was physically implausible
+STOPPED = "implausible"
+
+
+@dataclass
+class SearchData:
+    """The samples a search scores and confirms on: samples (ImuSamples), their ML motion under the current
+    model, their time blocks (0 .. nb-1, non-decreasing) and each block's held-out fold; label: what they are
+    (for the report's notes); share: the part of the family-wise rate alpha each step's test spends here."""
+
+    samples: object
+    motion: np.ndarray
+    blocks: np.ndarray
+    fold_of_block: np.ndarray
+    label: str = "the recording"
+    share: float = 1.0
+    first_share: float | None = None  # the first step's share, when it differs (the step the subsample ran out on)
+
+
+@dataclass
+class SearchSpace:
+    """What every step tests: the model discovery started from, the candidate terms, the pooled scopes and the
+    groups tied in the score (:func:`~.scopes.scopes_for`), the terms scored with their cross-IMU blocks."""
+
+    model: SensorModel
+    terms: tuple
+    scopes: list
+    tied: list
+    own: tuple
+    alpha: float
+    max_findings: int
+    block_s: float
+
+
+@dataclass
+class SearchState:
+    """What the search has found and ruled out.  accepted: Candidate.key -> discover.Finding; fit: the last joint
+    exact fit of every finding (None before the first); current: the model with them; excluded: (term, IMU) for
+    good; retry: Candidate.key not confirmed, until the next finding; traded: keys trading with earlier findings
+    (:mod:`.trading`), for good; candidates: every tested candidate once, then the passing ones; levels: each
+    step's Bonferroni level and counts its number of candidates; step: the last step that added a finding."""
+
+    current: SensorModel
+    make_finding: Callable
+    accepted: dict = field(default_factory=dict)
+    fit: object = None
+    excluded: set = field(default_factory=set)
+    retry: set = field(default_factory=set)
+    traded: set = field(default_factory=set)
+    candidates: list = field(default_factory=list)
+    indist: list = field(default_factory=list)
+    rejected: list = field(default_factory=list)
+    levels: list = field(default_factory=list)
+    counts: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    step: int = 0
+
+    def set_level(self, step: int, level: float, count: int) -> None:
+        """Step ``step``'s Bonferroni level and number of candidates (a later look at the step replaces them)."""
+        del self.levels[step - 1:], self.counts[step - 1:]
+        self.levels.append(level)
+        self.counts.append(count)
+
+    def found(self) -> list:
+        """[(term, IMU indexes)] of the findings so far."""
+        return [(f.effect, f.imus) for f in self.accepted.values()]
+
+
+def residuals_only(samples, model: SensorModel, motion, blocks):
+    """score_blocks of one small term: its normalised residuals, their expectation and the log-likelihood (which
+    do not depend on the terms scored) without the cost of every candidate's information."""
+    return score_blocks(samples, model, ("accelerometer_bias",), motion, blocks)
+
+
+def fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
+    return np.where(np.isfinite(new), new, old)
+
+
+def rescore(data: SearchData, state: SearchState, space: SearchSpace):
+    """Every candidate's score blocks on ``data`` given the findings so far."""
+    return score_given(data.samples, state.current, space.terms, data.motion, data.blocks, space.tied,
+                       state.found(), own_terms=space.own)
+
+
+def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, say) -> tuple:
+    """Forward steps on ``data`` from its score blocks ``sb`` (given the findings in ``state``) until no candidate
+    passes, none is confirmed, the cap is reached or the best is implausible.  ``state`` and ``data.motion`` are
+    updated in place; returns (score blocks of the last model (residuals only at the cap), why it ended).  Each
+    step tests at alpha x ``data.share`` / (its number of candidates), the first at ``data.first_share`` when set;
+    a step that adds no finding leaves ``state.step`` as it was (a later look on more data re-runs it)."""
+    model, terms, scopes, alpha = space.model, space.terms, space.scopes, space.alpha
+    names = model.names
+    first = True
+    while state.step < space.max_findings:
+        step = state.step + 1
+        share = data.first_share if first and data.first_share is not None else data.share
+        first = False
+        cover = {(f.effect, k) for f in state.accepted.values() for k in f.imus}
+        skip = cover | state.excluded | {(t, imus[0]) for t, scope, imus in state.retry | state.traded
+                                         if scope == "imu"}
+        cands = evaluate_candidates(sb, names, data.fold_of_block, terms=terms, exclude=skip, step=step)
+        gone = state.retry | state.traded | {
+            (t, sc.label, sc.imus) for t in terms for sc in scopes
+            if any((t, k) in cover for k in sc.imus) and (sc.kind == "own" or all((t, k) in cover for k in sc.imus))}
+        cands += evaluate_scopes(sb, names, data.fold_of_block, scopes, terms=terms, exclude=gone, step=step)
+        if not cands:
+            return sb, NONE_PASS
+        level = alpha * share / len(cands)
+        state.set_level(step, level, len(cands))
+        passing = sorted((c for c in cands if c.passes(level)), key=lambda c: c.delta_bic)
+        state.candidates += cands if not state.candidates else passing  # every candidate once, then the passing
+        if not passing:
+            say(f"step {step}: no candidate passes on {data.label} (level {level:.2g})")
+            return sb, NONE_PASS
+        best = stop = result = None
+        for c in passing:
+            say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly"
+                + ("" if data.share == 1.0 and data.label == "the recording" else f" on {data.label}"))
+            key = c.key
+            result = confirm(data.samples, state.current, state.accepted, c, data.motion, level, model, alpha, say)
+            if isinstance(result, str):
+                c.note = result
+                state.rejected.append(rejection(c, step, result))
+                (state.traded if result.startswith(TRADES) else state.retry).update({key, c.key})  # as tested,
+                if result.startswith(TRADES):  # as narrowed
+                    state.indist.append({"effects": [c.effect], "sensors": [c.sensor], "reason": result})
+                if result.startswith(IMPLAUSIBLE):
+                    stop = c
+                    break
+                continue
+            best, result = settle_ties(c, result, passing, lambda o: confirm(
+                data.samples, state.current, state.accepted, o, data.motion, level, model, alpha, say), step, say,
+                state.notes, state.rejected, alpha=alpha, indist=state.indist, n_imus=model.n_imus)
+            break
+        if stop is not None:
+            state.notes.append(
+                f"step {step}: stopped: the most likely candidate left, {stop.effect} on {stop.sensor}, is "
+                f"{stop.note} -- a term that needs values no real sensor has stands in for physics the library "
+                f"lacks, and any further finding could stand in for the same; what remains is reported unexplained")
+            say(f"step {step}: {stop.effect} on {stop.sensor} is {IMPLAUSIBLE}; stopping")
+            return sb, STOPPED
+        if best is None:
+            return sb, UNCONFIRMED
+        fit, delta = result
+        best.accepted = True
+        state.fit, state.step = fit, step
+        state.retry = set()  # the model changed: candidates the exact fit did not confirm are tested again
+        for other in confounded(sb, best, passing, level) + drift_confounded(sb, best, level, space.block_s):
+            state.indist.append({
+                "effects": [best.effect, other["effect"]], "sensors": [best.sensor],
+                "reason": other.get("reason") or (
+                    f"after the motion is profiled out their signatures correlate {other['correlation']:.3f}; BIC "
+                    f"gap {other['delta_bic_gap']:.1f} (< 10) and {other['effect']} adds nothing once {best.effect} "
+                    f"is in (score {other['added_statistic']:.3g}); reported as {best.effect}"),
+                "correlation": other["correlation"], "delta_bic_gap": other["delta_bic_gap"]})
+            state.excluded.add((other["effect"], best.k))
+        state.current = fit.model
+        state.accepted[best.key] = state.make_finding(best, delta, step)
+        for f in state.accepted.values():  # every finding's values and std from the latest joint fit
+            update_finding(f, fit, model, alpha)
+        say(f"step {step}: found {best.effect} on {best.sensor}: log-likelihood +{delta:.4g}")
+        data.motion = fill(fit.motion, data.motion)
+        data.motion, _, _ = fit_motion(data.samples, state.current, data.motion)
+        if step == space.max_findings:  # no step left to test candidates: residuals only
+            state.notes.append(
+                f"the search stopped at its cap of {space.max_findings} findings (max_findings, --max-findings): "
+                f"candidates were not re-tested after the last one; more may pass")
+            return residuals_only(data.samples, state.current, data.motion, data.blocks), CAP
+        say(f"step {step + 1}: re-scoring every candidate given the {len(state.accepted)} findings")
+        sb = None  # memory: the last step's blocks go before the next ones are made
+        sb = rescore(data, state, space)
+    return sb, CAP

@@ -1,0 +1,97 @@
+"""A long recording is searched on an evenly spread subsample of its time blocks first (issue 23, speed), and an
+effect too weak for the subsample is still found on the whole recording."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imu_array_ros.discovery.blocks import search_subsample, time_blocks
+from imu_array_ros.discovery.discover import SUBSAMPLE_SHARE, DiscoveryOptions, discover
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.simulation.icosahedron import simulate_icosahedron
+
+CORNERS = str(Path(__file__).resolve().parents[1] / "config" / "mimu4444bt_corners.yaml")
+
+
+def test_the_subsample_is_every_kth_block_from_the_first_within_the_budget():
+    blocks = time_blocks((np.arange(6000) * 1e7).astype(np.int64), 0.5)  # 60 s at 100 Hz: 120 blocks of 50
+    assert search_subsample(blocks, 8, None, 4) is None
+    assert search_subsample(blocks, 8, 48_000, 4) is None  # within the budget
+    index, renumbered, k = search_subsample(blocks, 8, 10_000, 4)
+    assert k == 5 and index[0] == 0  # the first block: drifts and clocks count from the first stamp
+    assert set(blocks[index]) == set(range(0, 120, 5)) and len(index) == 24 * 50
+    assert len(index) * 8 <= 10_000
+    np.testing.assert_array_equal(renumbered, np.repeat(np.arange(24), 50))
+    assert search_subsample(blocks, 8, 1_000, 4) is None  # 120 / 48 blocks: fewer than two per fold
+
+
+@pytest.fixture(scope="module")
+def nominal():
+    return SensorModel.from_description(load_description(CORNERS))
+
+
+def _recording(nominal, weak: float, seed: int):
+    """Still poses then twisting at 100 Hz (3,000 samples): a strong accelerometer bias on imu_3 and a weak one
+    (x axis, ``weak`` m/s^2) on imu_6."""
+    v = nominal.terms["accelerometer_bias"].values.copy()
+    v[2], v[5] = (0.05, -0.03, 0.04), (weak, 0.0, 0.0)
+    samples, _, _ = simulate_icosahedron(nominal.with_terms(accelerometer_bias=v), np.random.default_rng(seed),
+                                         rate_hz=100.0, still_s=0.5, transition_s=0.5, twist_s=10.0)
+    return samples
+
+
+def _options(budget):
+    return DiscoveryOptions(terms=("accelerometer_bias",), search_readings=budget, empirical=False,
+                            heldout=budget is not None)
+
+
+def test_strong_effects_are_found_on_the_subsample_and_scored_on_the_blocks_it_left_out(nominal):
+    s = _recording(nominal, 0.0, seed=5)
+    lines = []
+    d = discover(s, nominal, options=_options(6_000), progress=lines.append)
+    sub = d.settings["search_subsample"]
+    assert sub["every_kth_block"] == 4 and sub["searched_on"] == "the subsample"
+    assert [(f.effect, f.sensor) for f in d.findings] == [("accelerometer_bias", "imu_3")]
+    f = d.findings[0]
+    assert np.all(np.abs(f.values - [0.05, -0.03, 0.04]) < 4 * f.std)  # the subsample's CRB: honest std
+    assert f.std[0] > 1.6 * _whole_std(nominal, s)  # ~2x the whole recording's: a quarter of the samples
+    m = d.settings["candidates_per_step"]
+    assert d.level_per_step[0] == pytest.approx(0.01 * SUBSAMPLE_SHARE / m[0])
+    assert d.heldout["samples"] == len(s.stamps) - sub["samples"] and d.heldout["delta_loglik"] > 100
+    assert "blocks it left out" in d.heldout["method"]
+    assert any("searched on the subsample" in n for n in d.notes)
+    assert any("looking at the whole recording" in line for line in lines)  # it ran out: the whole was scored
+
+
+def _whole_std(nominal, s):
+    from imu_array_ros.fitting.engine import fit_terms
+
+    fit = fit_terms(s, nominal, ["accelerometer_bias"], imus=["imu_3"], sandwich=False)
+    return float(fit.std["accelerometer_bias"][2, 0])
+
+
+def test_an_effect_too_weak_for_the_subsample_is_found_on_the_whole_recording(nominal):
+    s = _recording(nominal, 0.0065, seed=6)
+    d = discover(s, nominal, options=_options(6_000), progress=lambda text: None)
+    assert [(f.effect, f.sensor) for f in d.findings] == [("accelerometer_bias", "imu_3"),
+                                                           ("accelerometer_bias", "imu_6")]
+    assert d.settings["search_subsample"]["searched_on"] == "the whole recording"
+    sub_first = [c for c in d.candidates if c.step == 2 and c.sensor == "imu_6"]
+    assert sub_first, "imu_6 was a candidate at step 2"
+    weak = d.findings[1]
+    assert abs(weak.values[0] - 0.0065) < 4 * weak.std[0]
+    # the look at the whole recording spends the other part of alpha at the step the subsample ran out on
+    m = d.settings["candidates_per_step"]
+    assert d.level_per_step[1] == pytest.approx(0.01 * (1 - SUBSAMPLE_SHARE) / m[1])
+    assert "even time blocks" in d.heldout["method"]  # the whole recording was fitted: the two-fold check
+
+
+def test_the_whole_recording_when_the_budget_is_off(nominal):
+    s = _recording(nominal, 0.0, seed=5)
+    d = discover(s, nominal, options=_options(None), progress=lambda text: None)
+    assert d.settings["search_subsample"] is None
+    assert d.level_per_step[0] == pytest.approx(0.01 / d.settings["candidates_per_step"][0])
