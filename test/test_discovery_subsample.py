@@ -8,8 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imu_array_ros.discovery.blocks import search_subsample, time_blocks
+from imu_array_ros.discovery.blocks import search_rungs, time_blocks
 from imu_array_ros.discovery.discover import SUBSAMPLE_SHARE, DiscoveryOptions, discover
+
+#: 3,000 samples x 8 IMUs with a budget of 6,000 readings: every 4th block, every 2nd, the whole recording
+BUDGET = 6_000
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.simulation.icosahedron import simulate_icosahedron
@@ -17,16 +20,19 @@ from imu_array_ros.simulation.icosahedron import simulate_icosahedron
 CORNERS = str(Path(__file__).resolve().parents[1] / "config" / "mimu4444bt_corners.yaml")
 
 
-def test_the_subsample_is_every_kth_block_from_the_first_within_the_budget():
+def test_the_subsamples_are_every_kth_block_from_the_first_within_the_budget_then_halving_k():
     blocks = time_blocks((np.arange(6000) * 1e7).astype(np.int64), 0.5)  # 60 s at 100 Hz: 120 blocks of 50
-    assert search_subsample(blocks, 8, None, 4) is None
-    assert search_subsample(blocks, 8, 48_000, 4) is None  # within the budget
-    index, renumbered, k = search_subsample(blocks, 8, 10_000, 4)
-    assert k == 5 and index[0] == 0  # the first block: drifts and clocks count from the first stamp
+    assert search_rungs(blocks, 8, None, 4) == []
+    assert search_rungs(blocks, 8, 48_000, 4) == []  # within the budget
+    rungs = search_rungs(blocks, 8, 10_000, 4)
+    assert [k for _, _, k in rungs] == [5, 2]  # then the whole recording
+    index, renumbered, k = rungs[0]
+    assert index[0] == 0  # the first block: drifts and clocks count from the first stamp
     assert set(blocks[index]) == set(range(0, 120, 5)) and len(index) == 24 * 50
     assert len(index) * 8 <= 10_000
     np.testing.assert_array_equal(renumbered, np.repeat(np.arange(24), 50))
-    assert search_subsample(blocks, 8, 1_000, 4) is None  # 120 / 48 blocks: fewer than two per fold
+    assert set(blocks[rungs[1][0]]) == set(range(0, 120, 2))
+    assert search_rungs(blocks, 8, 1_000, 4) == []  # 120 / 48 blocks: fewer than two per fold
 
 
 @pytest.fixture(scope="module")
@@ -52,19 +58,20 @@ def _options(budget):
 def test_strong_effects_are_found_on_the_subsample_and_scored_on_the_blocks_it_left_out(nominal):
     s = _recording(nominal, 0.0, seed=5)
     lines = []
-    d = discover(s, nominal, options=_options(6_000), progress=lines.append)
-    sub = d.settings["search_subsample"]
-    assert sub["every_kth_block"] == 4 and sub["searched_on"] == "the subsample"
+    d = discover(s, nominal, options=_options(BUDGET), progress=lines.append)
+    subs = d.settings["search_subsamples"]
+    assert [r["every_kth_block"] for r in subs] == [4, 2] and d.settings["searched_on"] == "every 4th time block"
     assert [(f.effect, f.sensor) for f in d.findings] == [("accelerometer_bias", "imu_3")]
     f = d.findings[0]
     assert np.all(np.abs(f.values - [0.05, -0.03, 0.04]) < 4 * f.std)  # the subsample's CRB: honest std
     assert f.std[0] > 1.6 * _whole_std(nominal, s)  # ~2x the whole recording's: a quarter of the samples
     m = d.settings["candidates_per_step"]
-    assert d.level_per_step[0] == pytest.approx(0.01 * SUBSAMPLE_SHARE / m[0])
-    assert d.heldout["samples"] == len(s.stamps) - sub["samples"] and d.heldout["delta_loglik"] > 100
+    assert d.level_per_step[0] == pytest.approx(0.01 * SUBSAMPLE_SHARE / 2 / m[0])
+    assert d.heldout["samples"] == len(s.stamps) - subs[0]["samples"] and d.heldout["delta_loglik"] > 100
     assert "blocks it left out" in d.heldout["method"]
-    assert any("searched on the subsample" in n for n in d.notes)
-    assert any("looking at the whole recording" in line for line in lines)  # it ran out: the whole was scored
+    assert any("fitted on a subsample, every 4th time block" in n for n in d.notes)
+    looks = [line for line in lines if line.startswith("looking at")]  # it ran out: the larger ones were scored
+    assert len(looks) == 2 and "every 2nd time block" in looks[0] and "the whole recording" in looks[1]
 
 
 def _whole_std(nominal, s):
@@ -74,24 +81,26 @@ def _whole_std(nominal, s):
     return float(fit.std["accelerometer_bias"][2, 0])
 
 
-def test_an_effect_too_weak_for_the_subsample_is_found_on_the_whole_recording(nominal):
-    s = _recording(nominal, 0.0065, seed=6)
-    d = discover(s, nominal, options=_options(6_000), progress=lambda text: None)
+@pytest.mark.parametrize("weak, where, share", [(0.0085, "every 2nd time block", SUBSAMPLE_SHARE / 2),
+                                                (0.0050, "the whole recording", 1 - SUBSAMPLE_SHARE)])
+def test_an_effect_too_weak_for_the_subsample_is_found_on_a_larger_one(nominal, weak, where, share):
+    s = _recording(nominal, weak, seed=6)
+    d = discover(s, nominal, options=_options(BUDGET), progress=lambda text: None)
     assert [(f.effect, f.sensor) for f in d.findings] == [("accelerometer_bias", "imu_3"),
                                                            ("accelerometer_bias", "imu_6")]
-    assert d.settings["search_subsample"]["searched_on"] == "the whole recording"
-    sub_first = [c for c in d.candidates if c.step == 2 and c.sensor == "imu_6"]
-    assert sub_first, "imu_6 was a candidate at step 2"
-    weak = d.findings[1]
-    assert abs(weak.values[0] - 0.0065) < 4 * weak.std[0]
-    # the look at the whole recording spends the other part of alpha at the step the subsample ran out on
-    m = d.settings["candidates_per_step"]
-    assert d.level_per_step[1] == pytest.approx(0.01 * (1 - SUBSAMPLE_SHARE) / m[1])
-    assert "even time blocks" in d.heldout["method"]  # the whole recording was fitted: the two-fold check
+    assert d.settings["searched_on"] == where
+    found = d.findings[1]
+    assert abs(found.values[0] - weak) < 4 * found.std[0]
+    # the look at the larger samples spends its own part of alpha at the step the subsample ran out on
+    assert d.level_per_step[1] == pytest.approx(0.01 * share / d.settings["candidates_per_step"][1])
+    if where == "the whole recording":
+        assert "even time blocks" in d.heldout["method"]  # the whole recording was fitted: the two-fold check
+    else:
+        assert d.heldout["samples"] == len(s.stamps) - d.settings["search_subsamples"][1]["samples"]
 
 
 def test_the_whole_recording_when_the_budget_is_off(nominal):
     s = _recording(nominal, 0.0, seed=5)
     d = discover(s, nominal, options=_options(None), progress=lambda text: None)
-    assert d.settings["search_subsample"] is None
+    assert d.settings["search_subsamples"] == [] and d.settings["searched_on"] == "the whole recording"
     assert d.level_per_step[0] == pytest.approx(0.01 / d.settings["candidates_per_step"][0])

@@ -5,10 +5,11 @@ recording is searched on first.
 with shorter blocks (never fewer than :data:`MIN_BLOCK_SAMPLES` samples each) and a note says what that costs,
 instead of being refused.
 
-:func:`search_subsample`: a recording of more than ``budget`` readings (samples x IMUs) is searched first on every
+:func:`search_rungs`: a recording of more than ``budget`` readings (samples x IMUs) is searched first on every
 k-th time block, evenly spread over it (every regime in its share), so that the exact refits of its strong effects
-cost a k-th; the blocks are chosen by their place in time alone, so every test on them keeps its false-finding
-rate (:func:`~.discover.discover` says how the rate is shared with the looks at the whole recording).
+cost a k-th, then on every (k/2)-th, ... and the whole recording, each only when the one before runs out of
+candidates; the blocks are chosen by their place in time alone, so every test on them keeps its false-finding
+rate (:func:`~.discover.discover` says how the rate is shared between the rungs).
 """
 
 from __future__ import annotations
@@ -19,12 +20,12 @@ import numpy as np
 
 from imu_array_ros.errors import CalibrationError
 
-__all__ = ["time_blocks", "short_recording_options", "search_subsample", "MIN_BLOCK_SAMPLES", "SEARCH_READINGS"]
+__all__ = ["time_blocks", "short_recording_options", "search_rungs", "MIN_BLOCK_SAMPLES", "SEARCH_READINGS"]
 
 #: fewest samples in a time block when a short recording gets shorter blocks
 MIN_BLOCK_SAMPLES = 16
 #: a recording of more readings (samples x IMUs) than this is searched on an evenly spread subsample of its blocks
-#: first (:func:`search_subsample`); the exact refits' cost grows with the readings (a refit of the clocked model
+#: first (:func:`search_rungs`); the exact refits' cost grows with the readings (a refit of the clocked model
 #: on the whole 10-minute exp_3 capture, 300,000 readings, took 10-25 min)
 SEARCH_READINGS = 40_000
 
@@ -58,18 +59,23 @@ def short_recording_options(stamps: np.ndarray, opts, notes: list, say):
     return replace(opts, block_s=block)
 
 
-def search_subsample(blocks: np.ndarray, n_imus: int, budget: int | None, folds: int):
-    """(sample indexes, their blocks renumbered 0 .. nb'-1, k) of every k-th time block (the first included: the
-    model's drifts and clocks count from the first stamp), k the least that brings the readings (samples x
-    ``n_imus``) within ``budget``; None when the recording is within it, ``budget`` is None, or the subsample
-    would hold fewer than 2 x ``folds`` blocks (the held-out folds need two each)."""
+def search_rungs(blocks: np.ndarray, n_imus: int, budget: int | None, folds: int) -> list:
+    """The subsamples a long recording is searched on before the whole of it, smallest first: [(sample indexes,
+    their blocks renumbered 0 .. nb'-1, k)] of every k-th time block (the first included: the model's drifts and
+    clocks count from the first stamp) for k = k0, k0 // 2, ... > 1, k0 the least that brings the readings
+    (samples x ``n_imus``) within ``budget``.  Empty when the recording is within it, ``budget`` is None, or a
+    subsample would hold fewer than 2 x ``folds`` blocks (the held-out folds need two each)."""
     blocks = np.asarray(blocks)
     if budget is None or len(blocks) * n_imus <= budget:
-        return None
+        return []
     nb = int(blocks[-1]) + 1
     k = int(np.ceil(len(blocks) * n_imus / budget))
     if -(-nb // k) < 2 * folds:
-        return None
-    index = np.flatnonzero(blocks % k == 0)
-    _, renumbered = np.unique(blocks[index], return_inverse=True)
-    return index, renumbered.astype(np.int64), k
+        return []
+    rungs = []
+    while k > 1:
+        index = np.flatnonzero(blocks % k == 0)
+        _, renumbered = np.unique(blocks[index], return_inverse=True)
+        rungs.append((index, renumbered.astype(np.int64), k))
+        k //= 2
+    return rungs

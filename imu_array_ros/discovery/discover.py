@@ -17,13 +17,14 @@
    (:func:`~imu_array_ros.fitting.engine.fit_terms` with ``only``), and
    confounded candidates reported as indistinguishable (:mod:`.search`).  A
    recording of more than ``search_readings`` readings is searched first on
-   every k-th time block (:func:`~.blocks.search_subsample`): its strong
-   effects are confirmed by refits of a k-th of the samples.  When the
-   subsample runs out of candidates, the whole recording is scored given its
-   findings and the search goes on there if a candidate passes, so an effect
-   too weak for the subsample is still found; the subsample's steps spend
-   half of alpha, that look the other half.  Findings fitted on the subsample
-   are scored on the blocks it left out (their held-out check).
+   every k-th time block (:func:`~.blocks.search_rungs`): its strong
+   effects are confirmed by refits of a k-th of the samples.  When that
+   subsample runs out of candidates, every (k/2)-th block, ..., then the
+   whole recording is scored given the findings and the search goes on there
+   if a candidate passes, so an effect too weak for a subsample is still
+   found; the subsamples share half of alpha, the whole recording the other
+   half.  Findings fitted on a subsample are scored on the blocks it left out
+   (their held-out check).
 5. **Model what the library lacks** (:mod:`.empirical`): cells still in excess
    after the findings get a sparse regression on motion features, scored on
    held-out blocks, reported apart from the physical findings.
@@ -44,7 +45,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from imu_array_ros.discovery.blocks import SEARCH_READINGS, search_subsample, short_recording_options, time_blocks
+from imu_array_ros.discovery.blocks import SEARCH_READINGS, search_rungs, short_recording_options, time_blocks
 from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import complement_gain, heldout_gain
@@ -63,9 +64,9 @@ __all__ = ["DiscoveryOptions", "Discovery", "Finding", "discover", "fit_summary"
 
 #: near saturation: |reading| above this share of the clip level
 NEAR_SATURATION = 0.9
-#: the part of the family-wise false-finding rate alpha the steps on a long recording's subsample spend; the
-#: look at the whole recording at the step the subsample ran out on spends the rest, so that the first false
-#: finding, at whichever step and look, has probability <= alpha
+#: the part of the family-wise false-finding rate alpha a long recording's subsamples share (equally) between them;
+#: every look at the whole recording spends the rest, so that the looks at one step (one per rung at most) spend at
+#: most alpha together and the first false finding, at whichever step and look, has probability <= alpha
 SUBSAMPLE_SHARE = 0.5
 
 
@@ -339,25 +340,29 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                                                                 c, delta, step, c.scope, c.imus), notes=notes)
     whole = SearchData(samples, motion, blocks, fold_of_block)
     start_model, start_motion = current, motion
-    sub = search_subsample(blocks, model.n_imus, opts.search_readings, opts.folds)
-    data, data_label = whole, None
-    if sub is not None:
-        index, sub_blocks, k = sub
-        data = SearchData(samples.select(index), motion[index], sub_blocks,
-                          np.arange(int(sub_blocks[-1]) + 1) % opts.folds, f"the subsample (every {_nth(k)} block)",
-                          SUBSAMPLE_SHARE)
-        data_label = data.label
-        say(f"searching {len(index)} of {len(stamps)} samples first (every {_nth(k)} time block of {opts.block_s:g} "
-            f"s): the recording holds more than {opts.search_readings} readings")
+    rungs = search_rungs(blocks, model.n_imus, opts.search_readings, opts.folds)
+    ladder = [SearchData(samples.select(index), motion[index], sub_blocks,
+                         np.arange(int(sub_blocks[-1]) + 1) % opts.folds, f"every {_nth(k)} time block",
+                         SUBSAMPLE_SHARE / len(rungs), index) for index, sub_blocks, k in rungs] + [whole]
+    whole.share = 1.0 - SUBSAMPLE_SHARE if rungs else 1.0
+    data = ladder[0]
+    if rungs:
+        say(f"searching {len(data.index)} of {len(stamps)} samples first ({data.label} of {opts.block_s:g} s): the "
+            f"recording holds more than {opts.search_readings} readings")
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs at {len(scopes) + model.n_imus} scopes")
     sb, why = greedy_search(data, rescore(data, state, space), state, space, say)
-    if data is not whole and why in (NONE_PASS, UNCONFIRMED):
-        say("looking at the whole recording for effects the subsample has too little evidence for")
-        whole.motion = fit_motion(samples, state.current, motion)[0]
-        whole.first_share, before = 1.0 - SUBSAMPLE_SHARE, len(state.accepted)
-        sb_whole, why = greedy_search(whole, rescore(whole, state, space), state, space, say)
-        if len(state.accepted) > before:  # the search went on on the whole recording: its fits are the whole's
-            data, sb = whole, sb_whole
+    sb_whole = None  # the whole recording's score blocks under the final model, when a look made them
+    for rung in ladder[1:]:
+        if why not in (NONE_PASS, UNCONFIRMED):
+            break
+        say(f"looking at {rung.label if rung is not whole else 'the whole recording'} for effects the samples so far "
+            f"have too little evidence for")
+        rung.motion = fit_motion(rung.samples, state.current, rung.motion)[0]
+        before = len(state.accepted)
+        sb_rung, why = greedy_search(rung, rescore(rung, state, space), state, space, say)
+        if len(state.accepted) > before:  # the search went on there: the findings' fits are on those samples
+            data, sb = rung, sb_rung
+        sb_whole = sb_rung if rung is whole and data is not whole else None
     findings = sorted(state.accepted.values(), key=lambda f: f.step)
     current, motion, fit = state.current, data.motion, state.fit
     if len(findings) > 1:  # every finding re-tested given all the others (.eliminate)
@@ -370,12 +375,15 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             notes.append(f"backward elimination dropped {gone}: no longer significant given the other findings "
                          f"(see rejected)")
             motion, _, _ = fit_motion(data.samples, current, motion)
-            sb = residuals_only(data.samples, current, motion, data.blocks)
-    if data is not whole:  # the whole recording under the findings fitted on the subsample
-        notes.append(f"searched on {data.label}: {len(data.samples.stamps)} of {len(stamps)} samples; the "
-                     f"findings' values, std and evidence are the subsample's (a fit of the whole recording would "
-                     f"narrow their std by about {np.sqrt(len(stamps) / len(data.samples.stamps)):.2g}x); the other "
-                     f"blocks are their held-out check")
+            sb, sb_whole = residuals_only(data.samples, current, motion, data.blocks), None
+    if data is not whole and findings:
+        notes.append(f"the findings were fitted on a subsample, {data.label} ({len(data.index)} of {len(stamps)} "
+                     f"samples): their values, std and evidence are the subsample's (a fit of the whole recording would "
+                     f"narrow their std by about {np.sqrt(len(stamps) / len(data.index)):.2g}x); the other blocks are "
+                     f"their held-out check")
+    if data is not whole and sb_whole is not None:  # the look scored the whole recording under the final model
+        motion, sb = whole.motion, sb_whole
+    elif data is not whole:  # the whole recording under the findings fitted on the subsample
         say("fitting the whole recording's motion with the findings")
         motion, _, _ = fit_motion(samples, current, fill(whole.motion, start_motion))
         sb = residuals_only(samples, current, motion, blocks)
@@ -395,7 +403,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     if opts.heldout and findings and data is not whole:
         say("held-out blocks: scoring the findings on the blocks the subsample left out")
         start_r = residuals_only(samples, start_model, start_motion, blocks).residuals
-        heldout = complement_gain(sb.residuals, start_r, index, data.label)
+        heldout = complement_gain(sb.residuals, start_r, data.index, data.label)
     elif opts.heldout and findings:
         say("held-out blocks: refitting the findings on half of the blocks, scoring on the other half")
         heldout = heldout_gain(samples, model, findings, blocks, base_motion, base_r)
@@ -412,15 +420,16 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                 "false_finding_rate": (f"family-wise <= {opts.alpha:g} per recording (Bonferroni: each step tests "
                                        f"its m candidates at {opts.alpha:g}/m, both the score test and the "
                                        f"block-robust test, and needs a positive held-out gain)"
-                                       + ("" if sub is None else
-                                          f"; searched first on {data_label}: its steps test at "
-                                          f"{SUBSAMPLE_SHARE:g} alpha/m, the look at the whole recording at the "
-                                          f"step it ran out on at the other {1 - SUBSAMPLE_SHARE:g} alpha/m")),
+                                       + ("" if not rungs else
+                                          f"; searched first on subsamples ({', '.join(r.label for r in ladder[:-1])}), "
+                                          f"then the whole recording, each only when the one before ran out: every "
+                                          f"look at a subsample tests at {SUBSAMPLE_SHARE / len(rungs):.3g} alpha/m, "
+                                          f"at the whole recording at {1 - SUBSAMPLE_SHARE:g} alpha/m, so the "
+                                          f"looks at one step spend at most alpha")),
                 "search_readings": opts.search_readings,
-                "search_subsample": None if sub is None else {
-                    "every_kth_block": int(sub[2]), "samples": int(len(sub[0])), "label": data_label,
-                    "searched_on": "the whole recording" if data is whole else "the subsample",
-                    "alpha_share": SUBSAMPLE_SHARE}}
+                "search_subsamples": [{"every_kth_block": int(k), "samples": int(len(index)),
+                                       "alpha_share": SUBSAMPLE_SHARE / len(rungs)} for index, _, k in rungs],
+                "searched_on": "the whole recording" if data is whole else data.label}
     return Discovery(model.names, current, baseline, after, findings, all_candidates, indist, rejected,
                      loc_before, loc_after, unexplained, empirical, heldout, validation, settings, timings, levels,
                      notes, sim_source, timing)

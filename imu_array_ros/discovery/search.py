@@ -3,9 +3,9 @@
 Every step scores every candidate (each registered term on one IMU and at every pooled scope) given the findings
 so far, tests them at a Bonferroni-corrected level, and confirms the most likely by an exact refit (:mod:`.confirm`:
 ties, narrowing, trading, plausibility).  The search runs on a :class:`SearchData`: the recording, or an evenly
-spread subsample of its time blocks (:func:`~.blocks.search_subsample`) that a long recording is searched on first.
-:class:`SearchState` carries what the search found and ruled out, so that a search ended on the subsample can go on
-on the whole recording with the same findings (:func:`~.discover.discover` decides when).
+spread subsample of its time blocks (:func:`~.blocks.search_rungs`) that a long recording is searched on first.
+:class:`SearchState` carries what the search found and ruled out, so that a search ended on a subsample can go on on
+a larger one or the whole recording with the same findings (:func:`~.discover.discover` decides when).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class SearchData:
     fold_of_block: np.ndarray
     label: str = "the recording"
     share: float = 1.0
-    first_share: float | None = None  # the first step's share, when it differs (the step the subsample ran out on)
+    index: np.ndarray | None = None  # the recording's samples these are (None: all of them)
 
 
 @dataclass
@@ -119,15 +119,12 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
     """Forward steps on ``data`` from its score blocks ``sb`` (given the findings in ``state``) until no candidate
     passes, none is confirmed, the cap is reached or the best is implausible.  ``state`` and ``data.motion`` are
     updated in place; returns (score blocks of the last model (residuals only at the cap), why it ended).  Each
-    step tests at alpha x ``data.share`` / (its number of candidates), the first at ``data.first_share`` when set;
-    a step that adds no finding leaves ``state.step`` as it was (a later look on more data re-runs it)."""
+    step tests at alpha x ``data.share`` / (its number of candidates); a step that adds no finding leaves
+    ``state.step`` as it was (a later look on more data re-runs it)."""
     model, terms, scopes, alpha = space.model, space.terms, space.scopes, space.alpha
     names = model.names
-    first = True
     while state.step < space.max_findings:
         step = state.step + 1
-        share = data.first_share if first and data.first_share is not None else data.share
-        first = False
         cover = {(f.effect, k) for f in state.accepted.values() for k in f.imus}
         skip = cover | state.excluded | {(t, imus[0]) for t, scope, imus in state.retry | state.traded
                                          if scope == "imu"}
@@ -138,7 +135,7 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
         cands += evaluate_scopes(sb, names, data.fold_of_block, scopes, terms=terms, exclude=gone, step=step)
         if not cands:
             return sb, NONE_PASS
-        level = alpha * share / len(cands)
+        level = alpha * data.share / len(cands)
         state.set_level(step, level, len(cands))
         passing = sorted((c for c in cands if c.passes(level)), key=lambda c: c.delta_bic)
         state.candidates += cands if not state.candidates else passing  # every candidate once, then the passing
