@@ -30,7 +30,10 @@ G_n = L_n^-1 B_n and h_n = L_n^-1 gx_n::
 Per chunk of samples the G_n are stacked into one (9 n, dim theta) matrix and
 ``S -= G^T G`` is one matrix product, so a step costs O(N) in the samples with
 no per-sample Python loop; a dim-theta system is solved per step
-(Levenberg-Marquardt damping on S's diagonal, accepted when the cost drops).
+(Levenberg-Marquardt damping on S's diagonal, accepted when the cost drops; a
+trial whose back-substituted dx_n raises the cost is judged again after one
+Gauss-Newton step of each sample's motion alone at the new theta, since the
+motion can respond to theta far from linearly: time offsets x omega_dot).
 The initial motion is self-contained: the gyroscopes (and accelerometers)
 mapped to the array frame and averaged, refined by the same machinery with no
 free parameters (batched 9x9 Gauss-Newton steps).
