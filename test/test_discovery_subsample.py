@@ -22,9 +22,10 @@ CORNERS = str(Path(__file__).resolve().parents[1] / "config" / "mimu4444bt_corne
 
 def test_the_subsamples_are_every_kth_block_from_the_first_within_the_budget_then_halving_k():
     blocks = time_blocks((np.arange(6000) * 1e7).astype(np.int64), 0.5)  # 60 s at 100 Hz: 120 blocks of 50
-    assert search_rungs(blocks, 8, None, 4) == []
-    assert search_rungs(blocks, 8, 48_000, 4) == []  # within the budget
-    rungs = search_rungs(blocks, 8, 10_000, 4)
+    assert search_rungs(blocks, 8, None, 4, 0) == []
+    assert search_rungs(blocks, 8, 48_000, 4, 0) == []  # within the budget
+    assert search_rungs(blocks, 8, 10_000, 4) == []  # 48,000 readings: not long enough for subsamples to pay
+    rungs = search_rungs(blocks, 8, 10_000, 4, 0)
     assert [k for _, _, k in rungs] == [5, 2]  # then the whole recording
     index, renumbered, k = rungs[0]
     assert index[0] == 0  # the first block: drifts and clocks count from the first stamp
@@ -32,7 +33,7 @@ def test_the_subsamples_are_every_kth_block_from_the_first_within_the_budget_the
     assert len(index) * 8 <= 10_000
     np.testing.assert_array_equal(renumbered, np.repeat(np.arange(24), 50))
     assert set(blocks[rungs[1][0]]) == set(range(0, 120, 2))
-    assert search_rungs(blocks, 8, 1_000, 4) == []  # 120 / 48 blocks: fewer than two per fold
+    assert search_rungs(blocks, 8, 1_000, 4, 0) == []  # 120 / 48 blocks: fewer than two per fold
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +52,7 @@ def _recording(nominal, weak: float, seed: int):
 
 
 def _options(budget):
-    return DiscoveryOptions(terms=("accelerometer_bias",), search_readings=budget, empirical=False,
+    return DiscoveryOptions(terms=("accelerometer_bias",), search_readings=budget, ladder_from=0, empirical=False,
                             heldout=budget is not None)
 
 
@@ -99,8 +100,10 @@ def test_an_effect_too_weak_for_the_subsample_is_found_on_a_larger_one(nominal, 
         assert d.heldout["samples"] == len(s.stamps) - d.settings["search_subsamples"][1]["samples"]
 
 
-def test_the_whole_recording_when_the_budget_is_off(nominal):
-    s = _recording(nominal, 0.0, seed=5)
-    d = discover(s, nominal, options=_options(None), progress=lambda text: None)
+@pytest.mark.parametrize("options", [_options(None), DiscoveryOptions(terms=("accelerometer_bias",), empirical=False,
+                                                                     heldout=False)])
+def test_the_whole_recording_when_the_budget_is_off_or_the_recording_short_of_the_ladder(nominal, options):
+    s = _recording(nominal, 0.0, seed=5)  # 24,000 readings: within the default ladder_from
+    d = discover(s, nominal, options=options, progress=lambda text: None)
     assert d.settings["search_subsamples"] == [] and d.settings["searched_on"] == "the whole recording"
     assert d.level_per_step[0] == pytest.approx(0.01 / d.settings["candidates_per_step"][0])

@@ -20,7 +20,7 @@ from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, as_flags, parse_list, \
     non_negative_int, positive_float, positive_int
 from imu_array_ros.cli.progress import Progress, info
-from imu_array_ros.discovery.blocks import SEARCH_READINGS
+from imu_array_ros.discovery.blocks import LADDER_FROM, SEARCH_READINGS
 from imu_array_ros.discovery.report import PLOTS, write_report
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.outputs import check_output, check_report_directory, write_report_manifest
@@ -55,7 +55,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="time block of the robust test and the held-out folds, s (default 0.5)")
     sp.add_argument("--max-findings", type=positive_int, default=8, help="cap on the findings (default 8)")
     sp.add_argument("--search-readings", type=non_negative_int, default=SEARCH_READINGS, metavar="N",
-                    help=f"a recording of more readings (samples x IMUs) is searched first on every k-th time block "
+                    help=f"a recording of more than {LADDER_FROM} readings (samples x IMUs) is searched first on every k-th time block "
                          f"(k the least within N), then every (k/2)-th, ..., the whole recording, each only when the "
                          f"one before runs out of candidates; 0: always the whole recording (default {SEARCH_READINGS})")
     sp.add_argument("--no-plots", action="store_true", help="no PNG plots (report.md and report.json only)")

@@ -5,7 +5,8 @@ recording is searched on first.
 with shorter blocks (never fewer than :data:`MIN_BLOCK_SAMPLES` samples each) and a note says what that costs,
 instead of being refused.
 
-:func:`search_rungs`: a recording of more than ``budget`` readings (samples x IMUs) is searched first on every
+:func:`search_rungs`: a recording of more than ``budget`` readings (samples x IMUs), and of more than
+:data:`LADDER_FROM`, is searched first on every
 k-th time block, evenly spread over it (every regime in its share), so that the exact refits of its strong effects
 cost a k-th, then on every (k/2)-th, ... and the whole recording, each only when the one before runs out of
 candidates; the blocks are chosen by their place in time alone, so every test on them keeps its false-finding
@@ -20,7 +21,8 @@ import numpy as np
 
 from imu_array_ros.errors import CalibrationError
 
-__all__ = ["time_blocks", "short_recording_options", "search_rungs", "MIN_BLOCK_SAMPLES", "SEARCH_READINGS"]
+__all__ = ["time_blocks", "short_recording_options", "search_rungs", "MIN_BLOCK_SAMPLES", "SEARCH_READINGS",
+           "LADDER_FROM"]
 
 #: fewest samples in a time block when a short recording gets shorter blocks
 MIN_BLOCK_SAMPLES = 16
@@ -28,6 +30,11 @@ MIN_BLOCK_SAMPLES = 16
 #: first (:func:`search_rungs`); the exact refits' cost grows with the readings (a refit of the clocked model
 #: on the whole 10-minute exp_3 capture, 300,000 readings, took 10-25 min)
 SEARCH_READINGS = 40_000
+#: ... but only a recording of more readings than this: below it the subsamples' extra looks cost more than their
+#: smaller refits save, and a subsample's lower evidence can change which of two confounded terms wins
+#: (randomised suite, seed 161454, 45 recordings of 40,000-120,000 readings: discover 1.45x slower, 3 of 45
+#: answers changed, 2 for the worse; benchmarks/results/discovery_subsample_161454.md)
+LADDER_FROM = 150_000
 
 
 def time_blocks(stamps: np.ndarray, block_s: float) -> np.ndarray:
@@ -59,14 +66,14 @@ def short_recording_options(stamps: np.ndarray, opts, notes: list, say):
     return replace(opts, block_s=block)
 
 
-def search_rungs(blocks: np.ndarray, n_imus: int, budget: int | None, folds: int) -> list:
+def search_rungs(blocks: np.ndarray, n_imus: int, budget: int | None, folds: int, start: int = LADDER_FROM) -> list:
     """The subsamples a long recording is searched on before the whole of it, smallest first: [(sample indexes,
     their blocks renumbered 0 .. nb'-1, k)] of every k-th time block (the first included: the model's drifts and
     clocks count from the first stamp) for k = k0, k0 // 2, ... > 1, k0 the least that brings the readings
-    (samples x ``n_imus``) within ``budget``.  Empty when the recording is within it, ``budget`` is None, or a
-    subsample would hold fewer than 2 x ``folds`` blocks (the held-out folds need two each)."""
+    (samples x ``n_imus``) within ``budget``.  Empty when the recording is within ``budget`` or ``start``,
+    ``budget`` is None, or a subsample would hold fewer than 2 x ``folds`` blocks (the held-out folds need two)."""
     blocks = np.asarray(blocks)
-    if budget is None or len(blocks) * n_imus <= budget:
+    if budget is None or len(blocks) * n_imus <= max(budget, start):
         return []
     nb = int(blocks[-1]) + 1
     k = int(np.ceil(len(blocks) * n_imus / budget))

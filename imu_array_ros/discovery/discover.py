@@ -16,7 +16,8 @@
    Bonferroni-corrected level, each finding confirmed by an exact refit
    (:func:`~imu_array_ros.fitting.engine.fit_terms` with ``only``), and
    confounded candidates reported as indistinguishable (:mod:`.search`).  A
-   recording of more than ``search_readings`` readings is searched first on
+   recording of more than ``search_readings`` and ``ladder_from`` readings
+   (150,000: a 10-minute capture of 8 IMUs at 62.5 Hz has 300,000) is searched first on
    every k-th time block (:func:`~.blocks.search_rungs`): its strong
    effects are confirmed by refits of a k-th of the samples.  When that
    subsample runs out of candidates, every (k/2)-th block, ..., then the
@@ -45,7 +46,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from imu_array_ros.discovery.blocks import SEARCH_READINGS, search_rungs, short_recording_options, time_blocks
+from imu_array_ros.discovery.blocks import (LADDER_FROM, SEARCH_READINGS, search_rungs, short_recording_options,
+                                            time_blocks)
 from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import complement_gain, heldout_gain
@@ -77,7 +79,8 @@ class DiscoveryOptions:
     max_findings: cap on the greedy steps; still_threshold: |omega| (rad/s) below which a sample is still;
     empirical: model the unexplained residual; heldout: exact held-out check of the final findings;
     timing: search for sample clocks the model lacks (:mod:`.timing`); search_readings: a recording of more
-    readings (samples x IMUs) is searched on an evenly spread subsample of its blocks first (None: never)."""
+    readings (samples x IMUs) than search_readings and ladder_from is searched on evenly spread subsamples of its
+    blocks first (:func:`~.blocks.search_rungs`; None: never)."""
 
     terms: tuple[str, ...] | None = None
     alpha: float = 0.01
@@ -89,6 +92,7 @@ class DiscoveryOptions:
     heldout: bool = True
     timing: bool = True
     search_readings: int | None = SEARCH_READINGS
+    ladder_from: int = LADDER_FROM
 
     def candidate_terms(self) -> tuple[str, ...]:
         names = candidate_names() if self.terms is None else list(self.terms)
@@ -340,7 +344,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                                                                 c, delta, step, c.scope, c.imus), notes=notes)
     whole = SearchData(samples, motion, blocks, fold_of_block)
     start_model, start_motion = current, motion
-    rungs = search_rungs(blocks, model.n_imus, opts.search_readings, opts.folds)
+    rungs = search_rungs(blocks, model.n_imus, opts.search_readings, opts.folds, opts.ladder_from)
     ladder = [SearchData(samples.select(index), motion[index], sub_blocks,
                          np.arange(int(sub_blocks[-1]) + 1) % opts.folds, f"every {_nth(k)} time block",
                          SUBSAMPLE_SHARE / len(rungs), index) for index, sub_blocks, k in rungs] + [whole]
