@@ -55,9 +55,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="time block of the robust test and the held-out folds, s (default 0.5)")
     sp.add_argument("--max-findings", type=positive_int, default=8, help="cap on the findings (default 8)")
     sp.add_argument("--search-readings", type=non_negative_int, default=SEARCH_READINGS, metavar="N",
-                    help=f"a recording of more than {LADDER_FROM} readings (samples x IMUs) is searched first on every k-th time block "
-                         f"(k the least within N), then every (k/2)-th, ..., the whole recording, each only when the "
-                         f"one before runs out of candidates; 0: always the whole recording (default {SEARCH_READINGS})")
+                    help=f"a recording of more than {LADDER_FROM} readings (samples x IMUs) is searched first on "
+                         f"every k-th time block (k the least within N), then every (k/2)-th, ..., the whole "
+                         f"recording, each only when the one before runs out of candidates; 0: always the whole "
+                         f"recording (default {SEARCH_READINGS})")
     sp.add_argument("--no-plots", action="store_true", help="no PNG plots (report.md and report.json only)")
     sp.add_argument("--no-empirical", action="store_true", help="do not model the unexplained residual")
     add_force_quiet(sp, force="replace an existing report in --report and an existing --apply YAML (only files of "

@@ -6,10 +6,9 @@ with shorter blocks (never fewer than :data:`MIN_BLOCK_SAMPLES` samples each) an
 instead of being refused.
 
 :func:`search_rungs`: a recording of more than ``budget`` readings (samples x IMUs), and of more than
-:data:`LADDER_FROM`, is searched first on every
-k-th time block, evenly spread over it (every regime in its share), so that the exact refits of its strong effects
-cost a k-th, then on every (k/2)-th, ... and the whole recording, each only when the one before runs out of
-candidates; the blocks are chosen by their place in time alone, so every test on them keeps its false-finding
+:data:`LADDER_FROM`, is searched first on every k-th time block, evenly spread over it (every regime in its share),
+so that the exact refits of its strong effects cost a k-th, then on every (k/2)-th, ... and the whole recording,
+each only when the one before runs out of candidates; the blocks are chosen by their place in time alone, so every test on them keeps its false-finding
 rate (:func:`~.discover.discover` says how the rate is shared between the rungs).
 """
 

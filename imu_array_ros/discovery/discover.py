@@ -52,8 +52,8 @@ from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import complement_gain, heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, scopes_for
-from imu_array_ros.discovery.search import (NONE_PASS, UNCONFIRMED, SearchData, SearchSpace, SearchState, fill,
-                                            greedy_search, rescore, residuals_only)
+from imu_array_ros.discovery.search import (SearchData, SearchSpace, SearchState, fill, ladder_search,
+                                            residuals_only)
 from imu_array_ros.discovery.threads import on_one_blas_thread
 from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
@@ -349,24 +349,11 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                          np.arange(int(sub_blocks[-1]) + 1) % opts.folds, f"every {_nth(k)} time block",
                          SUBSAMPLE_SHARE / len(rungs), index) for index, sub_blocks, k in rungs] + [whole]
     whole.share = 1.0 - SUBSAMPLE_SHARE if rungs else 1.0
-    data = ladder[0]
     if rungs:
-        say(f"searching {len(data.index)} of {len(stamps)} samples first ({data.label} of {opts.block_s:g} s): the "
-            f"recording holds more than {opts.search_readings} readings")
+        say(f"searching {len(rungs[0][0])} of {len(stamps)} samples first ({ladder[0].label} of {opts.block_s:g} s): "
+            f"the recording holds more than {opts.search_readings} readings")
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs at {len(scopes) + model.n_imus} scopes")
-    sb, why = greedy_search(data, rescore(data, state, space), state, space, say)
-    sb_whole = None  # the whole recording's score blocks under the final model, when a look made them
-    for rung in ladder[1:]:
-        if why not in (NONE_PASS, UNCONFIRMED):
-            break
-        say(f"looking at {rung.label if rung is not whole else 'the whole recording'} for effects the samples so far "
-            f"have too little evidence for")
-        rung.motion = fit_motion(rung.samples, state.current, rung.motion)[0]
-        before = len(state.accepted)
-        sb_rung, why = greedy_search(rung, rescore(rung, state, space), state, space, say)
-        if len(state.accepted) > before:  # the search went on there: the findings' fits are on those samples
-            data, sb = rung, sb_rung
-        sb_whole = sb_rung if rung is whole and data is not whole else None
+    data, sb, sb_whole = ladder_search(ladder, state, space, say)
     findings = sorted(state.accepted.values(), key=lambda f: f.step)
     current, motion, fit = state.current, data.motion, state.fit
     if len(findings) > 1:  # every finding re-tested given all the others (.eliminate)
@@ -380,17 +367,18 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                          f"(see rejected)")
             motion, _, _ = fit_motion(data.samples, current, motion)
             sb, sb_whole = residuals_only(data.samples, current, motion, data.blocks), None
-    if data is not whole and findings:
-        notes.append(f"the findings were fitted on a subsample, {data.label} ({len(data.index)} of {len(stamps)} "
-                     f"samples): their values, std and evidence are the subsample's (a fit of the whole recording would "
-                     f"narrow their std by about {np.sqrt(len(stamps) / len(data.index)):.2g}x); the other blocks are "
-                     f"their held-out check")
-    if data is not whole and sb_whole is not None:  # the look scored the whole recording under the final model
-        motion, sb = whole.motion, sb_whole
-    elif data is not whole:  # the whole recording under the findings fitted on the subsample
-        say("fitting the whole recording's motion with the findings")
-        motion, _, _ = fit_motion(samples, current, fill(whole.motion, start_motion))
-        sb = residuals_only(samples, current, motion, blocks)
+    if data is not whole:  # the findings were fitted on a subsample: the whole recording under them
+        if findings:
+            notes.append(f"the findings were fitted on a subsample, {data.label} ({len(data.index)} of {len(stamps)} "
+                         f"samples): their values, std and evidence are the subsample's (a fit of the whole recording "
+                         f"would narrow their std by about {np.sqrt(len(stamps) / len(data.index)):.2g}x); the other "
+                         f"blocks are their held-out check")
+        if sb_whole is not None:  # the last look scored the whole recording under the final model
+            motion, sb = whole.motion, sb_whole
+        else:
+            say("fitting the whole recording's motion with the findings")
+            motion, _, _ = fit_motion(samples, current, fill(whole.motion, start_motion))
+            sb = residuals_only(samples, current, motion, blocks)
     all_candidates, indist, rejected, levels = state.candidates, state.indist, state.rejected, state.levels
     timings["explain"] = time.perf_counter() - t1
 
@@ -479,4 +467,4 @@ def _unexplained(loc, sb, motion, samples, model, blocks, fold_of_block):
 
 
 def _nth(k: int) -> str:
-    return {1: "", 2: "2nd", 3: "3rd"}.get(k, f"{k}th")
+    return {2: "2nd", 3: "3rd"}.get(k, f"{k}th")

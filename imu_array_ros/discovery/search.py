@@ -5,7 +5,7 @@ so far, tests them at a Bonferroni-corrected level, and confirms the most likely
 ties, narrowing, trading, plausibility).  The search runs on a :class:`SearchData`: the recording, or an evenly
 spread subsample of its time blocks (:func:`~.blocks.search_rungs`) that a long recording is searched on first.
 :class:`SearchState` carries what the search found and ruled out, so that a search ended on a subsample can go on on
-a larger one or the whole recording with the same findings (:func:`~.discover.discover` decides when).
+a larger one or the whole recording with the same findings (:func:`ladder_search`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from imu_array_ros.discovery.scopes import score_given
 from imu_array_ros.fitting.engine import fit_motion, score_blocks
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["SearchData", "SearchState", "SearchSpace", "greedy_search", "residuals_only", "fill", "rescore",
+__all__ = ["SearchData", "SearchState", "SearchSpace", "greedy_search", "ladder_search", "residuals_only", "fill",
+           "rescore",
            "NONE_PASS", "UNCONFIRMED", "CAP", "STOPPED"]
 
 #: why a search ended: no candidate passed the step's level (or none was left to test)
@@ -145,7 +146,7 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
         best = stop = result = None
         for c in passing:
             say(f"step {step}: testing {c.effect} on {c.sensor} (score {c.statistic:.4g}, dof {c.dof}) exactly"
-                + ("" if data.share == 1.0 and data.label == "the recording" else f" on {data.label}"))
+                + ("" if data.index is None else f" on {data.label}"))
             key = c.key
             result = confirm(data.samples, state.current, state.accepted, c, data.motion, level, model, alpha, say)
             if isinstance(result, str):
@@ -200,3 +201,26 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
         sb = None  # memory: the last step's blocks go before the next ones are made
         sb = rescore(data, state, space)
     return sb, CAP
+
+
+def ladder_search(ladder: list, state: SearchState, space: SearchSpace, say) -> tuple:
+    """The search on ``ladder[0]``, then on each larger SearchData of ``ladder`` (its last the whole recording)
+    only when the one before ran out of candidates (none passed or none was confirmed), its motion first refitted
+    under the findings so far.  Returns (the SearchData the findings were last fitted on, its score blocks, the
+    whole recording's score blocks under the final model when the last look made them there without a finding,
+    else None)."""
+    whole, data = ladder[-1], ladder[0]
+    sb, why = greedy_search(data, rescore(data, state, space), state, space, say)
+    sb_whole = None
+    for rung in ladder[1:]:
+        if why not in (NONE_PASS, UNCONFIRMED):
+            break
+        say(f"looking at {'the whole recording' if rung is whole else rung.label} for effects the samples so far "
+            f"have too little evidence for")
+        rung.motion = fit_motion(rung.samples, state.current, rung.motion)[0]
+        before = len(state.accepted)
+        sb_rung, why = greedy_search(rung, rescore(rung, state, space), state, space, say)
+        if len(state.accepted) > before:  # the search went on there: the findings' fits are on those samples
+            data, sb = rung, sb_rung
+        sb_whole = sb_rung if rung is whole and data is not whole else None
+    return data, sb, sb_whole
