@@ -271,7 +271,8 @@ class BuiltScenario:
     """A built scenario: samples (noisy recording), nominal (the model it is analysed with), truth_model,
     effects (the effects as injected, replacements applied), values: effect index -> (P,) true value,
     oracle_target / oracle_noise_free / oracle: per effect (then the vibration) the target, the noise-free
-    and the realised evidence; amplitude: the vibration's RMS (m/s^2) at its largest IMU; notes."""
+    and the realised evidence; amplitude: the vibration's RMS (m/s^2) at its largest IMU; notes; added: (N, K, 6)
+    the vibration's signal in the readings (None without one)."""
 
     scenario: SuiteScenario
     samples: object
@@ -284,6 +285,7 @@ class BuiltScenario:
     oracle: list[float]
     amplitude: float = 0.0
     notes: list[str] = field(default_factory=list)
+    added: np.ndarray | None = None
 
 
 def _motion(sc: SuiteScenario, nominal: SensorModel):
@@ -407,7 +409,7 @@ def build(sc: SuiteScenario, *, attempts: int = 6) -> BuiltScenario:
         base = nominal.terms[e.term].values[e.imus[0]]
         oracle.append(_oracle_gain(lambda c: _loglik(samples, _with(true, e.term, e.imus, base + c * (v - base)))))
     targets = [e.evidence for e in effects]
-    amplitude = 0.0
+    amplitude, added = 0.0, None
     if sc.vibration is not None:
         vib = sc.vibration
         clean = simulate_measurements(true, truth, None, noise=False)
@@ -428,4 +430,4 @@ def build(sc: SuiteScenario, *, attempts: int = 6) -> BuiltScenario:
         oracle.append(_oracle_gain(lambda c: _loglik(_minus(noisy, added, c), true)))
         targets.append(vib.evidence)
         samples = noisy
-    return BuiltScenario(sc, samples, nominal, true, effects, values, targets, nf, oracle, amplitude, notes)
+    return BuiltScenario(sc, samples, nominal, true, effects, values, targets, nf, oracle, amplitude, notes, added)
