@@ -24,7 +24,9 @@ motion fit, :func:`imu_array_ros.fitting.engine.fit_motion`):
 * **discovery**: :func:`imu_array_ros.discovery.modes.detect_modes` on the same residuals (with positions,
   rotations, stds and motion, as ``discover`` calls it; family-wise alpha 0.01 over frequencies, widths,
   resolutions and tests).  Detected: a mode whose band (+- one 0.25 Hz bin) holds the frequency and whose IMUs
-  include a largest-amplitude IMU (the suite's scoring rule).
+  include a largest-amplitude IMU (the suite's scoring rule); also counted without the IMU condition (a mode
+  whose band holds the frequency), and the largest true amplitude among its IMUs (relative to the mode's
+  largest) is kept: on nearly flat shapes the suite's rule turns on amplitude differences of a few %.
 
     python -m benchmarks.discovery_vibration_bound [--seed S] [--scenarios 48] [--evidence 30 1000]
 """
@@ -146,15 +148,17 @@ def analyse(seed: int, index: int, evidence: tuple[float, float]) -> dict:
     amp = np.abs(np.asarray(vib.shape))
     leads = set(np.flatnonzero(amp >= amp.max() * (1 - 1e-9)).tolist())
     tol = 0.25
-    found = [md for md in search.modes
-             if md.band_hz[0] - tol <= vib.frequency_hz <= md.band_hz[1] + tol and leads & set(md.imus)]
+    at_f = [md for md in search.modes if md.band_hz[0] - tol <= vib.frequency_hz <= md.band_hz[1] + tol]
+    found = [md for md in at_f if leads & set(md.imus)]
     return {"scenario": sc.name, "index": index, "array": sc.array, "rate_hz": sc.rate_hz, "imus": k,
             "field_channels": v, "duration_s": n / fs, "frequency_hz": vib.frequency_hz,
             "bandwidth_hz": vib.bandwidth_hz, "evidence": float(b.oracle[-1]),
             "p_shape": p_shape, "p_band": p_band, "p_shape_null": p_shape_null, "p_band_null": p_band_null, "looks": looks, "p_band_searched": min(1.0, p_band * looks),
             "shape_genie": p_shape < ALPHA, "band_genie": p_band < ALPHA,
-            "band_genie_searched": p_band * looks < ALPHA, "discovery": bool(found),
-            "modes": [[md.frequency_hz, md.p_value, md.test] for md in search.modes],
+            "band_genie_searched": p_band * looks < ALPHA, "discovery": bool(found), "discovery_at_f": bool(at_f),
+            "lead_amplitude_reported": max((float(amp[md.imus].max()) / float(amp.max()) for md in at_f), default=0.0),
+            "modes": [[md.frequency_hz, list(md.band_hz), md.p_value, md.test, [int(i) for i in md.imus]]
+                      for md in search.modes],
             "detect_seconds": t_detect, "seconds": time.perf_counter() - t0}
 
 
@@ -171,7 +175,8 @@ def _rate(rows, key) -> str:
 DETECTORS = (("shape_genie", "shape genie (knows shape + spectrum; no search)"),
              ("band_genie", "band genie (knows spectrum; no search)"),
              ("band_genie_searched", "band genie, searched (Bonferroni over bands x widths)"),
-             ("discovery", "discovery's mode search"))
+             ("discovery", "discovery's mode search (suite rule)"),
+             ("discovery_at_f", "discovery: a mode at the frequency, any IMUs"))
 
 
 def render(res: dict, out: Path) -> None:
