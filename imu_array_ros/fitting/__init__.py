@@ -94,14 +94,16 @@ Approximation
 -------------
 The timing terms (time offsets, sample clocks, stamp clocks) evaluate every reading at its true sample
 time along the motion near its sample: local cubics through the current motion estimate
-(:func:`~imu_array_ros.model.trajectory.timing_context`, as the fusion compensates them), rebuilt at
-every iteration and held fixed within it, in the predictions, the Jacobians and the cost of the trial
-step; their Jacobians are first order in the delay (d y / d theta = dx/dt d delay / d theta, the slopes
-of the same cubics; a gyroscope's rate of change is that of the angular-rate estimates, not the
-omega_dot state, which a bias field's gauge may shift).  The dependence of sample n's readings on its
-neighbours' motion through the cubics is neglected (keeps the normal equations block-arrow), and the
-iteration converges to the point that is optimal for the trajectory of its own motion.  The effect is
-second order in the delay (milliseconds) times the noise of the motion estimate.
+(:func:`~imu_array_ros.model.trajectory.timing_context`, as the fusion compensates them), held fixed
+through an optimisation round, in the predictions, the Jacobians and the cost of the trial steps, and rebuilt
+from the motion found between rounds until the fixed point (:mod:`.rounds`: a Gauss-Newton step on the motion's
+own trajectory moves no parameter by 0.05 std; ``converged`` False when the round cap comes first); their
+Jacobians are first order in the delay (d y / d theta = dx/dt d delay / d theta, the slopes of the same cubics;
+a gyroscope's rate of change is that of the angular-rate estimates, not the omega_dot state, which a bias
+field's gauge may shift).  The dependence of sample n's readings on its neighbours' motion through the cubics is
+neglected (keeps the normal equations block-arrow), and the iteration converges to the point that is optimal for
+the trajectory of its own motion.  The effect is second order in the delay (milliseconds) times the noise of the
+motion estimate.
 
 Modules
 -------
@@ -110,7 +112,8 @@ Modules
 the Schur-complemented linearisation; :mod:`.schur` the batched algebra of the
 Schur step; :mod:`.gauge` null space and gauge fixing; :mod:`.identifiability`
 the noise-share check and the one-line messages; :mod:`.optimiser`
-Levenberg-Marquardt; :mod:`.robust` the sandwich covariance and Huber reweighting; :mod:`.score` discovery's score test
+Levenberg-Marquardt; :mod:`.rounds` the trajectory rounds of fits with timing terms; :mod:`.robust` the
+sandwich covariance and Huber reweighting; :mod:`.score` discovery's score test
 (:func:`score_blocks`); :mod:`.motion_models` how each sample's motion is
 parametrised (any rigid motion, static poses on gravity).
 """

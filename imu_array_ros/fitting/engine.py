@@ -18,6 +18,7 @@ from imu_array_ros.fitting.gauge import GAUGE_ORDER, Gauge
 from imu_array_ros.fitting.identifiability import NOISE_SHARE
 from imu_array_ros.fitting.optimiser import inverse, levenberg_marquardt
 from imu_array_ros.fitting.problem import Linearization, Problem, check_terms, keep_schur
+from imu_array_ros.fitting.rounds import FAR_ITERATIONS, TIMING_ROUNDS, timing_rounds
 from imu_array_ros.fitting.robust import (HUBER_ROUNDS, RobustCovariance, blocked_covariance, huber_sigma,
                                           sample_influence)
 from imu_array_ros.fitting.score import ScoreBlocks, score_blocks
@@ -29,8 +30,6 @@ from imu_array_ros.model.terms import REGISTRY
 __all__ = ["FitResult", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms", "keep_schur",
            "GAUGE_ORDER", "NOISE_SHARE", "TIMING_ROUNDS"]
 
-#: with timing terms, how many times the trajectory is rebuilt from the motion found and the fit repeated
-TIMING_ROUNDS = 3
 
 
 @dataclass
@@ -135,8 +134,12 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     readings far out count linearly instead of quadratically; nis/loglik "after" are then those of the
     reweighted problem; sandwich: compute ``covariance_robust`` (one more pass over the samples);
     cost_tolerance: also converged when a step lowers the cost (-log-likelihood) by less than this, and with
-    timing terms no further trajectory round after one that gains less (default None: the parameter and
-    motion steps alone decide; discovery's confirming refits need only the likelihood); keep_g: the
+    timing terms the bound on the log-likelihood gain left at the rounds' fixed point when larger than
+    ``ROUND_GAIN`` (:mod:`~imu_array_ros.fitting.rounds`; default None: the parameter and motion steps alone
+    decide; discovery's confirming refits need only the likelihood).  With timing terms the fit runs trajectory
+    rounds to their fixed point (:func:`~imu_array_ros.fitting.rounds.timing_rounds`): ``converged`` then says
+    whether that criterion was met within ``TIMING_ROUNDS`` rounds, and loglik/nis "after" are those on the
+    motion's own trajectory; keep_g: the
     linearisations keep G_n for the motion steps (fewer passes over the samples, the
     same steps to rounding; default None: as :func:`~imu_array_ros.fitting.problem.keep_schur` says, off
     outside it).  Raises
@@ -163,28 +166,13 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     gauge_fix = Gauge.find(prob, model, motion, lin, ref, gauge, _fixed(prob, model, only, hold))
     dof = prob.check_dof(gauge_fix.rank)
     before = lin.cost
-    model, motion, lin, iterations, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
-                                                                    max_iterations, tolerance, progress,
-                                                                    cost_tolerance)
-    for _ in range(TIMING_ROUNDS if prob.needs_derivatives else 0):
-        # the timing terms' trajectory was held through the optimisation: rebuild it from the motion found
-        # and optimise again, until the parameters no longer move
-        theta = prob.values(model).reshape(-1)
-        prob.freeze(motion)
-        lin = None  # memory: the last linearisation (and its G) goes before the next is made
-        lin = prob.linearize(model, motion)
-        start = lin.cost
-        model, motion, lin, more, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix,
-                                                                  max_iterations, tolerance, progress,
-                                                                  cost_tolerance)
+    first = min(max_iterations, FAR_ITERATIONS) if prob.needs_derivatives else max_iterations  # on a held trajectory
+    model, motion, lin, iterations, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix, first,
+                                                                    tolerance, progress, cost_tolerance)
+    if prob.needs_derivatives:  # the timing terms' trajectory was held: rounds to its fixed point
+        model, motion, lin, more, converged = timing_rounds(prob, model, motion, lin, gauge_fix, max_iterations,
+                                                            tolerance, progress, cost_tolerance)
         iterations += more
-        if cost_tolerance is not None and start - lin.cost < cost_tolerance:
-            break  # the trajectory has settled as far as the likelihood the caller asks about goes
-        s_z, _ = gauge_fix.reduce(lin.S, lin.g)
-        std = np.sqrt(np.clip(np.diag(gauge_fix.expand_covariance(inverse(s_z))), 0.0, None))
-        moved = np.abs(prob.values(model).reshape(-1) - theta)
-        if np.all(moved[std > 0] < tolerance * 10 * std[std > 0]):
-            break
     return _result(prob, model, motion, lin, gauge_fix, before, dof, iterations, converged, sandwich)
 
 

@@ -263,10 +263,11 @@ class Problem:
 
     def freeze(self, motion: np.ndarray | None) -> None:
         """Hold the timing context of ``motion`` (None: release it) until the next freeze: the timing
-        terms then see one fixed trajectory, so the problem does not move under the optimiser."""
-        self.frozen = None
+        terms then see one fixed trajectory, so the problem does not move under the optimiser (``frozen_motion``:
+        the motion it was built from)."""
+        self.frozen, self.frozen_motion = None, None
         if motion is not None and self.needs_derivatives:
-            self.frozen = self.derivatives(motion)
+            self.frozen, self.frozen_motion = self.derivatives(motion), motion
 
     def derivatives(self, motion: np.ndarray) -> tuple:
         """(omega_ddot, specific_force_dot, omega_rate, trajectory) of the whole recording: the local

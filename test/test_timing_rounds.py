@@ -1,0 +1,71 @@
+"""The trajectory rounds of fit_terms with timing terms (fitting/rounds.py): the fit stops at the fixed point
+where the trajectory the timing terms read is that of the motion found, reports the log-likelihood there, and says
+when it did not get there."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import imu_array_ros.fitting.rounds as rounds
+from imu_array_ros.fitting.engine import fit_motion, fit_terms
+from imu_array_ros.fitting.reading_rates import reading_rates
+from imu_array_ros.model.description import load_description
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.simulation.clocks import mimu_like_clocks
+from imu_array_ros.simulation.motion import TwistTrajectory
+from imu_array_ros.simulation.simulator import simulate_trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+#: 120 reads at 62.5 Hz (the MIMU4444BT's)
+STAMPS = (np.arange(120) * 16_000_000).astype(np.int64)
+
+
+@pytest.fixture(scope="module")
+def case():
+    """Sample clocks on 8 corner IMUs, hand-like twisting plus motion faster than the reads follow (the
+    recording of test_reading_rates.py, shorter): the time offsets' fit with reading rates, from the truth."""
+    corners = SensorModel.from_description(load_description(ROOT / "config/mimu4444bt_corners.yaml"))
+    rng = np.random.default_rng(11)
+    clocked = mimu_like_clocks(corners, rng, acc_lag=0.8e-3, gyro_lag=2.9e-3)
+    a = np.array([[8.0, 1.4], [6.0, 1.2], [7.0, 1.3]])
+    f = np.array([[1.1, 34.0], [1.7, 38.0], [0.9, 41.0]])
+    sa = np.array([[2.0, 8.0], [2.0, 7.0], [2.0, 9.0]])
+    sf = np.array([[0.7, 36.0], [1.2, 43.0], [0.5, 39.0]])
+    twist = TwistTrajectory(a, f, rng.uniform(0, 2 * np.pi, (3, 2)), sa, sf, rng.uniform(0, 2 * np.pi, (3, 2)),
+                            np.array([1.0, 0.0, 0.0, 0.0]))
+    samples = simulate_trajectory(clocked, twist, STAMPS, rng)[0]
+    with reading_rates():
+        motion = fit_motion(samples, clocked)[0]
+    return clocked, samples, motion
+
+
+def fit(case):
+    clocked, samples, motion = case
+    with reading_rates():
+        return fit_terms(samples, clocked, ["time_offset"], motion0=motion, max_iterations=50, sandwich=False)
+
+
+def test_the_fit_is_a_fixed_point_of_the_rounds_and_reports_its_own_likelihood(case):
+    # the old loop (3 re-freezes) stopped 0.68 std from where many rounds end, and reported the log-likelihood on
+    # the trajectory of an earlier motion: 117 above that of its own parameters
+    clocked, samples, motion = case
+    first = fit(case)
+    assert first.converged
+    with reading_rates():
+        profile = fit_motion(samples, first.model, first.motion)[1]
+        again = fit_terms(samples, first.model, ["time_offset"], motion0=first.motion, max_iterations=50,
+                          sandwich=False)
+    assert abs(first.loglik_after - profile) < 0.5, (first.loglik_after, profile)
+    std = first.std["time_offset"]
+    ok = np.isfinite(std) & (std > 0)
+    moved = np.abs(again.model.terms["time_offset"].values - first.model.terms["time_offset"].values)[ok] / std[ok]
+    assert np.max(moved) < 0.1 and abs(again.loglik_after - first.loglik_after) < 0.5, (np.max(moved),
+                                                                                           again.loglik_after)
+
+
+def test_a_fit_stopped_by_the_round_cap_says_it_did_not_converge(case, monkeypatch):
+    monkeypatch.setattr(rounds, "TIMING_ROUNDS", 1)
+    assert not fit(case).converged
