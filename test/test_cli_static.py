@@ -46,7 +46,10 @@ def test_static_writes_every_term_with_std_and_a_record(session, capsys):
     assert {"gain_std", "bias_std", "nonorthogonality_std", "misalignment_std"} <= set(imu["accelerometer"])
     assert "bias_std" in imu["gyroscope"]
     stages = [s["stage"] for s in record["stages"]]
-    assert stages == ["still poses", "static"] and "moving" in record["skipped"]
+    # calibrate static has no moving stage: none reported as skipped, in the file or on the console
+    assert stages == ["still poses", "static"] and record["skipped"] == {}
+    assert "moving" not in err and "moving" not in record["method"]
+    assert record["method"].startswith("calibrate static: still poses -> static")
     # every parameter within 4 of its written std (CRB x sqrt(max(1, NIS))); the reference's misalignment
     # is held (no std written) and equal to the truth's re-expressed in its frame (0)
     z = []
@@ -71,6 +74,9 @@ def test_all_calibrates_positions_and_gyros_after_the_poses(session, capsys):
     record = yaml.safe_load(out.read_text())["calibration"]
     assert [s["stage"] for s in record["stages"]] == ["still poses", "static", "moving"]  # no timing by default
     assert record["skipped"] == {}
+    # the method names the stages that ran: no timing stage without --timing (in the file and the summary)
+    assert record["method"].startswith("calibrate all: still poses -> static") and "-> moving" in record["method"]
+    assert "timing" not in record["method"] and "timing" not in err
     cal = SensorModel.from_description(load_description(out))
     truth = SensorModel.from_description(load_description(session / "truth.yaml"))
     nominal = SensorModel.from_description(load_description(NILSSON14))
@@ -138,3 +144,18 @@ def test_bad_terms_and_wrong_array(session, capsys):
     assert_user_error(cli(capsys, "calibrate", "static", session / "rec", "--array", ARRAY32, "--out",
                           session / "y.yaml", "-q"))
     assert not (session / "x.yaml").exists() and not (session / "y.yaml").exists()
+
+
+def test_the_method_names_the_timing_stage_only_when_it_ran():
+    from imu_array_ros.calibration.array import ArrayCalibration
+
+    nominal = SensorModel.from_description(load_description(NILSSON14))
+    run = lambda **kw: ArrayCalibration(model=nominal, poses=None, static=None, moving=None, **kw)  # noqa: E731
+    moving = ("position",)
+    assert "timing" not in run(moving_terms=moving).method()
+    skipped = run(moving_terms=moving, skipped={"timing": "the refit did not converge"})
+    assert "timing" not in skipped.method() and skipped.record()["skipped"] == {"timing": "the refit did not converge"}
+    assert run(moving_terms=moving, timed=True).method().endswith(
+        "-> moving (positions, gyroscope gain, misalignment and non-orthogonality) -> timing (sample clocks, time "
+        "offsets, refitted with the moving terms)")
+    assert run().method() == "calibrate static: still poses -> static (accelerometer intrinsics, gyroscope biases)"

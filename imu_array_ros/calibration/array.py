@@ -50,7 +50,7 @@ class ArrayCalibration:
     """The stages of :func:`calibrate_array`: model (every stage applied), poses (StillPoses),
     static (StaticCalibration or None), moving (FitResult or None), skipped: stage -> reason,
     moving_samples: (used, total) of the moving stage, moving_window: the samples the moving stage
-    fitted (None: no moving stage), seconds."""
+    fitted (None: no moving stage), seconds, timed: the timing stage ran (its refit is ``moving``)."""
 
     model: SensorModel
     poses: object
@@ -62,6 +62,7 @@ class ArrayCalibration:
     moving_window: ImuSamples | None = field(default=None, repr=False)
     seconds: float = 0.0
     timing_notes: list[str] = field(default_factory=list)
+    timed: bool = False
 
     def stds(self) -> dict[str, np.ndarray]:
         """term -> (K, P) standard deviations of every calibrated field: the static stage's
@@ -112,10 +113,22 @@ class ArrayCalibration:
                            "nis_before": f(m.nis_before), "nis_after": f(m.nis_after)})
         if self.timing_notes:
             stages.append({"stage": "timing", "notes": list(self.timing_notes)})
-        return {"method": "calibrate all: still poses -> static (accelerometer intrinsics, gyroscope biases) -> "
-                          "moving (positions, gyroscope gain, misalignment and non-orthogonality) -> timing (sample clocks, time "
-                          "offsets, refitted with the moving terms)",
-                **provenance(), "stages": stages, "skipped": dict(self.skipped)}
+        return {"method": self.method(), **provenance(), "stages": stages, "skipped": dict(self.skipped)}
+
+    def method(self) -> str:
+        """The stages this calibration ran through: ``calibrate static`` (no moving terms asked for) or
+        ``calibrate all``; the timing stage named only when it ran (a skipped stage is in ``skipped``)."""
+        stages = ["still poses", "static (accelerometer intrinsics, gyroscope biases)"]
+        if not self.moving_terms:
+            return "calibrate static: " + " -> ".join(stages)
+        stages.append("moving (positions, gyroscope gain, misalignment and non-orthogonality)")
+        if self.timed:
+            stages.append("timing (sample clocks, time offsets, refitted with the moving terms)")
+        return "calibrate all: " + " -> ".join(stages)
+
+
+class _NoMovingStage(Exception):
+    """No moving-stage terms asked for (``calibrate static``)."""
 
 
 def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, static_method: str = "ml",
@@ -154,8 +167,8 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
     moving, used_total, window = None, (0, 0), None
     moving_terms = tuple(moving_terms)
     try:
-        if not moving_terms:
-            raise CalibrationError("no moving-stage terms asked for")
+        if not moving_terms:  # calibrate static: no moving stage to run or to report as skipped
+            raise _NoMovingStage
         idx = np.flatnonzero(poses.moving)
         if len(idx) < 3:
             raise CalibrationError(f"no moving phase: {len(idx)} samples outside the still intervals")
@@ -174,16 +187,19 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                            progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
         current = moving.model
         say(f"moving stage: NIS {moving.nis_before:.4g} -> {moving.nis_after:.4g}")
+    except _NoMovingStage:
+        pass
     except CalibrationError as err:
         skipped["moving"] = str(err)
         say(f"moving stage skipped: {err}")
     timing_notes: list[str] = []
+    timed = False
     if timing and moving is not None:
         moving, current, timed_window, timing_notes = _timing_stage(samples, poses, current, moving, moving_terms,
                                                                     skipped, reference, clock_period, max_iterations,
                                                                     say)
         if timed_window is not None:
-            window, used_total = timed_window, (len(timed_window), len(samples))
+            window, used_total, timed = timed_window, (len(timed_window), len(samples)), True
     if static is None and not moving_terms:
         raise CalibrationError(skipped["static"])
     if static is None and moving is None:
@@ -191,7 +207,7 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                                f"moving stage: {skipped['moving']}")
     return ArrayCalibration(model=current, poses=poses, static=static, moving=moving, skipped=skipped,
                             moving_samples=used_total, moving_terms=tuple(moving.free) if moving else moving_terms,
-                            timing_notes=timing_notes,
+                            timing_notes=timing_notes, timed=timed,
                             moving_window=window if moving is not None else None,
                             seconds=time.perf_counter() - t0)
 

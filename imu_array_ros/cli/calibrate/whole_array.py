@@ -1,8 +1,8 @@
 """``imu-array calibrate all``: the whole array from one recording, or from several of the same array.
 
 Still poses -> accelerometer intrinsics and gyroscope biases; the moving phase ->
-positions, gyroscope gain, misalignment and non-orthogonality; then the timing (sample clocks, time offsets)
-(``workflows.calibrate("all", ...)``).
+positions, gyroscope gain, misalignment and non-orthogonality; then, with ``--timing``, the timing stage (sample
+clocks, time offsets) (``workflows.calibrate("all", ...)``).
 """
 
 from __future__ import annotations
