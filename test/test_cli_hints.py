@@ -81,3 +81,16 @@ def test_samples_that_did_not_converge_point_to_the_description_even_with_q(tmp_
     monkeypatch.setattr(fuse_cli, "read_and_fuse", real)
     code, _, err = cli(capsys, "fuse", SAMPLE, "--array", ARRAY32, "--out", tmp_path / "g.mcap", "-q")
     assert code == 0 and "did not converge" not in err, err
+
+
+def test_discover_help_states_the_default_terms(capsys):
+    """--terms' default is the candidate terms, not every registered one (the clock terms are the timing stage's)."""
+    from imu_array_ros.model.terms import candidate_names, term_names
+
+    code, helptext, _ = cli(capsys, "discover", "--help")
+    text = " ".join(helptext.split())
+    assert code == 0 and "every registered term)" not in text
+    assert f"default: the {len(candidate_names())} candidate terms, every registered term but " in text
+    clocks = [t for t in term_names() if t not in candidate_names()]
+    assert clocks and all(t in text for t in clocks)
+    assert "which the timing stage searches for instead" in text

@@ -25,6 +25,7 @@ from imu_array_ros.discovery.report import PLOTS, write_report
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.outputs import check_output, check_report_directory, write_report_manifest
 from imu_array_ros.model.description import ArrayDescription
+from imu_array_ros.model.terms import candidate_names, term_names
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.util.extras import require
 
@@ -48,7 +49,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="write the description extended with the found terms (not written when nothing is found)")
     sp.add_argument("--validate", type=Path, nargs="+", metavar="REC",
                     help="other recordings of the same array: log-likelihood and NIS with and without the findings")
-    sp.add_argument("--terms", help="comma-separated candidate terms (default: every registered term)")
+    others = [t for t in term_names() if t not in candidate_names()]
+    sp.add_argument("--terms", help=f"comma-separated candidate terms (default: the {len(candidate_names())} candidate "
+                                    f"terms, every registered term but {', '.join(others[:-1])} and {others[-1]}, which the "
+                                    "timing stage "
+                                    "searches for instead)")
     sp.add_argument("--alpha", type=positive_float, default=0.01,
                     help="family-wise false-finding rate per recording, in (0, 1) (default 0.01)")
     sp.add_argument("--block", type=positive_float, default=0.5, metavar="SECONDS",

@@ -10,8 +10,8 @@
    (recording - simulation) / (sqrt 2 sigma) instead (both are noisy).
 3. **Locate** (:mod:`.locate`): the excess over noise by IMU x axis, regime,
    time span and frequency band, and the rigid-body test.
-4. **Explain** (:mod:`.explain`): every registered term on every IMU is a
-   candidate, tested with the fitting engine (score test with the motion
+4. **Explain** (:mod:`.explain`): every candidate term (every registered term but the clock terms, which
+   the timing step searches for, :mod:`.timing`) on every IMU is a candidate, tested with the fitting engine (score test with the motion
    profiled out, block-robust test, held-out blocks, BIC); greedy selection at a
    Bonferroni-corrected level, each finding confirmed by an exact refit
    (:func:`~imu_array_ros.fitting.engine.fit_terms` with ``only``), and
@@ -74,7 +74,7 @@ SUBSAMPLE_SHARE = 0.5
 
 @dataclass
 class DiscoveryOptions:
-    """terms: candidate registry names (default every registered term); alpha: family-wise false-finding rate
+    """terms: candidate registry names (default :func:`~imu_array_ros.model.terms.candidate_names`); alpha: family-wise false-finding rate
     per recording; block_s: time block (s) of the robust test and the held-out folds; folds: interleaved folds;
     max_findings: cap on the greedy steps; still_threshold: |omega| (rad/s) below which a sample is still;
     empirical: model the unexplained residual; heldout: exact held-out check of the final findings;
