@@ -64,6 +64,7 @@ def test_fit_writes_values_stds_and_a_calibration_record(recording, capsys):
 
 @pytest.mark.parametrize("args, fragments", [
     (("--terms", "position,warp_drive"), ("--terms", "unknown term 'warp_drive'")),
+    (("--terms", "positon"), ("--terms: unknown term 'positon'; did you mean 'position'? (known: position, ",)),
     (("--terms", ""), ("--terms", "at least one term")),
     (("--terms", "position", "--imus", "imu_00,imu_99"), ("unknown IMU name 'imu_99'",)),
     (("--terms", "position", "--reference", "nope"), ("unknown IMU name 'nope'",)),

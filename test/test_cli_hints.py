@@ -94,3 +94,18 @@ def test_discover_help_states_the_default_terms(capsys):
     clocks = [t for t in term_names() if t not in candidate_names()]
     assert clocks and all(t in text for t in clocks)
     assert "which the timing stage searches for instead" in text
+
+
+def test_a_mistyped_term_names_the_option_and_the_close_match(tmp_path, capsys):
+    """Not the engine's parameter name ('in free'): the option given, and the registry name meant."""
+    for option, command in (("--moving-terms", "all"), ("--terms", "fit")):
+        line = assert_user_error(cli(capsys, "calibrate", command, SAMPLE, "--array", ARRAY32, option, "positon",
+                                     "--out", tmp_path / "c.yaml"),
+                                 f"{option}: unknown term 'positon'; did you mean 'position'?")
+        assert "in free" not in line
+    line = assert_user_error(cli(capsys, "discover", SAMPLE, "--array", ARRAY32, "--terms", "gyroscope_gian",
+                                 "--report", tmp_path / "d"), "--terms: unknown term 'gyroscope_gian'; did you mean "
+                                                              "'gyroscope_gain'?")
+    line = assert_user_error(cli(capsys, "calibrate", "fit", SAMPLE, "--array", ARRAY32, "--terms", "warp_drive",
+                                 "--out", tmp_path / "c.yaml"), "--terms: unknown term 'warp_drive' (known: position")
+    assert "did you mean" not in line and not (tmp_path / "c.yaml").exists()

@@ -61,6 +61,7 @@ from imu_array_ros.fitting.engine import fit_motion, keep_schur
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, candidate_names, term_names
+from imu_array_ros.util.names import did_you_mean
 
 __all__ = ["DiscoveryOptions", "Discovery", "Finding", "discover", "fit_summary"]
 
@@ -98,7 +99,9 @@ class DiscoveryOptions:
         names = candidate_names() if self.terms is None else list(self.terms)
         unknown = [t for t in names if t not in REGISTRY]
         if unknown:
-            raise CalibrationError(f"unknown term {unknown[0]!r} (known: {', '.join(term_names())})")
+            near = did_you_mean(unknown[0], term_names())
+            raise CalibrationError(f"unknown term {unknown[0]!r}{f'; did you mean {near!r}?' if near else ''} "
+                                   f"(known: {', '.join(term_names())})")
         if not names:
             raise CalibrationError("no candidate terms")
         return tuple(dict.fromkeys(names))

@@ -21,6 +21,7 @@ from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion
 from imu_array_ros.model.trajectory import timing_context
 from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.model.terms.timing import TimingTerm
+from imu_array_ros.util.names import did_you_mean
 
 __all__ = ["Problem", "Linearization", "check_terms", "keep_schur", "CHUNK_BYTES", "KEEP_G_BYTES", "MOTION_ITERATIONS"]
 
@@ -58,7 +59,9 @@ def check_terms(free: Sequence[str]) -> tuple[str, ...]:
         raise CalibrationError(f"no free terms to fit: name at least one term (known: {', '.join(term_names())})")
     unknown = [n for n in out if n not in REGISTRY]
     if unknown:
-        raise CalibrationError(f"unknown term {unknown[0]!r} in free (known: {', '.join(term_names())})")
+        near = did_you_mean(unknown[0], term_names())
+        raise CalibrationError(f"unknown term {unknown[0]!r}{f'; did you mean {near!r}?' if near else ''} "
+                               f"(known: {', '.join(term_names())})")
     return out
 
 

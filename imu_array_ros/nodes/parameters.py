@@ -15,13 +15,13 @@ example files ``config/<node>.params.yaml`` (a test checks they agree).
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any
 
 from imu_array_ros.calibration.geometry import DEFAULT_METHOD, METHODS, MIN_EXCITATION
 from imu_array_ros.errors import ConfigError
+from imu_array_ros.util.names import did_you_mean
 
 __all__ = ["Param", "DRIVER_PARAMS", "FUSION_PARAMS", "CALIBRATION_PARAMS", "declare", "NODE_PARAMS", "NODE_OPTIONS",
            "ROS_PARAMS", "unknown_parameters"]
@@ -165,8 +165,8 @@ def unknown_parameters(given, params: tuple[Param, ...]) -> str | None:
         return None
     parts = []
     for name in unknown:
-        near = difflib.get_close_matches(name, known, n=1)
-        parts.append(f"'{name}'" + (f" (did you mean '{near[0]}'?)" if near else ""))
+        near = did_you_mean(name, known)
+        parts.append(f"'{name}'" + (f" (did you mean '{near}'?)" if near else ""))
     s = "s" if len(unknown) > 1 else ""
     return f"unknown parameter{s} {', '.join(parts)}"
 

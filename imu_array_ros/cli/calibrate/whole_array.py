@@ -13,7 +13,7 @@ from pathlib import Path
 from imu_array_ros.cli.calibrate.common import add_calibration_inputs, add_still_options, still_options
 from imu_array_ros.cli.calibrate.static import calibrate_stages
 from imu_array_ros.cli.options import add_force_quiet, parse_list
-from imu_array_ros.errors import ConfigError
+from imu_array_ros.errors import CalibrationError, ConfigError
 from imu_array_ros.fitting import check_terms
 
 __all__ = ["add_parser", "run"]
@@ -71,7 +71,10 @@ def run(recording: list[Path], *, array: Path, out: Path, calibration: Path | No
     if moving_terms is not None:  # "" : no moving stage
         options["moving_terms"] = tuple(parse_list(moving_terms) or ())
         if options["moving_terms"]:
-            check_terms(options["moving_terms"])  # before reading anything
+            try:
+                check_terms(options["moving_terms"])  # before reading anything
+            except CalibrationError as err:
+                raise CalibrationError(f"--moving-terms: {err}") from None
     return calibrate_stages("all", recording, array=array, out=out, calibration=calibration, plot=plot,
                             force=force, quiet=quiet, reference=reference, static_method=static_method,
                             report=report, **options)
