@@ -113,8 +113,19 @@ def test_plot_without_matplotlib_is_one_line_naming_the_plots_extra(tmp_path):
         "--plot", str(tmp_path / "x.png"), "--quiet"])
     assert proc.returncode == 2, proc.stderr
     line = one_error_line(proc)
-    assert "matplotlib" in line and "imu_array_ros[plots]" in line, line
+    assert line == ("imu-array: error: matplotlib, needed for --plot " + str(tmp_path / "x.png") + ", is not "
+                    "installed (pip install 'imu_array_ros[plots]')"), line
     assert not (tmp_path / "x.png").exists()
+
+
+def test_discover_without_matplotlib_says_the_plots_need_it_or_no_plots(tmp_path):
+    """The way around a missing extra in the same line, the sentence grammatical ("plots ... need", not "needs")."""
+    proc = run_cli_blocked(tmp_path, ("matplotlib",), [
+        "discover", str(SAMPLE), "--array", str(ARRAY), "--report", str(tmp_path / "d"), "--quiet"])
+    assert proc.returncode == 2, proc.stderr
+    assert one_error_line(proc) == ("imu-array: error: matplotlib, needed for the report's plots, is not installed "
+                                    "(pip install 'imu_array_ros[plots]', or pass --no-plots)")
+    assert not (tmp_path / "d").exists()
 
 
 @pytest.mark.parametrize("scheduler, missing", [("serial", "arviz"), ("local", "distributed")])

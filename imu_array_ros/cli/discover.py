@@ -109,7 +109,7 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
         raise CalibrationError(f"--alpha must be in (0, 1), got {alpha}")
     report = check_report_directory(report, inputs, force, kind=REPORT_KIND, legacy=LEGACY_FILES)
     if not no_plots:
-        require("matplotlib", "plots", "the report's plots (or pass --no-plots)")
+        require("matplotlib", "plots", "the report's plots", instead="pass --no-plots")
     if apply is not None:
         apply = check_output(apply, inputs, "yaml", force, option="--apply",
                              other_outputs=[("--report", report)])  # not the report directory, nor inside it

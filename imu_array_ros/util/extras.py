@@ -28,9 +28,10 @@ EXTRAS = {
 }
 
 
-def require(module: str, extra: str, what: str) -> ModuleType:
-    """``import module``; MissingDependencyError "``what`` needs <module> (pip install
-    'imu_array_ros[<extra>]')" when it is not installed."""
+def require(module: str, extra: str, what: str, instead: str | None = None) -> ModuleType:
+    """``import module``; MissingDependencyError "<module>, needed for ``what``, is not installed (pip install
+    'imu_array_ros[<extra>]', or ``instead``)" when it is not installed (``what`` singular or plural alike:
+    "--plot cal.png", "the report's plots"; ``instead``: what to do without it, e.g. "pass --no-plots")."""
     if extra not in EXTRAS:
         raise ValueError(f"unknown extra {extra!r} (known: {', '.join(EXTRAS)})")
     try:
@@ -39,5 +40,6 @@ def require(module: str, extra: str, what: str) -> ModuleType:
         top = module.split(".")[0]
         if getattr(err, "name", None) not in (None, module, top):
             raise  # the module is there but something it imports is broken: not a missing extra
-        raise MissingDependencyError(f"{what} needs {top}, which is not installed "
-                                     f"(pip install 'imu_array_ros[{extra}]')") from None
+        raise MissingDependencyError(f"{top}, needed for {what}, is not installed "
+                                     f"(pip install 'imu_array_ros[{extra}]'{f', or {instead}' if instead else ''})"
+                                     ) from None
