@@ -12,11 +12,12 @@ under the model the discover timing stage leaves (the capture's sample clocks, r
 
 Variants: ``old`` = the loop before (first optimisation uncapped, then at most 3 re-freezes, stopping when the
 parameters moved < 0.01 std or a round gained < cost_tolerance; monkeypatched in here); ``new`` = the engine
-as it is; ``reference`` = plain re-freezing (no extrapolation) until a Gauss-Newton step at the motion's own
+as it is; ``anderson`` = the same with the held trajectory extrapolated from the last 3 near rounds (depth 3);
+``reference`` = plain re-freezing (no extrapolation) until a Gauss-Newton step at the motion's own
 trajectory moves no parameter by 0.005 std and gains < 0.001, at most 200 rounds, no step budget.  Distances are to the
 reference: largest |theta - theta_ref| / std_ref over the parameters; loglik = what the fit reports; profile = the
-log-likelihood of the fit's parameters with the motion re-fitted on its own trajectory (``fit_motion``), the
-quantity all variants can be compared on.
+log-likelihood of the fit's parameters with the motion re-fitted from the fit's (``fit_motion``, whose own
+two trajectory rounds are not iterated to a fixed point: comparable only where it lands near the fit's value).
 
     python -m benchmarks.bench_timing_rounds [--capture exp_3] [--every 32] [--work DIR] [--skip-real]
 """
@@ -50,6 +51,7 @@ OUT = RESULTS / "timing_rounds.md"
 JSON = RESULTS / "timing_rounds.json"
 ARRAY = REPO / "config" / "mimu4444bt_corners.yaml"
 CLI = "import sys; from imu_array_ros.cli import main; sys.exit(main())"
+VARIANTS = ("old", "new", "anderson", "reference")
 FITS = (("time_offset",), ("time_offset", "axis_offsets", "gyroscope_gain"))
 
 
@@ -87,6 +89,8 @@ class Variant:
         real, log = rounds.timing_rounds, self.log
         if self.name == "old":
             engine.timing_rounds, engine.FAR_ITERATIONS = old_rounds, 10 ** 9
+        elif self.name == "anderson":
+            engine.timing_rounds = lambda *a, **k: real(*a, **k, depth=3, log=log)
         elif self.name == "reference":
             rounds.ROUND_STD, rounds.ROUND_GAIN, rounds.BUDGET = 0.005, 0.001, 10 ** 6
             engine.timing_rounds = lambda *a, **k: real(*a, **k, depth=0, rounds=200, log=log)
@@ -173,7 +177,7 @@ def run_real(args, work: Path) -> list[dict]:
     out = []
     for terms in FITS:
         runs = []
-        for variant in ("old", "new", "reference"):
+        for variant in VARIANTS:
             say(f"real {args.capture} x{args.every}: {'+'.join(terms)} {variant}")
             runs.append(one_fit(sub, model, msub, terms, variant, rates))
             say(f"  {runs[-1]['wall_s']:.1f} s, {runs[-1]['iterations']} iterations, converged {runs[-1]['converged']}")
@@ -206,7 +210,7 @@ def run_sim() -> list[dict]:
         samples = simulate_trajectory(clocked, twist, stamps, rng)[0]
         with reading_rates(True):
             motion = fit_motion(samples, clocked)[0]
-        runs = [one_fit(samples, clocked, motion, ("time_offset",), v, True) for v in ("old", "new", "reference")]
+        runs = [one_fit(samples, clocked, motion, ("time_offset",), v, True) for v in VARIANTS]
         compare(runs)
         out.append({"case": f"sim seed {seed} (250 samples)", "terms": ["time_offset"], "rates": True, "runs": runs})
         say(f"sim seed {seed} done")

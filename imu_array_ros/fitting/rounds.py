@@ -10,13 +10,12 @@ motion found and the problem linearised there (the self-consistent point); the f
 Gauss-Newton step of that problem moves no parameter by ``ROUND_STD`` of its standard deviation or more and
 would gain less than ``ROUND_GAIN`` log-likelihood (or the caller's ``cost_tolerance``, if larger).  Far from the
 fixed point (a step of ``NEAR_STD`` std or more) a round is ``FAR_ITERATIONS`` optimiser steps on the held
-trajectory (it is only an approximate problem); near it, the round is solved to ROUND_STD / 5 and the trajectory
-held next is extrapolated from the rounds so far (Anderson acceleration of the fixed-point map trajectory ->
-motion found, depth ``ANDERSON_DEPTH``, columns scaled by the first near round's motion change; a round whose
-motion change grew restarts it from the plain re-freeze).  At most ``TIMING_ROUNDS`` rounds and ``BUDGET`` x
-max_iterations optimiser steps: a fit that reaches a cap unconverged says so (``converged`` False), and the
-result is always the linearisation on the motion's own trajectory (its log-likelihood, its Cramer-Rao bound).
-Measured: benchmarks/results/timing_rounds.md.
+trajectory (it is only an approximate problem); near it, the round is solved to ROUND_STD / 5, and the
+trajectory held next is the motion's (optionally extrapolated from the rounds so far: Anderson acceleration of
+the fixed-point map trajectory -> motion found, depth ``ANDERSON_DEPTH``, off by default, measured).  At most
+``TIMING_ROUNDS`` rounds and ``BUDGET`` x max_iterations optimiser steps: a fit that reaches a cap unconverged
+says so (``converged`` False), and the result is always the linearisation on the motion's own trajectory (its
+log-likelihood, its Cramer-Rao bound).  Measured: benchmarks/results/timing_rounds.md.
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ __all__ = ["TIMING_ROUNDS", "ROUND_STD", "ROUND_GAIN", "ANDERSON_DEPTH", "RoundL
            "fixed_point_gap"]
 
 #: at most this many trajectory rounds (re-freeze and optimise again) after the first optimisation
-TIMING_ROUNDS = 30
+TIMING_ROUNDS = 60
 #: converged when the self-consistent problem's Gauss-Newton step moves every parameter by less than this many std
 ROUND_STD = 0.05
 #: ... and gains less than this log-likelihood (or the caller's cost_tolerance when larger)
@@ -44,8 +43,10 @@ NEAR_STD = 1.0
 FAR_ITERATIONS = 3
 #: at most BUDGET x max_iterations optimiser steps in all the rounds together
 BUDGET = 6
-#: rounds remembered by the Anderson extrapolation of the held trajectory (0: plain re-freezing)
-ANDERSON_DEPTH = 3
+#: rounds remembered by the Anderson extrapolation of the held trajectory (0: plain re-freezing, the default: on the
+#: real 3-term refit of benchmarks/results/timing_rounds.md depth 3 took more steps than plain rounds, which converge
+#: within 2-3 near rounds once each round is solved to ROUND_STD / 5)
+ANDERSON_DEPTH = 0
 
 
 @dataclass
