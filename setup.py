@@ -53,9 +53,9 @@ setup(
     entry_points={
         "console_scripts": [
             "imu-array = imu_array_ros.cli:main",
-            "driver_node = imu_array_ros.nodes.driver_node:main",
-            "fusion_node = imu_array_ros.nodes.fusion_node:main",
-            "calibration_node = imu_array_ros.nodes.calibration_node:main",
+            "driver_node = imu_array_ros.nodes.entry:driver_node",
+            "fusion_node = imu_array_ros.nodes.entry:fusion_node",
+            "calibration_node = imu_array_ros.nodes.entry:calibration_node",
         ],
     },
 )

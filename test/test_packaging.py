@@ -140,6 +140,47 @@ def test_bayes_without_its_extra_is_one_line_naming_the_bayes_extra(tmp_path, sc
     assert not (tmp_path / "cal.yaml").exists()
 
 
+# --------------------------------------------------------------------------- the nodes on a core install (no ROS 2)
+
+
+def node_entry_points(monkeypatch) -> dict[str, str]:
+    """console script name -> ``module:function`` of setup.py's node executables."""
+    scripts = dict(line.replace(" ", "").split("=") for line in setup_arguments(monkeypatch)["entry_points"]
+                   ["console_scripts"])
+    return {name: target for name, target in scripts.items() if name.endswith("_node")}
+
+
+@pytest.mark.parametrize("executable", ["driver_node", "fusion_node", "calibration_node", "probe"])
+def test_a_node_without_ros_says_in_one_line_what_to_install(tmp_path, monkeypatch, executable):
+    """``pip install .`` brings no rclpy or message packages: each node's entry point (and the probe) exits 2 with
+    one line naming the missing module and the README's ROS 2 install, no traceback."""
+    from imu_array_ros.nodes.entry import ROS_MODULES
+
+    if executable == "probe":
+        module, function, argv = "imu_array_ros.nodes.probe", "main", ["--out", str(tmp_path / "got.npz")]
+    else:
+        module, function = node_entry_points(monkeypatch)[executable].split(":")
+        argv = ["--ros-args", "-p", f"array_config:={ARRAY}"]
+    proc = run_blocked(tmp_path, ROS_MODULES, f"sys.argv = [{executable!r}, *{argv!r}]\n"
+                                              f"from {module} import {function}\nsys.exit({function}())")
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    prog = "imu_array_ros.nodes.probe" if executable == "probe" else executable
+    assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: the ROS 2 nodes need rclpy"), proc.stderr
+    assert "is not installed: pip install 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces, or use a ROS 2 " \
+           "Jazzy install" in lines[0]
+    assert not (tmp_path / "got.npz").exists()
+
+
+def test_only_a_missing_ros_module_is_told_as_missing_ros():
+    from imu_array_ros.nodes.entry import ros_missing
+
+    assert "and 'geometry_msgs' is not installed: pip install" in ros_missing(ModuleNotFoundError(name="geometry_msgs.msg"))
+    assert ros_missing(ModuleNotFoundError(name="numpy")) is None
+    assert ros_missing(ImportError("librcl.so: cannot open shared object file")) is None
+
+
 # --------------------------------------------------------------------------- setup.py, requirements.txt, package.xml
 
 

@@ -21,12 +21,21 @@ __all__ = ["main"]
 
 
 def main(argv=None) -> int:
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from geometry_msgs.msg import AccelWithCovarianceStamped
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.experimental import EventsExecutor
-    from sensor_msgs.msg import Imu
+    from imu_array_ros.nodes.entry import ros_missing
+
+    try:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import AccelWithCovarianceStamped
+        from rclpy.executors import ExternalShutdownException
+        from rclpy.experimental import EventsExecutor
+        from sensor_msgs.msg import Imu
+    except ImportError as err:  # a core install without ROS 2: one line, not a traceback
+        why = ros_missing(err)
+        if why is None:
+            raise
+        print(f"imu_array_ros.nodes.probe: error: {why}", file=sys.stderr)
+        return 2
 
     from imu_array_ros.util.files import atomic_write_bytes
     from imu_array_ros.io.messages import concat_payloads, decode_fused
