@@ -105,6 +105,35 @@ def test_no_random_walk_is_invented_where_the_rests_are_too_short(mimu):
         assert len(record["bias_random_walk"]) == 3 and record["tau_range_s"][1] == hi
 
 
+def test_a_random_walk_looked_for_and_not_seen_is_written_null_and_export_kalibr_says_so(mimu, tmp_path, capsys):
+    """calibrate noise on rests too short for the random walk: the file says it was measured (all-null
+    bias_random_walk), and export kalibr says the noise calibration saw none instead of "run calibrate noise";
+    so does a file written before (the figure left out, the noise calibration's record beside it)."""
+    k = len(mimu.imus)
+    cal = noise_calibration(still_recording(mimu, 22.0, per_imu_white(k), np.zeros((2, k, 3)), 5),
+                            SensorModel.from_description(mimu))
+    first = cal.details.sensors["accelerometer"][0]
+    assert first is not None and not np.isfinite(first.random_walk).any()  # imu_1's accelerometer: none seen
+    written = tmp_path / "noise.yaml"
+    written.write_text(dump_description(cal.apply(mimu)))
+    doc = yaml.safe_load(written.read_text())
+    assert doc["imu_array"]["imus"][0]["accelerometer"]["bias_random_walk"] == [None, None, None]
+    assert np.isnan(load_description(written).imus[0].noise["accelerometer.bias_random_walk"]).all()
+    for imu in doc["imu_array"]["imus"]:  # as calibrate noise wrote them before: all-null figures left out
+        for sensor in ("accelerometer", "gyroscope"):
+            for leaf in ("bias_random_walk", "bias_instability"):
+                if imu[sensor].get(leaf) == [None, None, None]:
+                    del imu[sensor][leaf]
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump(doc, sort_keys=False))
+    for path in (written, old):
+        line = assert_user_error(cli(capsys, "export", "kalibr", path, "--out", tmp_path / "k.yaml", "--rate", RATE),
+                                 f"{path}: Kalibr requires a bias_random_walk", "the accelerometer (imu 'imu_1'",
+                                 "the noise calibration it holds did not see one", "--random-walk-accel")
+        assert "run 'imu-array calibrate noise'" not in line
+    assert not (tmp_path / "k.yaml").exists()
+
+
 def test_description_round_trip_of_the_noise_fields(mimu):
     imus = list(mimu.imus)
     imus[0] = imus[0].with_noise({"accelerometer.noise_std": [0.03, 0.04, 0.05],

@@ -362,7 +362,10 @@ def _sensor_noise(segs: list[np.ndarray], rate: float) -> SensorNoise | None:
 @dataclass
 class NoiseCalibration(Calibration):
     """A :class:`Calibration` whose :meth:`apply` also writes each IMU's noise figures (``noise``: IMU name ->
-    ``"<sensor>.<figure>"`` -> (3,); an IMU's previous figures are replaced, figures all NaN left out)."""
+    ``"<sensor>.<figure>"`` -> (3,); an IMU's previous figures are replaced).  A figure measured and not seen
+    on any axis (a bias random walk the still intervals were too short to show) is written too, all ``null``:
+    the file then says the noise calibration looked for it (``export kalibr`` tells that apart from a
+    description never noise-calibrated)."""
 
     noise: dict = field(default_factory=dict)
 
@@ -375,7 +378,7 @@ class NoiseCalibration(Calibration):
                 imus.append(imu)
                 continue
             kept = {k: v for k, v in imu.noise.items() if k.split(".")[0] not in {n.split(".")[0] for n in new}}
-            figures = {k: np.asarray(v, dtype=float) for k, v in new.items() if np.isfinite(v).any()}
+            figures = {k: np.asarray(v, dtype=float) for k, v in new.items()}
             imus.append(replace(imu, noise={**kept, **figures}))
         return out.with_imus(imus)
 

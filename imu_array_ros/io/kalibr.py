@@ -151,6 +151,14 @@ def _random_walk(imu: ImuSpec, sensor: str, fallback: float | None) -> float | N
     return None if fallback is None else float(fallback)
 
 
+def _noise_record_has(desc: ArrayDescription, name: str, sensor: str) -> bool:
+    """The description's ``calibration:`` record is a noise calibration that looked for ``sensor``'s random walk
+    of IMU ``name`` (files written before ``calibrate noise`` kept an all-``null`` figure)."""
+    record = desc.calibration if isinstance(desc.calibration, dict) else {}
+    entry = (record.get("imus") or {}).get(name) if str(record.get("method", "")).startswith("noise:") else None
+    return isinstance(entry, dict) and isinstance(entry.get(sensor), dict) and "bias_random_walk" in entry[sensor]
+
+
 def _check_random_walks(desc: ArrayDescription, fallback: dict) -> None:
     """One ConfigError naming every sensor whose bias random walk Kalibr would lack (and its option)."""
     flags = {"accelerometer": "--random-walk-accel", "gyroscope": "--random-walk-gyro"}
@@ -159,7 +167,8 @@ def _check_random_walks(desc: ArrayDescription, fallback: dict) -> None:
     if lacking:
         what = " and ".join(f"the {s} (imu {name!r} and maybe others)" for s, name in lacking)
         by_name = {imu.name: imu for imu in desc.imus}
-        measured = all(f"{s}.bias_random_walk" in by_name[name].noise for s, name in lacking)
+        measured = all(f"{s}.bias_random_walk" in by_name[name].noise or _noise_record_has(desc, name, s)
+                       for s, name in lacking)
         how = ("the noise calibration it holds did not see one (its still intervals were too short for the "
                "random walk to show): calibrate noise on a longer still recording" if measured else
                "run 'imu-array calibrate noise' on a still recording")
