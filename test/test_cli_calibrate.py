@@ -192,7 +192,7 @@ def test_geometry_refuses_a_still_recording_and_a_worse_result_leaving_out_untou
     assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", d / "x.yaml",
                           "--reference", "imu_99", "-q"), "imu_99")
     assert_user_error(cli(capsys, "calibrate", "geometry", d / "twist", "--array", ARRAY32, "--out", d / "x.yaml",
-                          "--start", "10", "-q"), "no samples between 10 s")
+                          "--start", "10", "-q"), "no samples from 10 s on")
     assert not (d / "x.yaml").exists()
 
 

@@ -109,3 +109,29 @@ def test_a_mistyped_term_names_the_option_and_the_close_match(tmp_path, capsys):
     line = assert_user_error(cli(capsys, "calibrate", "fit", SAMPLE, "--array", ARRAY32, "--terms", "warp_drive",
                                  "--out", tmp_path / "c.yaml"), "--terms: unknown term 'warp_drive' (known: position")
     assert "did you mean" not in line and not (tmp_path / "c.yaml").exists()
+
+
+def test_discover_on_a_window_of_the_recording(tmp_path, capsys):
+    """discover --start/--duration: the samples of calibrate geometry's window (the same helper), named in the
+    report; a window without samples is one line, as in calibrate geometry."""
+    import json
+
+    from imu_array_ros import workflows
+
+    desc, _ = workflows.load_array(ARRAY32)
+    expected = len(workflows.read_imu_recording(SAMPLE, desc)[0].window(0.5, 0.5))
+    report = tmp_path / "report"
+    code, out, err = cli(capsys, "discover", SAMPLE, "--array", ARRAY32, "--start", "0.5", "--duration", "0.5",
+                         "--report", report, "--no-plots", "--no-empirical", "--terms", "position,accelerometer_bias",
+                         "--max-findings", "1")
+    assert code == 0 and out == "", err
+    assert f"window: {expected} samples from 0.5 s" in err and 0 < expected < 1000
+    assert json.loads((report / "report.json").read_text())["recording"] == f"{SAMPLE}, 0.5 s to 1 s"
+    assert (report / "report.md").read_text().startswith(f"# Mismatch discovery: {SAMPLE}, 0.5 s to 1 s\n")
+    for command in (["discover", SAMPLE, "--array", ARRAY32, "--report", tmp_path / "none", "--no-plots"],
+                    ["calibrate", "geometry", SAMPLE, "--array", ARRAY32, "--out", tmp_path / "g.yaml"]):
+        assert_user_error(cli(capsys, *command, "--start", "100", "-q"),
+                          f"{SAMPLE}: no samples from 100 s on (the recording spans 1.998 s)")
+        assert_user_error(cli(capsys, *command, "--start", "50", "--duration", "2", "-q"),
+                          f"{SAMPLE}: no samples between 50 s and 52 s (the recording spans 1.998 s)")
+    assert not (tmp_path / "g.yaml").exists() and not (tmp_path / "none" / "report.json").exists()

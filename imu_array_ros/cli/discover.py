@@ -17,8 +17,8 @@ from pathlib import Path
 
 from imu_array_ros import workflows
 from imu_array_ros.calibration.result import check_install_target
-from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, as_flags, parse_list, \
-    non_negative_int, positive_float, positive_int
+from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, add_window_options, as_flags, \
+    parse_list, non_negative_int, positive_float, positive_int, time_window
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.discovery.blocks import LADDER_FROM, SEARCH_READINGS
 from imu_array_ros.discovery.report import PLOTS, write_report
@@ -38,6 +38,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                                                 "after")
     add_recording_inputs(sp, array="array description YAML",
                          calibration="calibrated description (same schema) to start from")
+    add_window_options(sp)  # the same window as calibrate geometry's, of the recording and of --sim
     sp.add_argument("--report", required=True, type=Path,
                     help="directory for report.md, report.json and the plots: new or empty (--force: or holding "
                          "only a previous discovery report, which is replaced); never one holding other files or "
@@ -94,8 +95,10 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
         apply: Path | None = None, validate: list[Path] | None = None, terms: str | None = None,
         alpha: float = 0.01, block: float = 0.5, max_findings: int = 8, search_readings: int = SEARCH_READINGS,
         no_plots: bool = False,
-        no_empirical: bool = False, force: bool = False, quiet: bool = False) -> int:
-    """Mismatch discovery on ``recording`` with the description ``array`` (``calibration``: its calibrated values)."""
+        no_empirical: bool = False, force: bool = False, quiet: bool = False, start: float | None = None,
+        duration: float | None = None) -> int:
+    """Mismatch discovery on ``recording`` (``start``/``duration``: a window of it and of ``sim``, s) with the
+    description ``array`` (``calibration``: its calibrated values)."""
     validate = list(validate or [])
     inputs = [recording, array, calibration, sim, *validate]
     options = workflows.DiscoveryOptions(terms=tuple(parse_list(terms)) if terms else None, alpha=alpha,
@@ -119,7 +122,13 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
 
     samples = _read(recording, desc, str(recording), quiet)
     info(quiet, f"read {len(samples.stamps)} array samples of {len(desc.imus)} IMUs from {recording}")
+    samples = time_window(samples, recording, start, duration, quiet)
     sim_samples = _read(sim, desc, f"--sim {sim}", quiet) if sim is not None else None
+    if sim_samples is not None:
+        sim_samples = time_window(sim_samples, sim, start, duration, True)
+    windowed = start is not None or duration is not None
+    source = str(recording) if not windowed else (
+        f"{recording}, {start or 0:g} s" + (f" to {(start or 0) + duration:g} s" if duration else " to the end"))
     others = [(str(p), _read(p, desc, f"--validate {p}", quiet)) for p in validate]
     with as_flags({"sim": "--sim", "validate": "--validate"}):
         d = workflows.discover(samples, desc, options=options, sim=sim_samples, validate=others,
@@ -138,7 +147,7 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
     info(quiet, f"after: log-likelihood {d.after.loglik:.8g}, NIS still {_nis(d.after.nis_still)}, "
                 f"moving {_nis(d.after.nis_moving)}")
     try:
-        written = write_report(d, report, plots=not no_plots, source=str(recording))
+        written = write_report(d, report, plots=not no_plots, source=source)
         written.append(write_report_manifest(report, REPORT_KIND, [p.name for p in written]))
     except OSError as err:
         raise OutputError(f"{report}: cannot write the report: {err.strerror or err}") from None
@@ -149,9 +158,9 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
             info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
         else:
             info(quiet, f"--apply: checking the findings' calibration against the recording before writing "
-                        f"{apply} (a fit of the whole recording)")
+                        f"{apply} (a fit of the whole {'window' if windowed else 'recording'})")
             try:
-                installed = workflows.findings_calibration(d, samples, source=str(recording),
+                installed = workflows.findings_calibration(d, samples, source=source,
                                                            start=workflows.as_model(desc)).install(desc, apply)
             except CalibrationError as err:
                 raise CalibrationError(f"{err} (the report is in {report})") from None

@@ -16,11 +16,9 @@ from imu_array_ros import workflows
 from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.calibration.plots import plot_geometry
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, check_outputs, install
-from imu_array_ros.cli.options import add_force_quiet, non_negative_float, positive_float, positive_int, \
-    read_array_recording
+from imu_array_ros.cli.options import add_force_quiet, add_window_options, non_negative_float, positive_int, \
+    read_array_recording, time_window
 from imu_array_ros.cli.progress import info
-from imu_array_ros.errors import CalibrationError
-from imu_array_ros.model.samples import ImuSamples
 
 __all__ = ["add_parser", "run"]
 
@@ -38,9 +36,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     sp.add_argument("--min-excitation", type=non_negative_float,
                     help="samples with ||[w]x^2 + [w_dot]x|| below this (rad/s^2, >= 0) carry too little rotation "
                          "and are dropped (default 1)")
-    sp.add_argument("--start", type=non_negative_float, metavar="SECONDS",
-                    help="window start, seconds after the first sample (default 0)")
-    sp.add_argument("--duration", type=positive_float, metavar="SECONDS", help="window length (default: to the end)")
+    add_window_options(sp)
     sp.add_argument("--out", required=True, type=Path,
                     help="calibrated description YAML to write (with --force an existing one is replaced only if "
                          "the new calibration fits the window better; the old one is kept as OUT.bak)")
@@ -52,21 +48,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return sp
 
 
-def _window(samples: ImuSamples, recording: Path, start: float | None, duration: float | None,
-            quiet: bool) -> ImuSamples:
-    """The samples from ``start`` s after the first for ``duration`` s (None: all of them)."""
-    if not len(samples) or (start is None and duration is None):
-        return samples
-    window = samples.window(start, duration)
-    lo, span = start or 0.0, (samples.stamps[-1] - samples.stamps[0]) / 1e9
-    if not len(window):
-        raise CalibrationError(f"{recording}: no samples between {lo:g} s and "
-                               f"{lo + duration if duration is not None else span:g} s "
-                               f"(the recording spans {span:.3f} s)")
-    info(quiet, f"window: {len(window)} samples from {lo:g} s")
-    return window
-
-
 def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = None, reference: str | None = None,
         method: str | None = None, max_iterations: int | None = None, min_excitation: float | None = None,
         start: float | None = None, duration: float | None = None, plot: Path | None = None, force: bool = False,
@@ -75,7 +56,7 @@ def run(recording: Path, *, array: Path, out: Path, calibration: Path | None = N
     out, plot = check_outputs(out, plot, [recording, array, calibration], force)
     desc, samples = read_array_recording(recording, array, calibration, quiet, imus=[reference])
     check_install_target(out, desc.names)  # refused before the work, not after
-    samples = _window(samples, recording, start, duration, quiet)
+    samples = time_window(samples, recording, start, duration, quiet)
 
     def progress(iteration: int, loglik: float) -> None:
         info(quiet, f"calibrating: iteration {iteration}, log-likelihood {loglik:.10g}")
