@@ -17,8 +17,9 @@ from pathlib import Path
 
 from imu_array_ros import workflows
 from imu_array_ros.calibration.result import check_install_target
-from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, add_window_options, as_flags, \
-    parse_list, non_negative_int, positive_float, positive_int, time_window
+from imu_array_ros.cli.options import add_force_quiet, add_recording_inputs, as_flags, non_negative_int, parse_list, \
+    positive_float, positive_int
+from imu_array_ros.cli.window import add_window_options, time_window
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.discovery.blocks import LADDER_FROM, SEARCH_READINGS
 from imu_array_ros.discovery.report import PLOTS, write_report

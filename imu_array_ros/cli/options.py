@@ -7,10 +7,9 @@ time) so a handler only ever sees sensible values; a bad one gives one line
 * argument types: :func:`positive_float`, :func:`non_negative_float`, :func:`positive_int`,
   :func:`non_negative_int`, :func:`sample_rate`, :func:`start_time`;
 * declarations: :func:`add_force_quiet` (``--force``, ``-q``), :func:`add_recording_inputs`
-  (the recording, ``--array``, ``--calibration``), :func:`add_window_options` (``--start``, ``--duration``);
+  (the recording, ``--array``, ``--calibration``); ``--start`` / ``--duration``: :mod:`.window`;
 * inputs: :func:`read_array_recording` (the array checked fusable, the recording read for it, one
-  line saying how many samples), :func:`read_and_fuse`, :func:`check_imus`, :func:`parse_list`,
-  :func:`time_window` (the samples of ``--start`` / ``--duration``);
+  line saying how many samples), :func:`read_and_fuse`, :func:`check_imus`, :func:`parse_list`;
 * errors: :func:`as_flags` (the core's error naming a parameter, told with the user's flag).
 """
 
@@ -27,7 +26,7 @@ from typing import Iterator, Mapping, Sequence
 
 from imu_array_ros import workflows
 from imu_array_ros.cli.progress import Progress, info
-from imu_array_ros.errors import CalibrationError, ImuArrayError
+from imu_array_ros.errors import ImuArrayError
 from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.samples import ImuSamples
 
@@ -35,7 +34,7 @@ __all__ = [
     "positive_float", "non_negative_float", "non_negative_int", "positive_int", "sample_rate", "start_time",
     "MAX_RATE_HZ", "MAX_STAMP_NS", "MAX_SIMULATED_SAMPLES", "QUIET_HELP", "FORCE_RECORDING_HELP",
     "add_force_quiet", "add_recording_inputs", "read_array_recording", "read_and_fuse", "check_imus", "parse_list",
-    "as_flags", "add_window_options", "time_window",
+    "as_flags",
 ]
 
 #: Highest sample rate accepted: stamps are integer nanoseconds and must stay distinct.
@@ -231,27 +230,3 @@ def read_and_fuse(recording: Path, array: Path, calibration: Path | None, quiet:
     for note in fused.notes():
         info(quiet, note)
     return desc, fused
-
-
-def add_window_options(sp: argparse.ArgumentParser) -> None:
-    """``--start SECONDS`` and ``--duration SECONDS``: the part of the recording a command works on
-    (:func:`time_window`)."""
-    sp.add_argument("--start", type=non_negative_float, metavar="SECONDS",
-                    help="window start, seconds after the first sample (default 0)")
-    sp.add_argument("--duration", type=positive_float, metavar="SECONDS", help="window length (default: to the end)")
-
-
-def time_window(samples: ImuSamples, recording: Path, start: float | None, duration: float | None,
-                quiet: bool) -> ImuSamples:
-    """The samples from ``start`` s after the first for ``duration`` s (None: all of them;
-    :meth:`ImuSamples.window`), one line saying how many; CalibrationError naming the recording when the
-    window holds none."""
-    if not len(samples) or (start is None and duration is None):
-        return samples
-    window = samples.window(start, duration)
-    lo, span = start or 0.0, (samples.stamps[-1] - samples.stamps[0]) / 1e9
-    if not len(window):
-        where = f"between {lo:g} s and {lo + duration:g} s" if duration is not None else f"from {lo:g} s on"
-        raise CalibrationError(f"{recording}: no samples {where} (the recording spans {span:.3f} s)")
-    info(quiet, f"window: {len(window)} samples from {lo:g} s")
-    return window

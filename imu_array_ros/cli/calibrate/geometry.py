@@ -16,8 +16,8 @@ from imu_array_ros import workflows
 from imu_array_ros.calibration.result import check_install_target
 from imu_array_ros.calibration.plots import plot_geometry
 from imu_array_ros.cli.calibrate.common import about, add_calibration_inputs, check_outputs, install
-from imu_array_ros.cli.options import add_force_quiet, add_window_options, non_negative_float, positive_int, \
-    read_array_recording, time_window
+from imu_array_ros.cli.options import add_force_quiet, non_negative_float, positive_int, read_array_recording
+from imu_array_ros.cli.window import add_window_options, time_window
 from imu_array_ros.cli.progress import info
 
 __all__ = ["add_parser", "run"]
