@@ -36,11 +36,52 @@ _SHM = "/dev/shm/fastrtps_"
 ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
+_used: set[int] = set()
+
+
+def _busy_domains() -> set[int]:
+    """DDS domains some process on this machine has a participant in: the UDP ports bound in the range RTPS
+    gives domain d (7400 + 250 d ... + 249), read from /proc/net/udp{,6} (another test run beside this one,
+    or a node a killed test left running, is seen; an empty set where /proc cannot be read)."""
+    busy = set()
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            with open(table) as f:
+                rows = f.read().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            fields = row.split()
+            if len(fields) > 1 and ":" in fields[1]:
+                port = int(fields[1].rsplit(":", 1)[1], 16)
+                if port >= 7400:
+                    busy.add((port - 7400) // 250)
+    return busy
+
+
 def pick_domain() -> int:
-    """A DDS domain from ``IMU_ARRAY_TEST_DOMAINS`` (``LO-HI``; default 100-229), drawn at random."""
+    """A DDS domain from ``IMU_ARRAY_TEST_DOMAINS`` (``LO-HI``; default 100-229) that no other test and no
+    other process on this machine uses: under pytest-xdist each worker draws only from its own slice of the
+    range (worker ``gwN`` of ``PYTEST_XDIST_WORKER_COUNT``), a process never hands out a domain twice until its
+    slice is used up, and a domain with a live participant (:func:`_busy_domains`: another test run beside
+    this one) is skipped.  Two tests in one domain see each other's nodes: a fusion node then fuses the other
+    test's IMUs."""
     lo, _, hi = os.environ.get("IMU_ARRAY_TEST_DOMAINS", "100-229").partition("-")
     lo, hi = int(lo), int(hi or lo)
-    return random.Random(os.getpid() * 1_000_003 + time.monotonic_ns()).randint(lo, hi)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
+    size = (hi - lo + 1) // max(count, 1)
+    if size >= 1 and index < count:
+        lo, hi = lo + index * size, lo + (index + 1) * size - 1
+    free = [d for d in range(lo, hi + 1) if d not in _used]
+    if not free:
+        _used.clear()
+        free = list(range(lo, hi + 1))
+    idle = [d for d in free if d not in _busy_domains()] or free
+    domain = random.Random(os.getpid() * 1_000_003 + time.monotonic_ns()).choice(idle)
+    _used.add(domain)
+    return domain
 
 
 def dds_env(domain: int) -> dict:
