@@ -127,10 +127,6 @@ class ArrayCalibration:
         return "calibrate all: " + " -> ".join(stages)
 
 
-class _NoMovingStage(Exception):
-    """No moving-stage terms asked for (``calibrate static``)."""
-
-
 def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, static_method: str = "ml",
                     static_terms: Sequence[str] | None = None, moving_terms: Sequence[str] = MOVING_TERMS,
                     gravity: float = STANDARD_GRAVITY, still_options: dict | None = None,
@@ -166,32 +162,29 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
         say(f"static stage skipped: {err}")
     moving, used_total, window = None, (0, 0), None
     moving_terms = tuple(moving_terms)
-    try:
-        if not moving_terms:  # calibrate static: no moving stage to run or to report as skipped
-            raise _NoMovingStage
-        idx = np.flatnonzero(poses.moving)
-        if len(idx) < 3:
-            raise CalibrationError(f"no moving phase: {len(idx)} samples outside the still intervals")
-        moving_samples = samples.select(idx)
-        selection = select_rotating(moving_samples, current, MIN_EXCITATION, gyroscopes=True)
-        require_rotation(selection)
-        used = selection.used
-        used_total = (selection.n_used, len(samples))
-        say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
-        window = moving_samples.select(used)
-        from imu_array_ros.timing.session import active_clocks, estimate_session
-        if active_clocks(current):  # this recording's clock phases first
-            current = estimate_session(samples, current).model
-        moving = fit_terms(window, current, moving_terms, reference=reference, t0_ns=int(samples.stamps[0]),
-                           motion0=selection.motion[used], max_iterations=max_iterations,
-                           progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
-        current = moving.model
-        say(f"moving stage: NIS {moving.nis_before:.4g} -> {moving.nis_after:.4g}")
-    except _NoMovingStage:
-        pass
-    except CalibrationError as err:
-        skipped["moving"] = str(err)
-        say(f"moving stage skipped: {err}")
+    if moving_terms:  # calibrate static: no moving stage to run or to report as skipped
+        try:
+            idx = np.flatnonzero(poses.moving)
+            if len(idx) < 3:
+                raise CalibrationError(f"no moving phase: {len(idx)} samples outside the still intervals")
+            moving_samples = samples.select(idx)
+            selection = select_rotating(moving_samples, current, MIN_EXCITATION, gyroscopes=True)
+            require_rotation(selection)
+            used = selection.used
+            used_total = (selection.n_used, len(samples))
+            say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
+            window = moving_samples.select(used)
+            from imu_array_ros.timing.session import active_clocks, estimate_session
+            if active_clocks(current):  # this recording's clock phases first
+                current = estimate_session(samples, current).model
+            moving = fit_terms(window, current, moving_terms, reference=reference, t0_ns=int(samples.stamps[0]),
+                               motion0=selection.motion[used], max_iterations=max_iterations,
+                               progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
+            current = moving.model
+            say(f"moving stage: NIS {moving.nis_before:.4g} -> {moving.nis_after:.4g}")
+        except CalibrationError as err:
+            skipped["moving"] = str(err)
+            say(f"moving stage skipped: {err}")
     timing_notes: list[str] = []
     timed = False
     if timing and moving is not None:
