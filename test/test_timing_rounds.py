@@ -4,6 +4,7 @@ when it did not get there."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 import imu_array_ros.fitting.rounds as rounds
 from imu_array_ros.fitting.engine import fit_motion, fit_terms
+from imu_array_ros.fitting.problem import Problem
 from imu_array_ros.fitting.reading_rates import reading_rates
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
@@ -69,3 +71,46 @@ def test_the_fit_is_a_fixed_point_of_the_rounds_and_reports_its_own_likelihood(c
 def test_a_fit_stopped_by_the_round_cap_says_it_did_not_converge(case, monkeypatch):
     monkeypatch.setattr(rounds, "TIMING_ROUNDS", 1)
     assert not fit(case).converged
+
+
+def holed(samples):
+    """``samples`` with every gyroscope's z axis missing on 20 samples: with reading rates the rate of that axis
+    is a coordinate no reading informs (as where every gyroscope of an axis saturates on the real captures)."""
+    gyro = samples.gyro.copy()
+    gyro[40:60, :, 2] = np.nan
+    return replace(samples, gyro=gyro)
+
+
+@pytest.mark.parametrize("hole", [False, True])
+def test_fit_motion_reaches_the_fixed_point_of_its_trajectory_rounds(case, hole):
+    # before: two trajectory rounds and a ridge on samples with an uninformed coordinate; a second call from the
+    # motion returned gained 795 log-likelihood (holed: 33,408, the ML itself 166,000 above the first call's)
+    clocked, samples, _ = case
+    samples = holed(samples) if hole else samples
+    with reading_rates():
+        first = fit_motion(samples, clocked)
+        again = fit_motion(samples, clocked, first[0])
+    assert abs(again[1] - first[1]) < rounds.ROUND_GAIN, (first[1], again[1])
+    assert first.converged and first.rounds > 1 and first.step < rounds.ROUND_STD and first.gain < rounds.ROUND_GAIN
+    assert again.converged and again.rounds == 0
+
+
+def test_fit_motion_from_the_fits_motion_does_not_fall_below_the_fit(case):
+    # before: 0.070 below the fit's log-likelihood (two rounds from the fit's motion)
+    clocked, samples, _ = case
+    first = fit(case)
+    with reading_rates():
+        profile = fit_motion(samples, first.model, first.motion)
+    assert profile[1] > first.loglik_after - rounds.ROUND_GAIN, (profile[1], first.loglik_after)
+    assert profile.converged
+
+
+def test_fit_motion_without_timing_terms_is_one_gauss_newton_solve(case):
+    # no trajectory: no rounds, the same numbers as the motion-only Gauss-Newton (as before the rounds)
+    _, samples, _ = case
+    corners = SensorModel.from_description(load_description(ROOT / "config/mimu4444bt_corners.yaml"))
+    out = fit_motion(samples, corners)
+    prob = Problem(samples, corners, ("position",), np.arange(corners.n_imus))
+    motion, lin = prob.fit_motion(corners, prob.initial_motion(corners))
+    assert out.rounds == 0 and not prob.needs_derivatives
+    assert np.array_equal(out.motion, prob.expand(motion)) and out.loglik == prob.loglik(lin.cost)

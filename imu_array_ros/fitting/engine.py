@@ -18,7 +18,7 @@ from imu_array_ros.fitting.gauge import GAUGE_ORDER, Gauge
 from imu_array_ros.fitting.identifiability import NOISE_SHARE
 from imu_array_ros.fitting.optimiser import inverse, levenberg_marquardt
 from imu_array_ros.fitting.problem import Linearization, Problem, check_terms, keep_schur
-from imu_array_ros.fitting.rounds import FAR_ITERATIONS, TIMING_ROUNDS, timing_rounds
+from imu_array_ros.fitting.rounds import FAR_ITERATIONS, TIMING_ROUNDS, motion_gap, motion_rounds, timing_rounds
 from imu_array_ros.fitting.robust import (HUBER_ROUNDS, RobustCovariance, blocked_covariance, huber_sigma,
                                           sample_influence)
 from imu_array_ros.fitting.score import ScoreBlocks, score_blocks
@@ -27,8 +27,8 @@ from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
-__all__ = ["FitResult", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms", "keep_schur",
-           "GAUGE_ORDER", "NOISE_SHARE", "TIMING_ROUNDS"]
+__all__ = ["FitResult", "MotionFit", "ScoreBlocks", "fit_terms", "fit_motion", "score_blocks", "check_terms",
+           "keep_schur", "GAUGE_ORDER", "NOISE_SHARE", "TIMING_ROUNDS"]
 
 
 
@@ -159,7 +159,7 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     ref = _reference(model, fit, reference)
     prob = Problem(samples, model, free, fit, motion_model=motion_model, sigma=sigma, t0_ns=t0_ns, keep_g=keep_g)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
-    motion, lin = _fit_motion_frozen(prob, model, motion)
+    motion, lin, _, _ = motion_rounds(prob, model, motion)
     motion = prob.drop(~lin.ok, motion)
     prob.check_dof(prob.m)
     lin = prob.linearize(model, motion)  # with the free parameters, at the initial point
@@ -192,35 +192,54 @@ def _huber(samples, model, free, robust, options, motion0, sigma) -> FitResult:
     return res
 
 
-def _fit_motion_frozen(prob: Problem, model: SensorModel, motion: np.ndarray):
-    """The motion-only fit; with timing terms, on a trajectory held from the initial motion, then from the
-    motion found (:meth:`Problem.freeze`), so the fit converges on a fixed problem."""
-    if not prob.needs_derivatives:
-        return prob.fit_motion(model, motion)
-    for _ in range(2):
-        prob.freeze(motion)
-        new, lin = prob.fit_motion(model, motion)
-        if new is motion:  # no step taken: already the ML motion on its own trajectory, lin is the one below
-            return motion, lin
-        motion = new
-    prob.freeze(motion)
-    return motion, prob.linearize(model, motion, free=False)
+class MotionFit(tuple):
+    """What :func:`fit_motion` returns: the tuple (motion, loglik, residuals), unpacked as before, with how the
+    fit ended: converged (the fixed-point criterion of :func:`~imu_array_ros.fitting.rounds.motion_rounds` met),
+    rounds (trajectory rounds done; 0 without timing terms), step (largest norm of a sample's whitened
+    Gauss-Newton step left) and gain (log-likelihood one more step would gain)."""
+
+    converged: bool
+    rounds: int
+    step: float
+    gain: float
+
+    def __new__(cls, motion, loglik, residuals, converged, rounds, step, gain):
+        out = super().__new__(cls, (motion, loglik, residuals))
+        out.converged, out.rounds, out.step, out.gain = bool(converged), int(rounds), float(step), float(gain)
+        return out
+
+    @property
+    def motion(self) -> np.ndarray:
+        return self[0]
+
+    @property
+    def loglik(self) -> float:
+        return self[1]
+
+    @property
+    def residuals(self) -> np.ndarray:
+        return self[2]
 
 
 def fit_motion(samples: ImuSamples, model: SensorModel, motion0=None, *, motion_model=None,
-               sigma=None) -> tuple[np.ndarray, float, np.ndarray]:
+               sigma=None) -> MotionFit:
     """The ML motion of every sample with every term of ``model`` held (the engine's batched
     Gauss-Newton on each sample's motion coordinates, exact for the non-linear terms the fusion only
-    compensates).  motion_model, sigma: as for :func:`fit_terms`.
+    compensates).  motion_model, sigma: as for :func:`fit_terms`.  With timing terms the timing terms read the
+    motion through a held trajectory: trajectory rounds to their fixed point
+    (:func:`~imu_array_ros.fitting.rounds.motion_rounds`, at most ``TIMING_ROUNDS``).
 
-    Returns (motion (N, 9) [omega, omega_dot, s], log-likelihood over the valid axes, normalised
-    residuals (N, K, 6), NaN on masked axes).  A sample whose motion is not identified keeps a
-    ridge-regularised estimate."""
+    Returns a :class:`MotionFit`: (motion (N, 9) [omega, omega_dot, s], log-likelihood over the valid axes,
+    normalised residuals (N, K, 6), NaN on masked axes), and whether the criterion was met (``converged``).
+    A sample whose motion is not identified keeps a ridge-regularised estimate; one identified but for
+    coordinates no reading informs (a reading rate of an axis whose gyroscopes all saturate) its exact ML."""
     prob = Problem(samples, model, ("position",), np.arange(model.n_imus), motion_model=motion_model,
-                    sigma=sigma)
+                   sigma=sigma)
     motion = prob.initial_motion(model) if motion0 is None else prob.check_motion(motion0)
-    motion, lin = _fit_motion_frozen(prob, model, motion)
-    return prob.expand(motion), prob.loglik(lin.cost), np.where(prob.valid, lin.r, np.nan)
+    motion, lin, converged, rounds = motion_rounds(prob, model, motion)
+    step, gain = motion_gap(prob, lin)
+    return MotionFit(prob.expand(motion), prob.loglik(lin.cost), np.where(prob.valid, lin.r, np.nan), converged,
+                     rounds, step, gain)
 
 
 def _fixed(prob: Problem, model: SensorModel, only: dict | None, hold: Sequence[str] = ()) -> np.ndarray:

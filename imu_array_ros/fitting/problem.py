@@ -75,7 +75,8 @@ class Linearization:
     L_n^-1 gx_n; ok (N,): A_n positive definite (the sample identifies its
     motion); r (N, K, 6) normalised residuals (0 on masked axes); derivs: the
     motion derivatives held fixed in it; G (N, 9, M): G_n = L_n^-1 B_n when the problem keeps it
-    (:func:`keep_schur`), else None.
+    (:func:`keep_schur`), else None; exact (N,): the motion step is the exact Gauss-Newton one (ok, or ok
+    but for coordinates no reading informs, which are held: :func:`~imu_array_ros.fitting.schur.factor`).
     """
 
     cost: float
@@ -88,6 +89,7 @@ class Linearization:
     r: np.ndarray
     derivs: tuple
     G: np.ndarray | None = None
+    exact: np.ndarray | None = None
 
 
 class Problem:
@@ -317,7 +319,7 @@ class Problem:
         S, g = np.zeros((m, m)), np.zeros(m)
         cblocks, gt = np.zeros((kf, p, p)), np.zeros((kf, p))
         linv, h = np.empty((self.n, self.dm, self.dm)), np.empty((self.n, self.dm))
-        ok, r_all = np.empty(self.n, dtype=bool), np.empty_like(self.y)
+        ok, exact, r_all = np.empty(self.n, dtype=bool), np.empty(self.n, dtype=bool), np.empty_like(self.y)
         keep = m and self.keep_g and not gauge_point and 8 * self.n * self.dm * m <= KEEP_G_BYTES
         g_all = np.empty((self.n, self.dm, m)) if keep else None
         derivs = self.derivatives(motion)
@@ -330,7 +332,7 @@ class Problem:
             cols = self.rates(model, ctx)
             r = w * (self.y[lo:hi] - jac.predicted - self.rate_shift(cols, motion, slice(lo, hi)))
             jx = self.motion_jacobian(jac.motion, w, motion, slice(lo, hi), cols)  # (n, K, 6, dm)
-            linv[lo:hi], ok[lo:hi] = factor(gram(jx))
+            linv[lo:hi], ok[lo:hi], exact[lo:hi] = factor(gram(jx))
             h[lo:hi] = np.einsum("nij,nkrj,nkr->ni", linv[lo:hi], jx, r, optimize=True)
             r_all[lo:hi] = r
             if m:
@@ -345,7 +347,8 @@ class Problem:
             S += scipy.linalg.block_diag(*cblocks)
             g += gt.reshape(-1)
         cdiag = np.einsum("kpp->kp", cblocks).reshape(-1)[:m]
-        return Linearization(0.5 * float(np.sum(r_all * r_all)), S, g, cdiag, linv, h, ok, r_all, derivs, g_all)
+        return Linearization(0.5 * float(np.sum(r_all * r_all)), S, g, cdiag, linv, h, ok, r_all, derivs, g_all,
+                             exact)
 
     def parameter_jacobian(self, jac, w: np.ndarray) -> np.ndarray:
         """(n, K_fit, 6, P) weighted d y / d theta of the fitted IMUs, free terms concatenated."""
@@ -390,14 +393,18 @@ class Problem:
         z = self.mm.initial(np.concatenate([omega, motion_derivative(self.stamps, omega), s], axis=1))
         return np.concatenate([z, np.zeros((len(z), RATES))], axis=1) if self.clock else z
 
-    def fit_motion(self, model: SensorModel, motion: np.ndarray, tolerance: float = 1e-4):
-        """Motion-only Gauss-Newton for fixed parameters (batched 9x9 steps), step halving per sample.
+    def fit_motion(self, model: SensorModel, motion: np.ndarray, tolerance: float = 1e-4,
+                   lin: Linearization | None = None):
+        """Motion-only Gauss-Newton for fixed parameters (batched 9x9 steps), step halving per sample, until the
+        mean squared whitened step of the samples whose step is exact (:attr:`Linearization.exact`) is below
+        ``tolerance`` squared, at most ``MOTION_ITERATIONS`` steps; ``lin``: the motion-only linearisation at
+        ``motion`` when the caller has it.
 
         Returns the motion and the motion-only linearisation at it (whose ``ok`` flags the samples that
         identify their motion)."""
-        for _ in range(MOTION_ITERATIONS):
-            lin = self.linearize(model, motion, free=False)
-            if not lin.ok.any() or np.mean(np.sum(lin.h[lin.ok] ** 2, axis=1)) < tolerance ** 2:
+        for i in range(MOTION_ITERATIONS):
+            lin = self.linearize(model, motion, free=False) if i or lin is None else lin
+            if not lin.exact.any() or np.mean(np.sum(lin.h[lin.exact] ** 2, axis=1)) < tolerance ** 2:
                 return motion, lin
             step = self.motion_step(model, motion, lin, None)
             cost0 = 0.5 * np.sum(lin.r ** 2, axis=(1, 2))

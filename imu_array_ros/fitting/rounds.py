@@ -16,6 +16,14 @@ the fixed-point map trajectory -> motion found, depth ``ANDERSON_DEPTH``, off by
 ``TIMING_ROUNDS`` rounds and ``BUDGET`` x max_iterations optimiser steps: a fit that reaches a cap unconverged
 says so (``converged`` False), and the result is always the linearisation on the motion's own trajectory (its
 log-likelihood, its Cramer-Rao bound).  Measured: benchmarks/results/timing_rounds.md.
+
+:func:`motion_rounds` is the same fixed point for the motion alone (every term held: ``fit_motion``, and the start
+of ``fit_terms``): rounds of (hold the motion's trajectory, Gauss-Newton on the motion) until one Gauss-Newton step
+of the motion-only problem at the motion's own trajectory moves no sample's motion by ROUND_STD of its standard
+deviation (the norm of the sample's whitened step bounds every coordinate's) and would gain less than ROUND_GAIN
+log-likelihood over the recording (:func:`motion_gap`); at most TIMING_ROUNDS rounds.  The loop before stopped
+after two rounds; on a real capture with sample clocks and reading rates that left the log-likelihood of a
+60-s window tens of millions from the fixed point (benchmarks/results/fit_motion_rounds.md).
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ from imu_array_ros.fitting.problem import Linearization, Problem
 from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["TIMING_ROUNDS", "ROUND_STD", "ROUND_GAIN", "ANDERSON_DEPTH", "RoundLog", "timing_rounds",
-           "fixed_point_gap"]
+           "fixed_point_gap", "motion_gap", "motion_rounds"]
 
 #: at most this many trajectory rounds (re-freeze and optimise again) after the first optimisation
 TIMING_ROUNDS = 60
@@ -72,6 +80,50 @@ def fixed_point_gap(prob: Problem, lin: Linearization, gauge: Gauge) -> tuple[fl
     step = float(np.max(np.abs(step_z) / np.sqrt(np.diag(cov_z)), initial=0.0))
     gain = 0.5 * float(g_z @ step_z) + 0.5 * float(np.sum(lin.h[prob.used] ** 2))
     return step, gain
+
+
+def motion_gap(prob: Problem, lin: Linearization) -> tuple[float, float]:
+    """(largest norm of a sample's whitened motion step, predicted log-likelihood gain) of one Gauss-Newton step of
+    the motion-only problem linearised at ``lin``, over the samples used whose step is exact
+    (:attr:`~imu_array_ros.fitting.problem.Linearization.exact`; a ridge-held sample's step is not a step of the
+    likelihood)."""
+    h = lin.h[lin.exact & prob.used]
+    squares = np.sum(h * h, axis=1)
+    return float(np.sqrt(np.max(squares, initial=0.0))), 0.5 * float(np.sum(squares))
+
+
+def motion_rounds(prob: Problem, model: SensorModel, motion: np.ndarray, *, rounds: int | None = None,
+                  log: RoundLog | None = None):
+    """The motion-only fit with every term of ``model`` held, from ``motion`` (the problem's coordinates); with
+    timing terms, trajectory rounds to their fixed point (module docstring).  Returns (motion, lin, converged,
+    rounds done): lin the motion-only linearisation at the motion (with timing terms on its own trajectory, which
+    stays held); converged: whether :func:`motion_gap` at it meets (ROUND_STD, ROUND_GAIN).  Without timing terms
+    one Gauss-Newton solve (:meth:`~imu_array_ros.fitting.problem.Problem.fit_motion`), as before the rounds."""
+    if not prob.needs_derivatives:
+        motion, lin = prob.fit_motion(model, motion)
+        step, gain = motion_gap(prob, lin)
+        return motion, lin, step < ROUND_STD and gain < ROUND_GAIN, 0
+    rounds = TIMING_ROUNDS if rounds is None else rounds
+    converged, lin = False, None
+    for k in range(rounds + 1):
+        before = None if lin is None else lin.cost
+        prob.freeze(motion)  # the trajectory of the motion found: the self-consistent point
+        lin = None
+        lin = prob.linearize(model, motion, free=False)
+        step, gain = motion_gap(prob, lin)
+        if log is not None:
+            log.rise.append(np.nan if before is None else lin.cost - before)
+            log.step_std.append(step)
+            log.gain.append(gain)
+        if step < ROUND_STD and gain < ROUND_GAIN:
+            converged = True
+            break
+        if k == rounds:
+            break
+        motion, lin = prob.fit_motion(model, motion, lin=lin)
+        if log is not None:
+            log.cost.append(lin.cost)
+    return motion, lin, converged, k
 
 
 def timing_rounds(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Linearization, gauge: Gauge,

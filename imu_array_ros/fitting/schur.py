@@ -17,25 +17,36 @@ def gram(jx: np.ndarray) -> np.ndarray:
     return np.matmul(j.transpose(0, 2, 1), j)
 
 
-def factor(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """L^-1 of A = L L^T for each (n, 9, 9) matrix, and ok (n,): numerically positive definite.
+def factor(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """L^-1 of A = L L^T for each (n, d, d) matrix, ok (n,): numerically positive definite, and exact (n,): the
+    Gauss-Newton step L^-T L^-1 g is the exact one (ok, or ok but for coordinates no reading informs).
 
     Jacobi-scaled first (A = D An D); where An's smallest eigenvalue is below
-    ``MOTION_RTOL`` the sample does not identify its motion: ok is False and a
-    ridge keeps the factor finite (such samples are dropped after the initial
-    motion fit, weight 0).
+    ``MOTION_RTOL`` the sample does not identify its motion: ok is False (such
+    samples are dropped after the initial motion fit, weight 0).  A coordinate
+    no reading informs (a zero diagonal: e.g. the reading rate of an axis whose
+    gyroscopes all saturate) is held, a unit diagonal on it alone, so that the
+    sample's other coordinates get their exact step when they identify
+    themselves (exact; a sample nothing informs is not); otherwise a ridge (An + I) keeps the factor finite.
     """
     diag = np.einsum("nii->ni", a)
     d = np.sqrt(diag)
     d = np.where(d > 0, d, 1.0)
     an = a / (d[:, :, None] * d[:, None, :])
-    ok = ~(diag <= 0).any(axis=1)  # a coordinate no reading informs (e.g. a dropped sample): not identified
+    empty = diag <= 0
+    ok = ~empty.any(axis=1)  # a coordinate no reading informs (e.g. a dropped sample): not identified
     rest = np.flatnonzero(ok)
     if not _all_above(an[rest], MOTION_RTOL):  # some sample is not identified: which ones
         ok[rest] = np.linalg.eigvalsh(an[rest])[:, 0] > MOTION_RTOL
-    an[~ok] += np.eye(a.shape[-1])
+    exact = ok.copy()
+    part = np.flatnonzero(empty.any(axis=1) & ~empty.all(axis=1))  # informed, but not on every coordinate
+    if part.size:  # the empty coordinates held (a unit diagonal on them alone) where the others identify themselves
+        held = an[part] + empty[part][:, :, None] * np.eye(a.shape[-1])
+        exact[part] = np.linalg.eigvalsh(held)[:, 0] > MOTION_RTOL
+        an[part[exact[part]]] = held[exact[part]]
+    an[~exact] += np.eye(a.shape[-1])  # not identified: the ridge
     lower = np.linalg.cholesky(an)
-    return np.linalg.inv(lower) / d[:, None, :], ok
+    return np.linalg.inv(lower) / d[:, None, :], ok, exact
 
 
 def _all_above(an: np.ndarray, rtol: float) -> bool:

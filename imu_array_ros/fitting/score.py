@@ -102,7 +102,7 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
         ctx = prob.context(model, z, derivs, lo, hi)
         jac = model.jacobians(ctx, terms)
         cols = prob.rates(model, ctx)
-        linv, ok = factor(gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi), cols)))
+        linv, ok, _ = factor(gram(prob.motion_jacobian(jac.motion, prob.w[lo:hi], z, slice(lo, hi), cols)))
         w = prob.w[lo:hi] * ok[:, None, None]  # a sample that does not identify its motion tells nothing
         r = w * (prob.y[lo:hi] - jac.predicted - prob.rate_shift(cols, z, slice(lo, hi)))
         jx = prob.motion_jacobian(jac.motion, w, z, slice(lo, hi), cols)
