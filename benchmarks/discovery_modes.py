@@ -18,7 +18,9 @@ model it is analysed with, then :func:`imu_array_ros.discovery.modes.detect_mode
   E = sum over channels of N a_c^2 / 2 (a_c: channel RMS in noise stds).  *Detected*: a mode whose band
   holds the frequency (+- one bin) and whose IMUs include the strongest one.
 
-Baseline, same residuals, same run: the per-cell line test discovery used before (:func:`old_line_test`:
+Each scenario's residuals are searched twice, with the mode search's array-wide test being
+:mod:`~imu_array_ros.discovery.coherent` ("welch") and :mod:`~imu_array_ros.discovery.bank` ("bank"): columns side
+by side.  Baseline, same residuals, same run: the per-cell line test discovery used before (:func:`old_line_test`:
 Welch of 256 samples, each bin against the cell's *white* floor, chi-square, Bonferroni over bins x cells at
 0.01); it has no band, so it is credited with a detection when any cell of the strongest IMU is flagged.
 
@@ -114,13 +116,23 @@ def old_line_test(r: np.ndarray, fs: float, nperseg: int = 256, alpha: float = 0
     return (np.nan_to_num(inner / floor[:, None]) > limit).any(axis=1).reshape(k, 6)
 
 
+#: the array-wide test of the mode search, each run on the same residuals ("welch": coherent.py, "bank": bank.py);
+#: the first is the one the columns without a suffix show
+COHERENT_TESTS = ("welch", "bank")
+
+
 def _analyse(samples, model):
+    """({test: ModeSearch}, fs, n, old line test's cells)."""
     motion, _, r = fit_motion(samples, model)
     fs = 1e9 / float(np.median(np.diff(samples.stamps)))
     still = regime_masks(motion, 0.2, 9.80665)["still"]
-    search = detect_modes(r, fs, positions=model.positions, rotations=model.rotations, std=model.std, still=still,
-                          motion=motion)
-    return search, fs, len(r), old_line_test(r, fs)
+    searches = {t: detect_modes(r, fs, positions=model.positions, rotations=model.rotations, std=model.std,
+                                still=still, motion=motion, coherent=t) for t in COHERENT_TESTS}
+    return searches, fs, len(r), old_line_test(r, fs)
+
+
+def _suffix(test: str) -> str:
+    return "" if test == COHERENT_TESTS[0] else f"_{test}"
 
 
 def null_case(seed: int, kind: str) -> dict:
@@ -139,10 +151,13 @@ def null_case(seed: int, kind: str) -> dict:
         samples = _add(samples, added)
     elif kind == "library":
         kind = f"library ({term})"
-    search, fs, n, old = _analyse(samples, model)
-    return {"kind": kind, "seed": seed, "array": array, "rate_hz": rate, "still_poses": still, "samples": n,
-            "modes": [(round(m.frequency_hz, 3), m.p_value) for m in search.modes],
-            "motion_lines": len(search.motion_lines), "old_test_cells": int(old.sum())}
+    searches, fs, n, old = _analyse(samples, model)
+    out = {"kind": kind, "seed": seed, "array": array, "rate_hz": rate, "still_poses": still, "samples": n,
+           "old_test_cells": int(old.sum())}
+    for t, search in searches.items():
+        out["modes" + _suffix(t)] = [(round(m.frequency_hz, 3), m.p_value, m.test) for m in search.modes]
+        out["motion_lines" + _suffix(t)] = len(search.motion_lines)
+    return out
 
 
 def mode_case(seed: int) -> dict:
@@ -178,20 +193,26 @@ def mode_case(seed: int) -> dict:
         sig = np.real(z * np.exp(1j * ph))[:, None] * d[None] * g * size * sd.max()
         added[:, kk, sl] = sig
         energy += 0.5 * float(np.sum((sig / sd[None]) ** 2))
-    search, fs, _, old = _analyse(_add(samples, added), model)
-    df = search.freqs[1] - search.freqs[0] if len(search.freqs) > 1 else 0.0
+    searches, fs, _, old = _analyse(_add(samples, added), model)
     lead = int(imus[0])
-    hit = [md for md in search.modes if md.band_hz[0] - df <= f <= md.band_hz[1] + df and lead in md.imus]
-    false = [md for md in search.modes if not (md.band_hz[0] - 2 * df <= f <= md.band_hz[1] + 2 * df)]
-    return {"seed": seed, "array": array, "rate_hz": rate, "still_poses": still, "frequency_hz": f,
-            "bandwidth_hz": bw, "sensor": "accelerometer" if acc else "gyroscope", "imus": len(imus),
-            "gated": bool(gate.min() == 0), "size_noise_std": size, "evidence": energy, "detected": bool(hit),
-            "band_hz": list(hit[0].band_hz) if hit else None,
-            "regime": hit[0].presence.get("regime") if hit else None,
-            "fraction_present": hit[0].presence.get("fraction_present") if hit else None,
-            "heldout_ratio": hit[0].model.get("ratio_after_before") if hit else None,
-            "in_motion_lines": any(md.band_hz[0] - df <= f <= md.band_hz[1] + df for md in search.motion_lines),
-            "other_modes": len(false), "old_test_detected": bool(old[lead].any())}
+    out = {"seed": seed, "array": array, "rate_hz": rate, "still_poses": still, "frequency_hz": f,
+           "bandwidth_hz": bw, "sensor": "accelerometer" if acc else "gyroscope", "imus": len(imus),
+           "gated": bool(gate.min() == 0), "size_noise_std": size, "evidence": energy,
+           "old_test_detected": bool(old[lead].any())}
+    for t, search in searches.items():
+        df = search.freqs[1] - search.freqs[0] if len(search.freqs) > 1 else 0.0
+        hit = [md for md in search.modes if md.band_hz[0] - df <= f <= md.band_hz[1] + df and lead in md.imus]
+        false = [md for md in search.modes if not (md.band_hz[0] - 2 * df <= f <= md.band_hz[1] + 2 * df)]
+        x = _suffix(t)
+        out.update({"detected" + x: bool(hit), "band_hz" + x: list(hit[0].band_hz) if hit else None,
+                    "test" + x: hit[0].test if hit else None,
+                    "regime" + x: hit[0].presence.get("regime") if hit else None,
+                    "fraction_present" + x: hit[0].presence.get("fraction_present") if hit else None,
+                    "heldout_ratio" + x: hit[0].model.get("ratio_after_before") if hit else None,
+                    "in_motion_lines" + x: any(md.band_hz[0] - df <= f <= md.band_hz[1] + df
+                                               for md in search.motion_lines),
+                    "other_modes" + x: len(false)})
+    return out
 
 
 def _cp(k: int, n: int) -> str:
@@ -209,45 +230,61 @@ def render(res: dict, path: str, seconds: float) -> None:
 
     nulls, modes = res["nulls"], res["modes"]
     kinds = ("white", "broadband", "library")
+    tests = [t for t in COHERENT_TESTS if ("modes" + _suffix(t)) in (nulls[0] if nulls else {})] or [COHERENT_TESTS[0]]
+    names = {"welch": "coherent.py", "bank": "bank.py"}
+    head = " | ".join(f"with a mode ({names[t]} test)" for t in tests)
     text = machine_header("Narrowband-mode search: false modes on nulls, power on fresh seeds",
                           extra=[f"load average: {load_average()}", f"run time: {seconds:.0f} s",
                                  f"detector alpha (family-wise per recording): {MODE_ALPHA}"])
-    text += "## Nulls (any mode reported = a false finding)\n\n| kind | recordings | with a mode | " \
-            "motion lines set aside | baseline (old line test): with a flagged cell |\n|---|---|---|---|---|\n"
+    text += ("## Nulls (any mode reported = a false finding)\n\nThe mode search with each array-wide test on the "
+             "same residuals.\n\n| kind | recordings | " + head + " | motion lines set aside | baseline (old line "
+             "test): with a flagged cell |\n|---|---|" + "---|" * len(tests) + "---|---|\n")
+
+    def null_row(label, rows):
+        return (f"| {label} | {len(rows)} | "
+                + " | ".join(_cp(sum(bool(r["modes" + _suffix(t)]) for r in rows), len(rows)) for t in tests)
+                + f" | {sum(r['motion_lines'] > 0 for r in rows)} | "
+                f"{_cp(sum(r['old_test_cells'] > 0 for r in rows), len(rows))} |\n")
+
     for kd in kinds:
-        rows = [r for r in nulls if r["kind"].startswith(kd)]
-        text += (f"| {kd} | {len(rows)} | {_cp(sum(bool(r['modes']) for r in rows), len(rows))} | "
-                 f"{sum(r['motion_lines'] > 0 for r in rows)} | "
-                 f"{_cp(sum(r['old_test_cells'] > 0 for r in rows), len(rows))} |\n")
-    text += (f"| all | {len(nulls)} | {_cp(sum(bool(r['modes']) for r in nulls), len(nulls))} | "
-             f"{sum(r['motion_lines'] > 0 for r in nulls)} | "
-             f"{_cp(sum(r['old_test_cells'] > 0 for r in nulls), len(nulls))} |\n\n")
-    text += "## Detection vs oracle evidence (modes located in band with the strongest IMU)\n\n" \
-            "| evidence | scenarios | detected (95 % CI) | baseline: old line test flags the strongest IMU |\n" \
-            "|---|---|---|---|\n"
+        text += null_row(kd, [r for r in nulls if r["kind"].startswith(kd)])
+    text += null_row("all", nulls) + "\n"
+    text += "False modes on the nulls, by test:\n\n"
+    for t in tests:
+        found = [(r["kind"], m) for r in nulls for m in r["modes" + _suffix(t)]]
+        text += f"- {names[t]}: " + ("; ".join(f"{k} at {m[0]:g} Hz (p {m[1]:.2g}, {m[2] if len(m) > 2 else '?'})"
+                                              for k, m in found) or "none") + "\n"
+    text += ("\n## Detection vs oracle evidence (modes located in band with the strongest IMU)\n\n"
+             "| evidence | scenarios | " + " | ".join(f"detected, {names[t]} test (95 % CI)" for t in tests)
+             + " | baseline: old line test flags the strongest IMU |\n|---|---|" + "---|" * len(tests) + "---|\n")
     ev = np.array([r["evidence"] for r in modes])
     for lo, hi in zip(EDGES[:-1], EDGES[1:]):
         sel = [r for r, e in zip(modes, ev) if lo <= e < hi]
-        text += (f"| {lo:g}–{hi:g} | {len(sel)} | {_cp(sum(r['detected'] for r in sel), len(sel))} | "
-                 f"{_cp(sum(r['old_test_detected'] for r in sel), len(sel))} |\n")
+        text += (f"| {lo:g}–{hi:g} | {len(sel)} | "
+                 + " | ".join(_cp(sum(r["detected" + _suffix(t)] for r in sel), len(sel)) for t in tests)
+                 + f" | {_cp(sum(r['old_test_detected'] for r in sel), len(sel))} |\n")
     strong = [r for r in modes if r["evidence"] >= 300]
-    text += "\n## Detection at evidence >= 300 by scenario trait\n\n| trait | detected |\n|---|---|\n"
+    text += ("\n## Detection at evidence >= 300 by scenario trait\n\n| trait | "
+             + " | ".join(f"detected, {names[t]}" for t in tests) + " |\n|---|" + "---|" * len(tests) + "\n")
     traits = [("array " + a, lambda r, a=a: r["array"] == a) for a in ARRAYS] + \
              [(f"{g:g} Hz", lambda r, g=g: r["rate_hz"] == g) for g in RATES] + \
              [("sinusoid", lambda r: r["bandwidth_hz"] == 0), ("resonance 0.05-1.5 Hz", lambda r: r["bandwidth_hz"] > 0),
               ("accelerometer", lambda r: r["sensor"] == "accelerometer"), ("gyroscope", lambda r: r["sensor"] == "gyroscope"),
               ("present part of the time", lambda r: r["gated"]), ("f < 3 Hz", lambda r: r["frequency_hz"] < 3),
-              ("f >= 3 Hz", lambda r: r["frequency_hz"] >= 3), ("set aside as a motion line", lambda r: r["in_motion_lines"])]
+              ("f >= 3 Hz", lambda r: r["frequency_hz"] >= 3)]
     for name, fn in traits:
         sel = [r for r in strong if fn(r)]
-        text += f"| {name} | {_cp(sum(r['detected'] for r in sel), len(sel))} |\n"
-    held = [r["heldout_ratio"] for r in modes if r["detected"] and r["heldout_ratio"] is not None]
-    if held:
-        text += (f"\nEmpirical model on held-out blocks (detected modes with >= 2 channels, {len(held)}): sum of "
-                 f"squared residuals of the mode's channels x {np.median(held):.3f} (median; range "
-                 f"{min(held):.3f}–{max(held):.3f}; {sum(h < 1 for h in held)} of {len(held)} below 1).\n")
-    other = sum(r["other_modes"] for r in modes)
-    text += f"\nModes reported away from the injected frequency in the mode scenarios: {other}.\n"
+        text += f"| {name} | " + " | ".join(_cp(sum(r["detected" + _suffix(t)] for r in sel), len(sel))
+                                            for t in tests) + " |\n"
+    for t in tests:
+        x = _suffix(t)
+        held = [r["heldout_ratio" + x] for r in modes if r["detected" + x] and r["heldout_ratio" + x] is not None]
+        if held:
+            text += (f"\n{names[t]} test: empirical model on held-out blocks (detected modes with >= 2 channels, "
+                     f"{len(held)}): sum of squared residuals of the mode's channels x {np.median(held):.3f} (median; "
+                     f"range {min(held):.3f}–{max(held):.3f}; {sum(h < 1 for h in held)} of {len(held)} below 1).\n")
+        other = sum(r["other_modes" + x] for r in modes)
+        text += f"\n{names[t]} test: modes reported away from the injected frequency in the mode scenarios: {other}.\n"
     write_results(path, text)
 
 
@@ -268,20 +305,23 @@ def main() -> None:
     for i in range(a.modes):
         modes.append(mode_case(a.seed * 1000 + 500 + i))
         print(json.dumps(modes[-1]), flush=True)
-    false = sum(bool(r["modes"]) for r in nulls)
     ev = np.array([r["evidence"] for r in modes])
-    det = np.array([r["detected"] for r in modes])
-    power = []
-    for lo, hi in zip(EDGES[:-1], EDGES[1:]):
-        sel = (ev >= lo) & (ev < hi)
-        power.append({"evidence": [lo, hi], "n": int(sel.sum()), "detected": int(det[sel].sum())})
-    summary = {"alpha": MODE_ALPHA, "nulls": len(nulls), "nulls_with_a_mode": false,
-               "by_kind": {kd: [sum(bool(r["modes"]) for r in nulls if r["kind"].startswith(kd)),
-                                sum(r["kind"].startswith(kd) for r in nulls)] for kd in kinds},
-               "mode_scenarios": len(modes), "detected": int(det.sum()), "power": power,
-               "false_modes_in_mode_scenarios": int(sum(r["other_modes"] for r in modes)),
-               "seconds": time.time() - t0, "machine": platform.processor() or platform.machine(),
-               "cpus": os.cpu_count(), "load_average": os.getloadavg()}
+    summary = {"alpha": MODE_ALPHA, "nulls": len(nulls), "mode_scenarios": len(modes), "seconds": time.time() - t0,
+               "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+               "load_average": os.getloadavg(), "tests": {}}
+    for t in COHERENT_TESTS:
+        x = _suffix(t)
+        det = np.array([r["detected" + x] for r in modes])
+        power = []
+        for lo, hi in zip(EDGES[:-1], EDGES[1:]):
+            sel = (ev >= lo) & (ev < hi)
+            power.append({"evidence": [lo, hi], "n": int(sel.sum()), "detected": int(det[sel].sum())})
+        summary["tests"][t] = {
+            "nulls_with_a_mode": sum(bool(r["modes" + x]) for r in nulls),
+            "by_kind": {kd: [sum(bool(r["modes" + x]) for r in nulls if r["kind"].startswith(kd)),
+                             sum(r["kind"].startswith(kd) for r in nulls)] for kd in kinds},
+            "detected": int(det.sum()), "power": power,
+            "false_modes_in_mode_scenarios": int(sum(r["other_modes" + x] for r in modes))}
     print(json.dumps(summary, indent=1))
     res = {"summary": summary, "nulls": nulls, "modes": modes}
     with open(a.out, "w") as fh:

@@ -71,6 +71,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import signal, stats
 
+from imu_array_ros.discovery.bank import bank_scan
 from imu_array_ros.discovery.coherent import coherent_scan, field_basis, field_channels, mode_channels
 from imu_array_ros.discovery.modeshape import bandpass, describe_shape, heldout_model, presence
 from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor, relative_psd
@@ -90,6 +91,8 @@ RESOLUTIONS_HZ = (0.25, 1.0)
 GUARD, HALF_WINDOW = FLOOR_GUARD, FLOOR_HALF_WINDOW
 #: effective share of the floor's bins (adjacent Hann bins are correlated; the median is 64 % efficient)
 FLOOR_EFFICIENCY = 0.5 * 0.64
+#: the array-wide test: "welch" (coherent.py) or "bank" (bank.py)
+COHERENT_TEST = "welch"
 #: at most this many modes per recording (the strongest)
 MAX_MODES = 8
 #: the line follows the motion when the out-of-band relation to the motion predicts this share of its power
@@ -255,13 +258,16 @@ def _scan(x, chan_ok, fs, nper, alpha) -> dict | None:
 def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None = None,
                  positions: np.ndarray | None = None, rotations: np.ndarray | None = None,
                  std: np.ndarray | None = None, still: np.ndarray | None = None, motion: np.ndarray | None = None,
-                 alpha: float = MODE_ALPHA, heldout: bool = True) -> ModeSearch:
+                 alpha: float = MODE_ALPHA, heldout: bool = True, coherent: str | None = None) -> ModeSearch:
     """Narrowband modes of the normalised residuals (N, K, 6) sampled at ``fs`` Hz (module docstring).
 
     valid (N, K, 6) bool (default: finite); positions (K, 3) m, rotations (K, 3, 3) sensor -> array: the
     shape description; std (K, 6) noise stds: amplitudes in SI units; still (N,) bool: the regime;
     motion (N, 9) fitted [omega, omega_dot, s]: the motion-line check.  heldout: fit the empirical model.
+    coherent: the array-wide test, "bank" (:mod:`~imu_array_ros.discovery.bank`) or "welch"
+    (:mod:`~imu_array_ros.discovery.coherent`); None: COHERENT_TEST.
     """
+    coherent = COHERENT_TEST if coherent is None else coherent
     r = np.asarray(residuals, dtype=float)
     n, k = r.shape[:2]
     valid = np.isfinite(r) if valid is None else (np.asarray(valid, dtype=bool) & np.isfinite(r))
@@ -282,7 +288,17 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
     if not scans:
         return empty
     cands = sorted((c + (i,) for i, sc in enumerate(scans) for c in sc["cands"]), key=lambda c: c[0])
-    if basis is not None and scans[0]["nper"] == npers[0]:
+    if basis is not None and scans[0]["nper"] == npers[0] and coherent == "bank":
+        co = bank_scan(field_channels(np.where(valid, r, np.nan), basis), fs, share)
+        if co is not None:
+            fine = scans[0]["freqs"][1] - scans[0]["freqs"][0]
+            last = len(scans[0]["freqs"]) - 1
+            for pv, f_lo, f_hi, f_pk, w_hz in co["cands"]:  # the band on the fine Welch bins
+                lo, hi = (int(np.clip(np.rint(f / fine), 1, last - 1)) for f in (f_lo, f_hi))
+                cands.append((pv, lo, max(lo, hi), int(np.clip(np.rint(f_pk / fine), lo, max(lo, hi))),
+                              f"coherent bank ({w_hz:.2g} Hz template)", 0))
+            cands.sort(key=lambda c: c[0])
+    elif basis is not None and scans[0]["nper"] == npers[0]:
         co = coherent_scan(field_channels(np.where(valid, r, np.nan), basis), fs, npers[0], share)
         if co is not None:
             cands = sorted(cands + [(pv, lo, hi, pk, f"coherent ({w} bins)", 0) for pv, lo, hi, pk, w in co["cands"]],
