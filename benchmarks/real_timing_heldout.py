@@ -113,8 +113,8 @@ def render(fit: str, cals: dict, rows: list[dict], args) -> str:
         lines.append(f"- {name}: {c['seconds']:.0f} s, timing terms: {c['timed']}; skipped: "
                      f"{c['skipped'] or 'nothing'}; imu_1 gyroscope gain {', '.join(f'{v:.4f}' for v in gg[0])}; "
                      f"{c['summary']}")
-    lines += ["", f"## Scored on the other captures' moving phases ({args.duration or 'to the end'} s from "
-                  f"{args.lead:g} s before |gyro| > {args.moving:g} rad/s)", "",
+    lines += ["", f"## Scored on the other captures' moving phases ("
+                  f"{f'{args.duration:g} s' if args.duration else 'to the end'}, from {args.lead:g} s before |gyro| > {args.moving:g} rad/s)", "",
               "| scored on | samples | log-lik / sample, without timing | with --timing | time offsets alone | "
               "NIS moving, without | with --timing | time offsets alone | ratio --timing / without | "
               "ratio --timing / time offsets alone | fit_motion converged (3), rounds (--timing) |",
