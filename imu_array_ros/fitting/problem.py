@@ -308,6 +308,18 @@ class Problem:
             out[lo:hi] = self.w[lo:hi] * (self.y[lo:hi] - np.concatenate([acc, gyr], axis=2) - shift)
         return out
 
+    def residuals_at(self, model: SensorModel, motion: np.ndarray, derivs: tuple, idx: np.ndarray) -> np.ndarray:
+        """(n, K, 6) :meth:`residuals` of the samples ``idx`` only (sorted indexes; ``motion`` and ``derivs``
+        whole): with the derivatives held, a sample's residual reads its own motion alone."""
+        out = np.empty((len(idx),) + self.y.shape[1:])
+        for lo in range(0, len(idx), self.chunk):
+            sel = idx[lo:lo + self.chunk]
+            ctx = self.context_at(model, motion, derivs, sel)
+            acc, gyr = model.predict(ctx)
+            shift = self.rate_shift(self.rates(model, ctx), motion, sel)
+            out[lo:lo + len(sel)] = self.w[sel] * (self.y[sel] - np.concatenate([acc, gyr], axis=2) - shift)
+        return out
+
     def linearize(self, model: SensorModel, motion: np.ndarray, *, free: bool = True,
                   gauge_point: bool = False) -> Linearization:
         """The Schur-complemented Gauss-Newton system at (model, motion); ``free=False``: motion only;
@@ -410,9 +422,14 @@ class Problem:
             cost0 = 0.5 * np.sum(lin.r ** 2, axis=(1, 2))
             t, todo = 1.0, np.ones(self.n, dtype=bool)
             new = motion.copy()
-            for _ in range(10):  # halve the step where a sample's cost went up
+            for k in range(10):  # halve the step where a sample's cost went up (then only those samples evaluated)
                 trial = np.where(todo[:, None], motion + t * step, new)
-                cost = 0.5 * np.sum(self.residuals(model, trial, lin.derivs) ** 2, axis=(1, 2))
+                if k == 0:
+                    cost = 0.5 * np.sum(self.residuals(model, trial, lin.derivs) ** 2, axis=(1, 2))
+                else:
+                    idx = np.flatnonzero(todo)
+                    cost = np.full(self.n, np.inf)
+                    cost[idx] = 0.5 * np.sum(self.residuals_at(model, trial, lin.derivs, idx) ** 2, axis=(1, 2))
                 better = todo & (cost <= cost0)
                 new[better] = trial[better]
                 todo &= ~better
