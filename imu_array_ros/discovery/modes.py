@@ -36,6 +36,9 @@ end) raises the floor with the PSD and is no line.
   (:mod:`~imu_array_ros.discovery.coherent`): a mode spread thinly over many IMUs and a resonance
   a few bins wide, too weak in every channel for the two tests above; its channels from their
   coherence with the mode's reference process (:func:`~imu_array_ros.discovery.coherent.mode_channels`).
+  With ``coherent="bank"`` the template bank of :mod:`~imu_array_ros.discovery.bank` takes its place (the same
+  share of alpha; its band mapped on the fine Welch bins); not the default (benchmarks/results/
+  discovery_vibration_bank.md: no more found, more false modes).
 
 Family-wise false-alarm rate of the detector on a recording: <= ``alpha`` (each
 resolution alpha / 2, each of its two tests alpha / 4; with the coherent test, it and
