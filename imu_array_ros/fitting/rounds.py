@@ -12,7 +12,10 @@ would gain less than ``ROUND_GAIN`` log-likelihood (or the caller's ``cost_toler
 fixed point (a step of ``NEAR_STD`` std or more) a round is ``FAR_ITERATIONS`` optimiser steps on the held
 trajectory (it is only an approximate problem); near it, the round is solved to ROUND_STD / 5, and the
 trajectory held next is the motion's (optionally extrapolated from the rounds so far: Anderson acceleration of
-the fixed-point map trajectory -> motion found, depth ``ANDERSON_DEPTH``, off by default, measured).  At most
+the fixed-point map trajectory -> motion found, depth ``ANDERSON_DEPTH``, off by default, measured).  A round whose
+optimiser takes no step (its own tests met, the gain left being the motion's) polishes the motion at fixed
+parameters instead; before, such a round repeated unchanged to the cap (a real time-offset refit: 56 rounds,
+``converged`` False).  At most
 ``TIMING_ROUNDS`` rounds and ``BUDGET`` x max_iterations optimiser steps: a fit that reaches a cap unconverged
 says so (``converged`` False), and the result is always the linearisation on the motion's own trajectory (its
 log-likelihood, its Cramer-Rao bound).  Measured: benchmarks/results/timing_rounds.md.
@@ -180,6 +183,8 @@ def timing_rounds(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Li
         model, motion, lin, more, _ = levenberg_marquardt(
             prob, model, motion, lin, gauge, max_iterations if near else min(max_iterations, FAR_ITERATIONS),
             ROUND_STD / 5 if near else tolerance, progress, None if near else cost_tolerance)
+        if not more:  # the optimiser saw nothing to do, the criterion's gain is the motion's: polish it at fixed
+            motion, lin = prob.fit_motion(model, motion, lin=lin)  # parameters (else the rounds repeat to the cap)
         iterations += more
         if log is not None:
             log.cost.append(lin.cost)
