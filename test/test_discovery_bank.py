@@ -10,42 +10,18 @@ from scipy.signal import lfilter
 from imu_array_ros.discovery.bank import bank_scan
 from imu_array_ros.discovery.coherent import field_basis, field_channels
 from imu_array_ros.discovery.modes import detect_modes
-
-FS, N = 50.0, 2000
-_G = np.linspace(-0.01, 0.01, 4)
-POS = np.array([[x, y, 0.0] for x in _G for y in _G])               # a 4 x 4 planar grid, 2 cm
-K = len(POS)
-
-
-def _rotations(rng, k=K):
-    q, _ = np.linalg.qr(rng.normal(size=(k, 3, 3)))
-    return q * np.sign(np.linalg.det(q))[:, None, None]
-
-
-def _resonance(rng, f, bw, n=N):
-    r = np.exp(-np.pi * bw / FS)
-    x = lfilter([1.0], [1.0, -2 * r * np.cos(2 * np.pi * f / FS), r * r], rng.normal(size=n + 1000))[1000:]
-    return x / x.std()
-
-
-def _smooth_shape():
-    """A quadratic plate shape over the grid with its affine part removed (what no rigid motion absorbs)."""
-    q = (POS - POS.mean(axis=0)) / 0.01
-    shape = q[:, 0] ** 2 + 0.5 * q[:, 0] * q[:, 1] - 0.7 * q[:, 1] ** 2
-    aff = np.c_[np.ones(K), q[:, :2]]
-    shape = shape - aff @ np.linalg.lstsq(aff, shape, rcond=None)[0]
-    return shape / np.abs(shape).max()
+from plate_modes import FS, K, N, POS, resonance, rotations, smooth_shape
 
 
 def test_bank_finds_a_moderate_mode_spread_over_the_array():
     """An 8 Hz resonance 0.3 Hz wide at 0.15 noise std per channel at most over 16 IMUs: the bank finds it in its
     band, and the mode search with it locates it on the IMUs of largest amplitude."""
-    shape = _smooth_shape()
+    shape = smooth_shape()
     for seed in range(2):
         rng = np.random.default_rng(seed)
-        rot = _rotations(rng)
+        rot = rotations(rng)
         r = rng.normal(size=(N, K, 6))
-        field = 0.15 * _resonance(rng, 8.0, 0.3)[:, None, None] * shape[None, :, None] * np.array([0.2, -0.1, 1.0])
+        field = 0.15 * resonance(rng, 8.0, 0.3)[:, None, None] * shape[None, :, None] * np.array([0.2, -0.1, 1.0])
         r[:, :, :3] += np.einsum("kji,nkj->nki", rot, field)
         bank = bank_scan(field_channels(r, field_basis(POS, rot)), FS, 0.01 / 3)
         assert bank is not None and bank["cands"]
@@ -71,7 +47,7 @@ def test_bank_quiet_on_one_imus_coloured_noise():
     once, coherent over a broad band: the local level absorbs it, no mode at 0.01."""
     for seed in range(3):
         rng = np.random.default_rng([seed, 5])
-        rot = _rotations(rng)
+        rot = rotations(rng)
         r = rng.normal(size=(N, K, 3))
         a = np.exp(-1.0 / (0.2 * FS))
         r[:, 0] += 1.5 * lfilter([np.sqrt(1 - a * a)], [1.0, -a], rng.normal(size=(N, 3)), axis=0)

@@ -5,43 +5,18 @@ fields give none; a line-only cell group gets the band of its line, not [0, 0]."
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter
 
 from imu_array_ros.discovery.coherent import coherent_scan, field_basis, field_channels
 from imu_array_ros.discovery.locate import localize
 from imu_array_ros.discovery.modes import detect_modes, mode_segment
-
-FS, N = 50.0, 2000
-_G = np.linspace(-0.01, 0.01, 4)
-POS = np.array([[x, y, 0.0] for x in _G for y in _G])               # a 4 x 4 planar grid, 2 cm
-K = len(POS)
-
-
-def _rotations(rng, k=K):
-    q, _ = np.linalg.qr(rng.normal(size=(k, 3, 3)))
-    return q * np.sign(np.linalg.det(q))[:, None, None]
-
-
-def _resonance(rng, f, bw, n=N):
-    r = np.exp(-np.pi * bw / FS)
-    x = lfilter([1.0], [1.0, -2 * r * np.cos(2 * np.pi * f / FS), r * r], rng.normal(size=n + 1000))[1000:]
-    return x / x.std()
-
-
-def _smooth_shape():
-    """A quadratic plate shape over the grid with its affine part removed (what no rigid motion absorbs)."""
-    q = (POS - POS.mean(axis=0)) / 0.01
-    shape = q[:, 0] ** 2 + 0.5 * q[:, 0] * q[:, 1] - 0.7 * q[:, 1] ** 2
-    aff = np.c_[np.ones(K), q[:, :2]]
-    shape = shape - aff @ np.linalg.lstsq(aff, shape, rcond=None)[0]
-    return shape / np.abs(shape).max()
+from plate_modes import FS, K, N, POS, resonance, rotations, smooth_shape
 
 
 def _with_mode(rng, amp, f=3.5, bw=1.0):
     """White normalised residuals plus a 1 Hz wide resonance at f, mostly out of plane, amp x shape (noise stds)."""
-    rot = _rotations(rng)
+    rot = rotations(rng)
     r = rng.normal(size=(N, K, 6))
-    field = amp * _resonance(rng, f, bw)[:, None, None] * _smooth_shape()[None, :, None] * np.array([0.2, -0.1, 1.0])
+    field = amp * resonance(rng, f, bw)[:, None, None] * smooth_shape()[None, :, None] * np.array([0.2, -0.1, 1.0])
     r[:, :, :3] += np.einsum("kji,nkj->nki", rot, field)                # array frame -> sensor frames
     return r, rot
 
@@ -49,7 +24,7 @@ def _with_mode(rng, amp, f=3.5, bw=1.0):
 def test_low_frequency_mode_spread_over_the_array_is_found_coherently():
     """A 3.5 Hz resonance at <= 0.15 noise std per channel over 16 IMUs: no channel nor the pooled mean stands out
     (the scans alone find nothing), the coherent test finds it with its band, on the IMUs of largest amplitude."""
-    shape = _smooth_shape()
+    shape = smooth_shape()
     for seed in range(3):
         rng = np.random.default_rng(seed)
         r, rot = _with_mode(rng, 0.15)
@@ -70,7 +45,7 @@ def test_coherent_test_quiet_on_white_noise_and_rigid_fields():
     rotated sensors: the field basis is orthogonal to it; the family-wise rate of the test on white noise
     stays at its level."""
     rng = np.random.default_rng(7)
-    rot = _rotations(rng)
+    rot = rotations(rng)
     std = rng.uniform(0.01, 0.05, (K, 3))
     basis = field_basis(POS, rot, std)
     assert basis.shape[1] == 3 * 3                                      # x^2, xy, y^2 beyond affine, 3 axes
