@@ -14,8 +14,11 @@
    2,000 without timing terms).
 
     python -m benchmarks.real_calibration_trust [--workers 2]
+    python -m benchmarks.real_calibration_trust --timing [--workers 2]
 
-Writes benchmarks/results/real_calibration_trust.md and .json.
+Writes benchmarks/results/real_calibration_trust.md and .json.  ``--timing``: ``calibrate all --timing`` on each
+capture (sample clocks, time offsets refitted with the moving terms) and item 1's repeatability only (the
+held-out NIS of such calibrations: benchmarks/real_timing_heldout.py), to real_calibration_trust_timing.md/.json.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import json  # noqa: E402
 import multiprocessing  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -47,12 +51,12 @@ def load(path):
     return desc, samples
 
 
-def calibrate_job(path: str) -> dict:
+def calibrate_job(path: str, timing: bool = False) -> dict:
     from imu_array_ros.workflows import calibrate
 
     desc, samples = load(path)
     t0 = time.perf_counter()
-    cal = calibrate("all", samples, desc, source=path)
+    cal = calibrate("all", samples, desc, source=path, timing=timing)
     seconds = time.perf_counter() - t0
     d = cal.details
     crb = {t: d.moving.std[t].tolist() for t in d.moving.free} if d.moving is not None else {}
@@ -117,11 +121,14 @@ def repeatability(cals: list[dict]) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--timing", action="store_true", help="calibrate all --timing; repeatability only")
     args = ap.parse_args(argv)
     paths = [str(p) for p in sorted(DATA.glob("exp_*.bin"))]
     header = machine_header(TITLE)
     t0 = time.perf_counter()
     ctx = multiprocessing.get_context("fork")
+    if args.timing:
+        return timing_main(paths, header, t0, ctx, args.workers)
     with ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
         cals = list(pool.map(calibrate_job, paths))
         say("calibrated: " + ", ".join(f"{c['seconds']:.0f} s" for c in cals))
@@ -145,6 +152,32 @@ def main(argv=None) -> int:
            "seconds": time.perf_counter() - t0}
     OUT.with_suffix(".json").write_text(json.dumps(res, indent=1, default=str) + "\n")
     write_results(OUT.with_suffix(".md"), header + markdown(res))
+    return 0
+
+
+def timing_main(paths, header, t0, ctx, workers) -> int:
+    """``--timing``: the six captures' ``calibrate all --timing`` and their repeatability."""
+    from functools import partial
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        cals = list(pool.map(partial(calibrate_job, timing=True), paths))
+    say("calibrated: " + ", ".join(f"{c['seconds']:.0f} s" for c in cals))
+    res = {"cals": [{k: v for k, v in c.items() if k != "description"} for c in cals],
+           "repeatability": repeatability(cals), "seconds": time.perf_counter() - t0}
+    out = OUT.with_name(OUT.name + "_timing")
+    out.with_suffix(".json").write_text(json.dumps(res, indent=1, default=str) + "\n")
+    lines = ["", "## Interpretation", "", "(interpretation not yet written)", "",
+             "## Repeatability of `calibrate all --timing` on each capture separately", "",
+             "Spread across the six captures (std) / median reported `_std` (`/ CRB`: the same spread over the "
+             "Cramer-Rao bound).", "", "| term | kind | parameters | median spread/std | 90th pct | max | "
+             "median spread/CRB |", "|---|---|---|---|---|---|---|"]
+    for t, r in res["repeatability"].items():
+        f = lambda x: "-" if x is None else f"{x:.3g}"  # noqa: E731
+        lines.append(f"| {t} | {r['kind']} | {r['parameters']} | {f(r['median_ratio'])} | {f(r['p90_ratio'])} | "
+                     f"{f(r['max_ratio'])} | {f(r.get('median_ratio_crb'))} |")
+    lines += ["", "Per capture: " + "; ".join(f"{Path(c['path']).name} {c['seconds']:.0f} s" for c in cals), ""]
+    lines += [f"- {Path(c['path']).name}: {c['summary']}" for c in cals]
+    write_results(out.with_suffix(".md"), header + "\n".join(lines) + "\n")
     return 0
 
 
