@@ -102,20 +102,21 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--one", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    if args.one:  # the child: imu_array_ros from the tree (this script's benchmarks package stays REPO's), json out
-        sys.path.insert(0, args.one)
+    if args.one:  # the child (run by the parent with the tree first on PYTHONPATH): json out
         print(json.dumps(measure(Path(args.work), args.start, args.duration), default=float))
         return 0
     runs = {}
     for spec in args.tree:
         label, path = spec.split("=", 1)
         path = str(Path(path).resolve())
-        env = dict(os.environ, PYTHONPATH=str(REPO))
+        # the child: this script run by its path, in the tree, with the tree first on PYTHONPATH: the tree's
+        # imu_array_ros (and its benchmarks.harness, which every tree measured here has); no sys.path edit
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([path, str(REPO)]))
         say(f"{label}: {path}")
-        done = subprocess.run([sys.executable, "-m", "benchmarks.fit_motion_rounds", "--work", args.work,
+        done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--work", args.work,
                                "--tree", spec, "--start", str(args.start), "--duration", str(args.duration),
                                "--one", path],
-                              env=env, cwd=REPO, check=True, capture_output=True, text=True)
+                              env=env, cwd=path, check=True, capture_output=True, text=True)
         runs[label] = json.loads(done.stdout.strip().splitlines()[-1])
     Path(f"{OUT}.json").write_text(json.dumps(runs, indent=1) + "\n")
     header = machine_header("fit_motion with timing terms on a real window, before and after its rounds",
