@@ -157,5 +157,5 @@ def test_the_method_names_the_timing_stage_only_when_it_ran():
     assert "timing" not in skipped.method() and skipped.record()["skipped"] == {"timing": "the refit did not converge"}
     assert run(moving_terms=moving, timed=True).method().endswith(
         "-> moving (positions, gyroscope gain, misalignment and non-orthogonality) -> timing (sample clocks, time "
-        "offsets, refitted with the moving terms)")
+        "offsets; the moving stage's positions and gyroscope terms kept)")
     assert run().method() == "calibrate static: still poses -> static (accelerometer intrinsics, gyroscope biases)"

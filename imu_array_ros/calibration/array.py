@@ -50,7 +50,8 @@ class ArrayCalibration:
     """The stages of :func:`calibrate_array`: model (every stage applied), poses (StillPoses),
     static (StaticCalibration or None), moving (FitResult or None), skipped: stage -> reason,
     moving_samples: (used, total) of the moving stage, moving_window: the samples the moving stage
-    fitted (None: no moving stage), seconds, timed: the timing stage ran (its refit is ``moving``)."""
+    fitted (None: no moving stage), seconds, timed: the timing stage ran (its refit of the timing terms is
+    ``timing``, FitResult; the moving stage's positions and gyroscope terms are kept)."""
 
     model: SensorModel
     poses: object
@@ -63,6 +64,7 @@ class ArrayCalibration:
     seconds: float = 0.0
     timing_notes: list[str] = field(default_factory=list)
     timed: bool = False
+    timing: object | None = None
 
     def stds(self) -> dict[str, np.ndarray]:
         """term -> (K, P) standard deviations of every calibrated field: the static stage's
@@ -74,6 +76,9 @@ class ArrayCalibration:
         if self.moving is not None:
             for t in self.moving.free:
                 out[t] = self.moving.std_robust.get(t, self.moving.std[t])
+        if self.timing is not None:
+            for t in self.timing.free:
+                out[t] = self.timing.std_robust.get(t, self.timing.std[t])
         return out
 
     def summary(self) -> str:
@@ -85,6 +90,10 @@ class ArrayCalibration:
             parts.append(f"moving: {self.moving_samples[0]} of {self.moving_samples[1]} samples, "
                          f"{', '.join(m.free)}; NIS {m.nis_before:.4g} -> {m.nis_after:.4g}, {m.iterations} iterations"
                          f"{'' if m.converged else ' (NOT converged)'}")
+        if self.timing is not None:
+            m = self.timing
+            parts.append(f"timing: {', '.join(m.free)} on {self.moving_samples[0]} samples; NIS {m.nis_before:.4g} -> "
+                         f"{m.nis_after:.4g}, {m.iterations} iterations")
         parts += [f"timing: {note}" for note in self.timing_notes]
         parts += [f"{stage} skipped: {why}" for stage, why in self.skipped.items()]
         return "; ".join(parts)
@@ -111,8 +120,15 @@ class ArrayCalibration:
                            "converged": bool(m.converged), "held": list(m.held),
                            "log_likelihood_before": f(m.loglik_before), "log_likelihood_after": f(m.loglik_after),
                            "nis_before": f(m.nis_before), "nis_after": f(m.nis_after)})
-        if self.timing_notes:
-            stages.append({"stage": "timing", "notes": list(self.timing_notes)})
+        if self.timing_notes or self.timing is not None:
+            stage = {"stage": "timing", "notes": list(self.timing_notes)}
+            if self.timing is not None:
+                m = self.timing
+                stage.update({"terms": list(m.free), "held": list(m.held), "samples_used": int(self.moving_samples[0]),
+                              "iterations": int(m.iterations), "converged": bool(m.converged),
+                              "log_likelihood_before": f(m.loglik_before), "log_likelihood_after": f(m.loglik_after),
+                              "nis_before": f(m.nis_before), "nis_after": f(m.nis_after)})
+            stages.append(stage)
         return {"method": self.method(), **provenance(), "stages": stages, "skipped": dict(self.skipped)}
 
     def method(self) -> str:
@@ -123,7 +139,7 @@ class ArrayCalibration:
             return "calibrate static: " + " -> ".join(stages)
         stages.append("moving (positions, gyroscope gain, misalignment and non-orthogonality)")
         if self.timed:
-            stages.append("timing (sample clocks, time offsets, refitted with the moving terms)")
+            stages.append("timing (sample clocks, time offsets; the moving stage's positions and gyroscope terms kept)")
         return "calibrate all: " + " -> ".join(stages)
 
 
@@ -134,7 +150,7 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                     timing: bool = False, clock_period: float | None = 1e-3) -> ArrayCalibration:
     """Calibrate what the recording can: static stage from its still poses, moving stage from the rest,
     then (``timing``) the timing stage (:mod:`~imu_array_ros.calibration.timing`: sample clocks of period
-    ``clock_period`` searched, time offsets and clock rates fitted with the moving terms).
+    ``clock_period`` searched, then the time offsets fitted with the moving stage's terms held).
 
     Raises :class:`CalibrationError` only when neither stage can run (the reasons of both)."""
     from imu_array_ros.calibration.selection import MIN_EXCITATION, require_rotation, select_rotating
@@ -186,11 +202,10 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
             skipped["moving"] = str(err)
             say(f"moving stage skipped: {err}")
     timing_notes: list[str] = []
-    timed = False
+    timed, timing_fit = False, None
     if timing and moving is not None:
-        moving, current, timed_window, timing_notes = _timing_stage(samples, poses, current, moving, moving_terms,
-                                                                    skipped, reference, clock_period, max_iterations,
-                                                                    say)
+        timing_fit, current, timed_window, timing_notes = _timing_stage(samples, poses, current, skipped, reference,
+                                                                        clock_period, max_iterations, say)
         if timed_window is not None:
             window, used_total, timed = timed_window, (len(timed_window), len(samples)), True
     if static is None and not moving_terms:
@@ -200,16 +215,20 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                                f"moving stage: {skipped['moving']}")
     return ArrayCalibration(model=current, poses=poses, static=static, moving=moving, skipped=skipped,
                             moving_samples=used_total, moving_terms=tuple(moving.free) if moving else moving_terms,
-                            timing_notes=timing_notes, timed=timed,
+                            timing_notes=timing_notes, timed=timed, timing=timing_fit,
                             moving_window=window if moving is not None else None,
                             seconds=time.perf_counter() - t0)
 
 
-def _timing_stage(samples, poses, current, moving, moving_terms, skipped, reference, clock_period, max_iterations,
-                  say):
+def _timing_stage(samples, poses, current, skipped, reference, clock_period, max_iterations, say):
     """The timing stage (:mod:`~imu_array_ros.calibration.timing`): on the contiguous moving samples (the timing
-    terms read the motion's time derivatives, so no sample is picked out), the moving terms refitted with the
-    timing terms.  Returns (moving fit, model, window, notes); on failure the moving stage's and a skip reason."""
+    terms read the motion's time derivatives, so no sample is picked out), the timing terms fitted with the moving
+    stage's positions and gyroscope terms held.  Not refitted with them: the time offsets open a weak direction (a
+    common gyroscope scale with the positions growing as its square) along which each capture lands elsewhere --
+    on the six real captures such a joint refit wrote gyroscope gains spreading 4.2x their std and arrays 6-18 %
+    larger than the board, for 1-9 % of its held-out gain (benchmarks/results/real_calibration_trust_timing.md,
+    real_timing_heldout.md).  Returns (timing fit, model, window, notes); on failure (None, the moving stage's
+    model, None, []) and a skip reason."""
     from imu_array_ros.calibration.timing import prepare_timing
     from imu_array_ros.fitting.engine import fit_terms
 
@@ -218,35 +237,30 @@ def _timing_stage(samples, poses, current, moving, moving_terms, skipped, refere
         setup = prepare_timing(samples.select(idx), current, clock_period=clock_period, t0_ns=int(samples.stamps[0]))
         for note in setup.notes:
             say(f"timing stage: {note}")
-        terms = tuple(dict.fromkeys(tuple(moving_terms) + setup.terms))
         window = samples.select(idx)
-        hold = _timing_gauge(moving, current, reference, terms)
-        say(f"timing stage: {', '.join(terms)} on the {len(idx)} moving samples; held: {', '.join(hold)}")
-        fit = fit_terms(window, setup.model, terms, reference=reference, max_iterations=max_iterations,
+        hold = _timing_gauge(current, reference, setup.terms)
+        say(f"timing stage: {', '.join(setup.terms)} on the {len(idx)} moving samples (the moving stage's terms "
+            f"held); held: {', '.join(hold) or 'nothing'}")
+        fit = fit_terms(window, setup.model, setup.terms, reference=reference, max_iterations=max_iterations,
                         t0_ns=int(samples.stamps[0]), hold=hold,
                         progress=lambda it, cost: say(f"timing stage: iteration {it}, cost {cost:.10g}"))
         say(f"timing stage: NIS {fit.nis_before:.4g} -> {fit.nis_after:.4g}")
         if not fit.converged:  # an unconverged refit is not written over the moving stage's converged one
-            raise CalibrationError(f"the refit with {', '.join(setup.terms)} did not converge in {fit.iterations} "
+            raise CalibrationError(f"the fit of {', '.join(setup.terms)} did not converge in {fit.iterations} "
                                    "iterations; the moving stage's result is kept")
         return fit, fit.model, window, setup.notes
     except CalibrationError as err:
         skipped["timing"] = str(err)
         say(f"timing stage skipped: {err}")
-        return moving, current, None, []
+        return None, current, None, []
 
 
-def _timing_gauge(moving, model: SensorModel, reference, terms) -> list[str]:
-    """The parameters the timing refit holds: the moving stage's gauge (the reference IMU's position, the
-    gyroscopes' common scale, ...) and the gauge of time, the reference IMU's gyroscope delay (the fused motion
-    then refers to the instant the reference gyroscope samples).  Held explicitly: with the timing terms in,
-    these freedoms are no longer numerically null where the engine searches for gauges, and a refit left to
-    find them drifted along them (benchmarks/results/time_aware_sim.md: positions 3-12 mm, gyroscope scale +2 %,
-    time base +2-3 ms on simulated arrays)."""
+def _timing_gauge(model: SensorModel, reference, terms) -> list[str]:
+    """The parameters the timing fit holds: the gauge of time, the reference IMU's gyroscope delay (the fused
+    motion then refers to the instant the reference gyroscope samples; a common delay of every reading is
+    absorbed by the motion)."""
     from imu_array_ros.model.reference import reference_index
 
-    ref = model.names[reference_index(model.names, reference)]
-    hold = list(moving.held)
-    if "time_offset" in terms:
-        hold.append(f"{ref} gyroscope.time_offset")
-    return list(dict.fromkeys(hold))
+    if "time_offset" not in terms:
+        return []
+    return [f"{model.names[reference_index(model.names, reference)]} gyroscope.time_offset"]

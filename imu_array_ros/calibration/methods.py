@@ -74,7 +74,7 @@ def _array(samples: ImuSamples, model: SensorModel, method: str, source: str | N
         parts.append(PoseScorer(p.accel, p.gyro, p.counts, result.static.gravity))
     if result.moving is not None:
         parts.append(WindowScorer(result.moving_window))
-    converged = all(s.converged for s in (result.static, result.moving) if s is not None)
+    converged = all(s.converged for s in (result.static, result.moving, result.timing) if s is not None)
     data = " and ".join(d for d, s in (("poses", result.static), ("moving samples", result.moving)) if s is not None)
     return Calibration(method=method, model=result.model, std=result.stds(), record=_with_source(result.record(), source),
                        scorer=SumScorer(parts), data=data, converged=converged, summary_line=result.summary(),

@@ -32,9 +32,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                          "gyroscope_misalignment,gyroscope_nonorthogonality; empty: no moving stage)")
     add_still_options(sp)
     sp.add_argument("--timing", action="store_true",
-                    help="add the timing stage (sample clocks searched, time offsets refitted with the moving terms); "
-                         "experimental: off by default, as on simulated arrays its refit can trade the time base "
-                         "against the positions and the gyroscopes' common scale (docs/timing.md)")
+                    help="add the timing stage (sample clocks searched, then the time offsets fitted with the moving "
+                         "stage's positions and gyroscope terms held); experimental, off by default (docs/timing.md)")
     sp.add_argument("--clock-period", type=float, default=1e-3, metavar="S",
                     help="internal sample period (s) of the chips' free-running clocks to search for when the "
                          "description has none (default 0.001, ~1 kHz; 0: no search)")
