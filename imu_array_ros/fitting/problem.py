@@ -302,10 +302,7 @@ class Problem:
         """(N, K, 6) normalised residuals w (y - h), 0 on masked axes, with the motion derivatives ``derivs``."""
         out = np.empty_like(self.y)
         for lo, hi in self.chunks():
-            ctx = self.context(model, motion, derivs, lo, hi)
-            acc, gyr = model.predict(ctx)
-            shift = self.rate_shift(self.rates(model, ctx), motion, slice(lo, hi))
-            out[lo:hi] = self.w[lo:hi] * (self.y[lo:hi] - np.concatenate([acc, gyr], axis=2) - shift)
+            out[lo:hi] = self._residuals_of(model, motion, derivs, slice(lo, hi))
         return out
 
     def residuals_at(self, model: SensorModel, motion: np.ndarray, derivs: tuple, idx: np.ndarray) -> np.ndarray:
@@ -314,11 +311,15 @@ class Problem:
         out = np.empty((len(idx),) + self.y.shape[1:])
         for lo in range(0, len(idx), self.chunk):
             sel = idx[lo:lo + self.chunk]
-            ctx = self.context_at(model, motion, derivs, sel)
-            acc, gyr = model.predict(ctx)
-            shift = self.rate_shift(self.rates(model, ctx), motion, sel)
-            out[lo:lo + len(sel)] = self.w[sel] * (self.y[sel] - np.concatenate([acc, gyr], axis=2) - shift)
+            out[lo:lo + len(sel)] = self._residuals_of(model, motion, derivs, sel)
         return out
+
+    def _residuals_of(self, model: SensorModel, motion: np.ndarray, derivs: tuple, sel) -> np.ndarray:
+        """w (y - h) of the samples ``sel`` (a slice or indexes), as :meth:`residuals` and :meth:`residuals_at`."""
+        ctx = self.context_at(model, motion, derivs, sel)
+        acc, gyr = model.predict(ctx)
+        shift = self.rate_shift(self.rates(model, ctx), motion, sel)
+        return self.w[sel] * (self.y[sel] - np.concatenate([acc, gyr], axis=2) - shift)
 
     def linearize(self, model: SensorModel, motion: np.ndarray, *, free: bool = True,
                   gauge_point: bool = False) -> Linearization:

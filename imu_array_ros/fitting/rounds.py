@@ -111,7 +111,6 @@ def motion_rounds(prob: Problem, model: SensorModel, motion: np.ndarray, *, roun
     for k in range(rounds + 1):
         before = None if lin is None else lin.cost
         prob.freeze(motion)  # the trajectory of the motion found: the self-consistent point
-        lin = None
         lin = prob.linearize(model, motion, free=False)
         step, gain = motion_gap(prob, lin)
         if log is not None:
