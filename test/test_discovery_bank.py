@@ -10,6 +10,7 @@ from scipy.signal import lfilter
 from imu_array_ros.discovery.bank import bank_scan
 from imu_array_ros.discovery.coherent import field_basis, field_channels
 from imu_array_ros.discovery.modes import detect_modes
+from imu_array_ros.discovery.spectra import merge_windows
 from plate_modes import FS, K, N, POS, resonance, rotations, smooth_shape
 
 
@@ -52,3 +53,21 @@ def test_bank_quiet_on_one_imus_coloured_noise():
         a = np.exp(-1.0 / (0.2 * FS))
         r[:, 0] += 1.5 * lfilter([np.sqrt(1 - a * a)], [1.0, -a], rng.normal(size=(N, 3)), axis=0)
         assert bank_scan(field_channels(r, field_basis(POS, rot)), FS, 0.01)["cands"] == []
+
+
+def test_merge_windows_joins_touching_and_overlapping_windows_keeping_the_smallest_p():
+    # (p, lo, hi, peak, width), given out of order
+    cands = [(0.05, 23, 30, 28, 8),     # overlaps the next: the union 20..30, p 0.02's fields
+             (0.001, 13, 15, 14, 3),    # touches 10..12: the union 10..15 with its own (smaller) p, peak and width
+             (0.02, 20, 25, 22, 6),
+             (0.01, 10, 12, 11, 3),
+             (0.3, 32, 33, 32, 2),      # one empty bin after 30: separate when only touching counts
+             (0.5, 40, 50, 45, 11),
+             (0.1, 42, 44, 43, 3),      # inside 40..50: hi stays 50, the smaller p's fields
+             (0.1, 45, 46, 46, 2),      # tie on p: the first (lower start) is kept
+             (0.2, 54, 55, 54, 2)]      # three empty bins after 50: separate even with max_gap 2
+    assert merge_windows(cands, 0) == [(0.001, 10, 15, 14, 3), (0.02, 20, 30, 22, 6), (0.3, 32, 33, 32, 2),
+                                       (0.1, 40, 50, 43, 3), (0.2, 54, 55, 54, 2)]
+    assert merge_windows(cands, 2) == [(0.001, 10, 15, 14, 3), (0.02, 20, 33, 22, 6), (0.1, 40, 50, 43, 3),
+                                       (0.2, 54, 55, 54, 2)]
+    assert merge_windows(cands[:1], 2) == cands[:1] and merge_windows([], 0) == []

@@ -36,6 +36,8 @@ import functools
 import numpy as np
 from scipy import signal, stats
 
+from imu_array_ros.discovery.spectra import merge_windows
+
 __all__ = ["WIDTHS_HZ", "LINE_BINS", "NULL_DRAWS", "bank_statistic", "local_level", "null_maxima", "family_sf",
            "bank_scan"]
 
@@ -209,13 +211,6 @@ def bank_scan(v: np.ndarray, fs: float, alpha: float, *, min_hz: float = 0.5, dr
         for i in np.flatnonzero(p < alpha):
             s = int(d["starts"][i])
             raw.append((float(p[i]), s, s + d["w"] - 1, s + int(np.argmax(power[s:s + d["w"]])), d["w"]))
-    merged = []
-    for cand in sorted(raw, key=lambda x: x[1]):
-        if merged and cand[1] <= merged[-1][2] + 1:
-            last = merged[-1]
-            best = cand if cand[0] < last[0] else last
-            merged[-1] = (best[0], last[1], max(last[2], cand[2]), best[3], best[4])
-        else:
-            merged.append(cand)
+    merged = merge_windows(raw, 0)
     out["cands"] = sorted((pv, (lo - 0.5) * df, (hi + 0.5) * df, pk * df, w * df) for pv, lo, hi, pk, w in merged)
     return out

@@ -42,7 +42,7 @@ import functools
 
 import numpy as np
 
-from imu_array_ros.discovery.spectra import FLOOR_HALF_WINDOW, local_floor, side_medians
+from imu_array_ros.discovery.spectra import FLOOR_HALF_WINDOW, local_floor, merge_windows, side_medians
 
 __all__ = ["WIDTHS", "field_basis", "field_channels", "null_law", "coherent_scan", "mode_channels"]
 
@@ -224,15 +224,8 @@ def coherent_scan(v: np.ndarray, fs: float, nper: int, alpha: float, *, min_hz: 
         for lo in np.flatnonzero(np.nan_to_num(p, nan=1.0) < alpha):
             pk = lo + int(np.argmax(power[lo:lo + w]))
             out["cands"].append((float(p[lo]), int(lo), int(lo + w - 1), int(pk), w))
-    merged = []  # significant windows that overlap or touch (2-bin gaps) are one line: their union, the smallest p
-    for cand in sorted(out["cands"], key=lambda c: c[1]):
-        if merged and cand[1] <= merged[-1][2] + 3:
-            last = merged[-1]
-            best = cand if cand[0] < last[0] else last
-            merged[-1] = (best[0], last[1], max(last[2], cand[2]), best[3], best[4])
-        else:
-            merged.append(cand)
-    out["cands"] = sorted(merged)
+    # significant windows that overlap or have at most 2 bins between them are one line: their union, the smallest p
+    out["cands"] = sorted(merge_windows(out["cands"], 2))
     return out
 
 

@@ -30,7 +30,8 @@ from scipy import ndimage, stats
 from scipy.signal import welch
 
 __all__ = ["LINE_ALPHA", "BAND_FRACTION", "MIN_SPECTRUM_SAMPLES", "FLOOR_GUARD", "FLOOR_HALF_WINDOW", "relative_psd",
-           "imu_spectra", "line_bins", "line_significant", "local_floor", "narrowest_band"]
+           "imu_spectra", "line_bins", "line_significant", "local_floor", "narrowest_band",
+           "merge_windows"]
 
 #: family-wise level of the narrowband line test over every bin of every cell
 LINE_ALPHA = 0.01
@@ -152,3 +153,18 @@ def narrowest_band(freqs: np.ndarray, excess: np.ndarray, fraction: float = BAND
     pick = cand[np.argmax(s.ravel()[cand])]              # ties: the band holding the most
     lo, hi = divmod(int(pick), s.shape[1])
     return [max(0.0, float(freqs[lo]) - df / 2), min(float(freqs[-1]), float(freqs[hi]) + df / 2)]
+
+
+def merge_windows(cands: list[tuple], max_gap: int) -> list[tuple]:
+    """Significant windows (p, lo bin, hi bin, peak bin, width, ...) joined into lines: a window starting at most
+    ``max_gap`` bins past the end of the line so far (0: touching or overlapping) extends it to their union, and
+    the line keeps the fields of its smallest-p window (the first on ties).  Returned by lo."""
+    merged: list[tuple] = []
+    for cand in sorted(cands, key=lambda c: c[1]):
+        if merged and cand[1] <= merged[-1][2] + 1 + max_gap:
+            last = merged[-1]
+            best = cand if cand[0] < last[0] else last
+            merged[-1] = (best[0], last[1], max(last[2], cand[2]), best[3], best[4])
+        else:
+            merged.append(cand)
+    return merged
