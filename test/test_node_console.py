@@ -344,3 +344,26 @@ def test_publisher_grace_says_only_what_stays_incompatible(ros_node, capfd):
     assert ros_node.spin(10.0, lambda: console.matching("cannot connect to this publisher")), console.read()
     lines = console.matching("cannot connect to this publisher")
     assert len(lines) == 1 and topics[1] in lines[0][3], lines
+
+
+def test_publisher_grace_is_quiet_when_the_subscription_switches_to_best_effort(ros_node, capfd):
+    """What the fusion and calibration nodes do when the serial driver appears: their reliable keep-all raw
+    subscription is replaced by a best-effort one (made first, then the reliable one destroyed,
+    :meth:`RawSubscriptions.adapt`). The driver's grace check must then find nothing incompatible: a subscription
+    seen in the ROS graph carries concrete deadline and liveliness values, which rmw's compatibility check used to
+    call incompatible with the driver's requested profile (default values), so the driver warned after every such
+    switch (the README's driver + fusion + calibration node run on the fake device)."""
+    from sensor_msgs.msg import Imu
+
+    from imu_array_ros.nodes.runtime import qos, qos_events, raw_subscription_qos
+
+    console = Console(capfd)
+    topic = f"/console_switch_{os.getpid()}/imu_0/data_raw"
+    ros_node.create_publisher(Imu, topic, qos(False), event_callbacks=qos_events(
+        ros_node, "publisher", "-", topic, grace=0.5, own_qos=qos(False)))
+    reliable = ros_node.create_subscription(Imu, topic, lambda m: None, raw_subscription_qos(True))
+    ros_node.spin(0.3)
+    ros_node.create_subscription(Imu, topic, lambda m: None, raw_subscription_qos(False))
+    ros_node.destroy_subscription(reliable)
+    ros_node.spin(1.5)  # three times the grace
+    assert not console.matching("cannot connect"), console.read()

@@ -131,13 +131,21 @@ def qos_events(node, kind: str, hint: str, topic: str | None = None, *, grace: f
     subscriptions reliable and switch to best effort within a fraction of a second when they see a best-effort
     publisher (the serial driver's default), which is not a problem to report."""
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-    from rclpy.qos import QoSCompatibility, QoSPolicyKind, qos_check_compatible
+    from rclpy.qos import QoSCompatibility, QoSPolicyKind, ReliabilityPolicy, qos_check_compatible
 
     logger = node.get_logger()
     pending: list = []
 
     def still_incompatible() -> bool:
-        return any(qos_check_compatible(own_qos, info.qos_profile)[0] == QoSCompatibility.ERROR
+        # both sides as the ROS graph sees them: a discovered profile has concrete deadline and liveliness values,
+        # which rmw's check calls incompatible with a requested profile's defaults (every subscription would be)
+        mine = [info.qos_profile for info in node.get_publishers_info_by_topic(topic)
+                if info.node_name == node.get_name() and info.node_namespace == node.get_namespace()]
+        if not mine:  # not in the graph (yet): the policy the nodes switch is the only one compared
+            return any(info.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                       for info in node.get_subscriptions_info_by_topic(topic)) \
+                and own_qos.reliability == ReliabilityPolicy.BEST_EFFORT
+        return any(qos_check_compatible(mine[0], info.qos_profile)[0] == QoSCompatibility.ERROR
                    for info in node.get_subscriptions_info_by_topic(topic))
 
     def later(event) -> None:
