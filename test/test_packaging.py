@@ -12,6 +12,7 @@ from __future__ import annotations
 import ast
 import importlib
 import json
+import os
 import re
 import runpy
 import subprocess
@@ -171,6 +172,53 @@ def test_a_node_without_ros_says_in_one_line_what_to_install(tmp_path, monkeypat
     assert "is not installed: pip install 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces, or use a ROS 2 " \
            "Jazzy install" in lines[0]
     assert not (tmp_path / "got.npz").exists()
+
+
+def runnable_node_modules() -> list[str]:
+    """The modules of ``imu_array_ros/nodes`` that run as a program (``python -m imu_array_ros.nodes.NAME``)."""
+    return sorted(p.stem for p in (PACKAGE / "nodes").glob("*.py") if 'if __name__ == "__main__":' in p.read_text())
+
+
+def console_script(path: Path, target: str) -> Path:
+    """The script pip (and colcon, into ``lib/imu_array_ros/``, which ``ros2 run`` runs) writes for ``target``."""
+    module, function = target.split(":")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"import re\nimport sys\nfrom {module} import {function}\nif __name__ == '__main__':\n"
+                    f"    sys.argv[0] = re.sub(r'(-script\\.pyw|\\.exe)?$', '', sys.argv[0])\n"
+                    f"    sys.exit({function}())\n", encoding="utf-8")
+    return path
+
+
+def test_every_node_program_is_tested_without_rclpy():
+    assert runnable_node_modules() == ["calibration_node", "driver_node", "fusion_node", "probe"]
+
+
+@pytest.mark.parametrize("node,how", [(node, how) for node in ("driver_node", "fusion_node", "calibration_node")
+                                      for how in ("python -m", "lib/imu_array_ros script")] + [("probe", "python -m")])
+def test_a_node_run_as_a_program_without_rclpy_says_so_in_one_line(tmp_path, monkeypatch, node, how):
+    """``python -m imu_array_ros.nodes.NODE`` and the installed console script, in an environment where
+    ``import rclpy`` fails as it does without ROS 2 (a package on PYTHONPATH raising ModuleNotFoundError for
+    'rclpy'): one line naming rclpy and how to get it, exit status 2, no traceback."""
+    shim = tmp_path / "no_ros" / "rclpy"
+    shim.mkdir(parents=True)
+    (shim / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'rclpy'\", name='rclpy')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(shim.parent), os.environ.get("PYTHONPATH")])))
+    if node == "probe":  # (no console script)
+        argv, prog = ["--out", str(tmp_path / "got.npz")], "imu_array_ros.nodes.probe"
+    else:
+        argv, prog = ["--ros-args", "-p", f"array_config:={ARRAY}"], node
+    if how == "python -m":
+        command = [sys.executable, "-m", f"imu_array_ros.nodes.{node}"]
+    else:
+        command = [sys.executable, str(console_script(tmp_path / "lib" / "imu_array_ros" / node,
+                                                      node_entry_points(monkeypatch)[node]))]
+    proc = subprocess.run(command + argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr and proc.stdout == "", proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: the ROS 2 nodes need rclpy"), proc.stderr
+    assert "'rclpy' is not installed: pip install 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces, or use " \
+           "a ROS 2 Jazzy install (source /opt/ros/jazzy/setup.bash)" in lines[0], lines[0]
 
 
 def test_only_a_missing_ros_module_is_told_as_missing_ros():

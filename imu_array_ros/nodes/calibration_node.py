@@ -25,6 +25,12 @@ awaiting callback on a single-threaded executor starves the subscriptions.)
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m imu_array_ros.nodes.calibration_node: run as the console script, which says
+    # in one line when rclpy or a message package is missing (this module imports them below)
+    from imu_array_ros.nodes import entry
+
+    raise SystemExit(entry.calibration_node())
+
 import threading
 import time
 import traceback
@@ -275,7 +281,3 @@ class CalibrationNode(Node):
 
 def main(args=None) -> int:
     return run(CalibrationNode, args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -25,6 +25,12 @@ The serial protocol, reconnection and the device clock live in
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m imu_array_ros.nodes.driver_node: run as the console script, which says
+    # in one line when rclpy or a message package is missing (this module imports them below)
+    from imu_array_ros.nodes import entry
+
+    raise SystemExit(entry.driver_node())
+
 import re
 import time
 
@@ -283,7 +289,3 @@ class DriverNode(Node):
 
 def main(args=None) -> int:
     return run(DriverNode, args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -4,7 +4,9 @@ A node module imports rclpy and the message packages when it is imported.  On a 
 (``pip install .``) they are missing, and the bare entry point would die with a traceback;
 these import the node module first and turn a missing ROS 2 package into one line
 ``<node>: error: ...`` naming what is missing and how to get it, exit status 2
-(:func:`ros_missing`, also used by :mod:`.probe`).  Anything else propagates.
+(:func:`ros_missing`, also used by :mod:`.probe`).  Anything else propagates.  ``python -m
+imu_array_ros.nodes.<node>`` comes here too: a node module run as ``__main__`` calls its entry point
+before its own ROS 2 imports.
 """
 
 from __future__ import annotations

@@ -48,6 +48,12 @@ than 3 sigma is logged.
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m imu_array_ros.nodes.fusion_node: run as the console script, which says
+    # in one line when rclpy or a message package is missing (this module imports them below)
+    from imu_array_ros.nodes import entry
+
+    raise SystemExit(entry.fusion_node())
+
 import os
 import threading
 import time
@@ -392,7 +398,3 @@ class FusionNode(Node):
 
 def main(args=None) -> int:
     return run(FusionNode, args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
