@@ -222,6 +222,19 @@ def test_docs_exist_and_are_linked_from_the_readme():
     assert not missing, f"docs pages the README does not link: {missing}"
 
 
+#: abbreviations a newcomer meets in the README -> words of their expansion, given where they first appear
+README_TERMS = {"CRB": "Cramér–Rao bound", "NIS": "normalised innovation squared"}
+
+
+@pytest.mark.parametrize("term", sorted(README_TERMS))
+def test_readme_spells_out_a_term_where_it_first_appears(term):
+    """The first README line (with the line after it) that uses CRB or NIS says what it stands for."""
+    lines = README.read_text(encoding="utf-8").splitlines()
+    first = next(n for n, line in enumerate(lines) if re.search(rf"\b{term}\b", line))
+    near = " ".join(lines[max(first - 1, 0):first + 2])
+    assert README_TERMS[term] in near, f"README.md:{first + 1}: {term} used before it is spelled out: {lines[first]}"
+
+
 # --------------------------------------------------------------------------- (b) python blocks
 
 
