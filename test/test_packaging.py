@@ -221,6 +221,24 @@ def test_a_node_run_as_a_program_without_rclpy_says_so_in_one_line(tmp_path, mon
            "a ROS 2 Jazzy install (source /opt/ros/jazzy/setup.bash)" in lines[0], lines[0]
 
 
+def test_rclpy_that_does_not_load_in_this_python_is_told_as_such(tmp_path):
+    """A ROS 2 install sourced into a venv of another Python: ``rclpy`` is found but its C extension (built for
+    the install's Python) is not. The one line says so and what to do, not that rclpy is missing."""
+    shim = tmp_path / "other_python" / "rclpy"
+    shim.mkdir(parents=True)
+    (shim / "__init__.py").write_text("import importlib\n\nimportlib.import_module('rclpy._rclpy_pybind11')\n")
+    (shim / "_rclpy_pybind11.cpython-399-x86_64-linux-gnu.so").write_bytes(b"")  # another Python's build
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(shim.parent), os.environ.get("PYTHONPATH")])))
+    proc = subprocess.run([sys.executable, "-m", "imu_array_ros.nodes.fusion_node", "--ros-args", "-p",
+                           f"array_config:={ARRAY}"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"fusion_node: error: 'rclpy' is installed ({shim}) but "
+                                                   "'rclpy._rclpy_pybind11' does not load in this Python "
+                                                   f"{sys.version_info.major}.{sys.version_info.minor}"), lines
+    assert "source /opt/ros/jazzy/setup.bash" in lines[0] and "pip install 'ros-jazzy-rclpy[fastrtps]'" in lines[0]
+
+
 def test_only_a_missing_ros_module_is_told_as_missing_ros():
     from imu_array_ros.nodes.entry import ros_missing
 

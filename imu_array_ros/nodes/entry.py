@@ -12,6 +12,7 @@ before its own ROS 2 imports.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import sys
 
 __all__ = ["ROS_MODULES", "ROS_INSTALL", "ros_missing", "driver_node", "fusion_node", "calibration_node"]
@@ -25,11 +26,30 @@ ROS_INSTALL = ("pip install 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfa
 
 
 def ros_missing(err: ImportError) -> str | None:
-    """The one-line reason when ``err`` is a ROS 2 module that is not installed; None for any other ImportError."""
-    name = (getattr(err, "name", None) or "").split(".")[0]
+    """The one-line reason when ``err`` is a ROS 2 module that is not installed, or installed but not loadable in
+    this Python (a part of it, e.g. rclpy's C extension ``rclpy._rclpy_pybind11``, fails: a ROS 2 install sourced
+    into a venv of another Python version); None for any other ImportError."""
+    full = getattr(err, "name", None) or ""
+    name = full.split(".")[0]
     if name not in ROS_MODULES:
         return None
+    found = full != name and _spec(name)
+    if found and (getattr(err, "path", None) or not _spec(full)):  # a part of it, there but not loadable, or absent
+        where = (found.submodule_search_locations or [found.origin])[0]
+        python = f"{sys.version_info.major}.{sys.version_info.minor}"
+        return (f"{name!r} is installed ({where}) but {full!r} does not load in this Python {python}: a ROS 2 install "
+                f"works only with the Python it was built for (Jazzy on Ubuntu 24.04: its python3, 3.12) after "
+                f"source /opt/ros/jazzy/setup.bash; in a venv of another Python use pip install "
+                f"'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces instead")
     return f"the ROS 2 nodes need rclpy and the ROS 2 message packages, and {name!r} is not installed: {ROS_INSTALL}"
+
+
+def _spec(name: str):
+    """``importlib.util.find_spec(name)``, None when it (or its parent package) cannot be imported."""
+    try:
+        return importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        return None
 
 
 def _launch(node: str, args=None) -> int:
