@@ -172,6 +172,11 @@ def _rate(rows, key="correct") -> str:
     return f"{k}/{n} ({100 * k / n:.0f} %, 95 % CI {100 * lo:.0f}-{100 * hi:.0f} %)"
 
 
+def _named(rows) -> str:
+    """How many of ``rows`` were wrong with the truth among the alternatives discovery named indistinguishable."""
+    return str(sum(bool(r.get("named_alternative")) for r in rows)) if rows else "—"
+
+
 def _bin_label(i: int) -> str:
     lo, hi = BINS[i], BINS[i + 1]
     return f">= {lo:g}" if not np.isfinite(hi) else f"{lo:g}-{hi:g}"
@@ -201,8 +206,8 @@ def _comparison(res: dict, base: dict) -> str:
             f"{fact('package state')}, seed {bs.get('seed')}; {len(both)} scenarios scored in both runs.\n\n")
     if bs.get("seed") != res["settings"].get("seed"):
         text += "**The baseline ran another seed: the rates do not compare scenario by scenario.**\n\n"
-    text += ("| class | baseline correct | correct | ratio | baseline at >= 100 | at >= 100 | ratio |\n"
-             "|---|---|---|---|---|---|---|\n")
+    text += ("| class | baseline correct | correct | ratio | baseline at >= 100 | at >= 100 | ratio | wrong, truth "
+             "named indistinguishable: baseline / this run |\n|---|---|---|---|---|---|---|---|\n")
     from imu_array_ros.simulation.suites import CLASSES
 
     def rate(rs):
@@ -219,15 +224,20 @@ def _comparison(res: dict, base: dict) -> str:
         b, a = rate([brows[k] for k in sel]), rate([rows[k] for k in sel])
         bs_, as_ = rate([brows[k] for k in strong]), rate([rows[k] for k in strong])
         text += (f"| {c} | {b[0]}/{b[1]} | {a[0]}/{a[1]} | {ratio(a, b)} | "
-                 + (f"{bs_[0]}/{bs_[1]} | {as_[0]}/{as_[1]} | {ratio(as_, bs_)} |" if strong else "— | — | — |") + "\n")
+                 + (f"{bs_[0]}/{bs_[1]} | {as_[0]}/{as_[1]} | {ratio(as_, bs_)} |" if strong else "— | — | — |")
+                 + f" {_named([brows[k] for k in sel])} / {_named([rows[k] for k in sel])} |\n")
     changed = [k for k in both if bool(rows[k]["correct"]) != bool(brows[k]["correct"])
-               or rows[k]["found"] != brows[k]["found"]]
+               or rows[k]["found"] != brows[k]["found"]
+               or bool(rows[k].get("named_alternative")) != bool(brows[k].get("named_alternative"))]
+
+    def verdict(r):
+        return "correct" if r["correct"] else ("wrong, truth named indistinguishable" if r.get("named_alternative")
+                                               else "wrong")
     if changed:
         text += "\nScenarios whose findings changed (baseline → this run):\n\n"
         for k in changed:
             text += (f"- {k.replace('|', '/')}: {', '.join(brows[k]['found']) or '—'} "
-                     f"({'correct' if brows[k]['correct'] else 'wrong'}) → {', '.join(rows[k]['found']) or '—'} "
-                     f"({'correct' if rows[k]['correct'] else 'wrong'})\n")
+                     f"({verdict(brows[k])}) → {', '.join(rows[k]['found']) or '—'} ({verdict(rows[k])})\n")
     return text + "\n"
 
 
@@ -248,14 +258,17 @@ def render(res: dict, out: Path, base: dict | None = None) -> None:
     from imu_array_ros.simulation.suites import CLASSES
 
     classes = [c for c in CLASSES if any(r["class"] == c for r in rows)]
-    text += "## Summary\n\n| class | correct, all | correct at realised evidence >= 100 | target |\n|---|---|---|---|\n"
+    text += ("## Summary\n\n| class | correct, all | correct at realised evidence >= 100 | wrong, truth named "
+             "indistinguishable (all / >= 100; not counted correct) | target |\n|---|---|---|---|---|\n")
     for c in classes:
         rc = [r for r in rows if r["class"] == c]
         strong = [r for r in rc if r["power_evidence"] is not None and r["power_evidence"] >= 100]
         target = "0 false findings" if c == "null" else ">= 95 % at >= 100"
-        text += f"| {c} | {_rate(rc)} | {_rate(strong) if c != 'null' else '—'} | {target} |\n"
+        text += (f"| {c} | {_rate(rc)} | {_rate(strong) if c != 'null' else '—'} | "
+                 f"{_named(rc)} / {_named(strong)} | {target} |\n")
     lib = [r for r in rows if r["class"] in LIBRARY and r["power_evidence"] >= 100]
-    text += f"| all library classes | {_rate([r for r in rows if r['class'] in LIBRARY])} | {_rate(lib)} | |\n"
+    text += (f"| all library classes | {_rate([r for r in rows if r['class'] in LIBRARY])} | {_rate(lib)} | "
+             f"{_named([r for r in rows if r['class'] in LIBRARY])} / {_named(lib)} | |\n")
     nulls = [r for r in rows if r["class"] == "null"]
     if nulls:
         k = sum(bool(r["found"]) for r in nulls)
@@ -268,8 +281,10 @@ def render(res: dict, out: Path, base: dict | None = None) -> None:
         text += (f"Pairs: strong partner found on its IMU {sum(r['detected'][0] for r in pairs)}/{len(pairs)}, "
                  f"weak partner {sum(r['detected'][1] for r in pairs)}/{len(pairs)}.\n")
     named = [r for r in rows if r.get("named_alternative")]
-    text += (f"Wrong answers whose finding discovery itself named indistinguishable from the truth (a tie of exact "
-             f"gains within ln(1/alpha); counted wrong above): {len(named)}"
+    text += (f"Wrong answers whose finding discovery itself named indistinguishable from the truth (an "
+             f"'indistinguishable' entry whose alternative, taken instead of the finding, is exactly the truth: a tie "
+             f"of exact gains within ln(1/alpha), or a narrowed scope's set that fits as well up to the gauge; a "
+             f"report of 'this or that' has not found which, so these are counted wrong above): {len(named)}"
              + (f" ({', '.join(r['scenario'].split(':')[0] for r in named)})" if named else "") + ".\n")
     z = [v for r in rows for v in r["max_abs_z"].values() if v is not None]
     if z:

@@ -124,6 +124,7 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     if not np.isfinite(gain) or gain < need:
         return (f"not confirmed by the exact fit: log-likelihood gain {gain:.3g} < {need:.3g} "
                 f"(the score test's first-order gain was {c.delta_loglik:.3g})")
+    c.exact_gain = float(gain)  # ties are ranked by it (settle_ties); the narrowing replaces it
     if c.scope != "imu":
         narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha, say)
         if narrowed is not None:
@@ -153,7 +154,9 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
         return None
     sub = prop.imus
     names = [model.names[k] for k in sub]
-    tried = f"narrowing to {', '.join(names)} (the fewest IMUs of the scope the Wald test at alpha = {alpha:g} accepts)"
+    how = ("one value shared by which, up to the fit's gauge freedoms," if prop.in_gauge else "")
+    tried = (f"narrowing to {', '.join(names)} (the fewest IMUs of the scope {how + ' ' if how else ''}the Wald test "
+             f"at alpha = {alpha:g} accepts)")
     try:
         fit_c = _refit(samples, current, pairs + [(term, sub)], motion,
                        _ticker(say, f"exact fit of {term} narrowed to {', '.join(names)}"))
@@ -196,22 +199,49 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
     groups = geometry_groups(model.positions, model.rotations)
     label = scope_label(sub, model.names, groups, shared_c)  # one IMU: "imu_3 own" (its pooled figures kept)
     ps = ", ".join(f"{model.names[k]} {p:.2g}" for k, p in prop.p.items())
+    whose = ("one value shared by which explains the pooled fit up to the fit's gauge freedoms (the values the "
+             "fused motion absorbs; Wald test" if prop.in_gauge else
+             "whose own values explain the pooled fit (Wald test of nothing on the others")
+    each = "the set without each: p = " if prop.in_gauge else "each given the others: p = "
     note = (f"tested at scope '{old}' (score test, statistic {c.statistic:.4g} on {c.dof} dof; exact gain "
-            f"{delta:.4g}); carried by {', '.join(names)} only: the fewest IMUs of the scope whose own values "
-            f"explain the pooled fit (Wald test of nothing on the others {prop.zero_stat:.3g} on {prop.zero_dof} dof, "
-            f"p = {scipy.stats.chi2.sf(prop.zero_stat, max(prop.zero_dof, 1)):.3g} >= alpha = {alpha:g}; each "
-            f"given the others: p = {ps})"
+            f"{delta:.4g}); carried by {', '.join(names)} only: the fewest IMUs of the scope {whose} "
+            f"{prop.zero_stat:.3g} on {prop.zero_dof} dof, "
+            f"p = {scipy.stats.chi2.sf(prop.zero_stat, max(prop.zero_dof, 1)):.3g} >= alpha = {alpha:g}; {each}{ps})"
             + (f" in the gauge that puts {model.names[prop.zero]} at its starting value" if prop.zero is not None
                else "")
             + f"; {why}; re-confirmed on them: gain {gain_c:.4g} >= {need:.3g}; reported as "
             f"'{label}'")
-    if prop.alternatives:
-        note += ("; other sets as small that the Wald test accepts as well (the data hardly tell them apart): "
-                 + " or ".join(", ".join(model.names[k] for k in a) for a in prop.alternatives))
+    c.equivalents = _equivalents(prop, term, model, groups, alpha)
+    if c.equivalents:
+        note += "; " + "; ".join(f"indistinguishable from {term} on {e['sensors'][0]}: {e['reason']}"
+                                 for e in c.equivalents)
     c.note = note
     c.scope, c.imus, c.sensors, c.k = label, tuple(sub), tuple(names), int(sub[0])
     c.sensor = f"{label} ({', '.join(names)})"
+    c.exact_gain = float(gain_c)
     return fit_c, float(delta_c)
+
+
+def _equivalents(prop, term: str, model, groups, alpha: float) -> list:
+    """[{"sensors": [scope], "names": [IMU names], "reason"}] of the other IMU sets the Proposal says fit as well as its own (the
+    report's "indistinguishable" entries, :func:`settle_ties`)."""
+    out, sub, n = [], set(prop.imus), model.n_imus
+    two = 2.0 * np.log(1.0 / alpha)
+    for imus, stat in prop.equivalents[:TIE_MAX - 1]:
+        where = f"{scope_label(imus, model.names, groups, True)} ({', '.join(model.names[k] for k in imus)})"
+        comp = not set(imus) & sub and len(set(imus) | sub) == n
+        why = (f"one value shared by these IMUs fits as well up to the gauge (Wald statistic {stat:.3g} against "
+               f"{prop.zero_stat:.3g}, within 2 ln(1/alpha) = {two:.3g}; gauge: a common {term} is absorbed by the "
+               f"fused motion"
+               + (f", so {term} on one set differs from the opposite value on its complement only by it" if comp
+                  else "") + "): the recording does not tell them apart")
+        out.append({"sensors": [where], "names": [model.names[k] for k in imus], "reason": why})
+    for imus in prop.alternatives[:TIE_MAX - 1]:
+        where = f"{scope_label(imus, model.names, groups, False)} ({', '.join(model.names[k] for k in imus)})"
+        out.append({"sensors": [where], "names": [model.names[k] for k in imus],
+                    "reason": "a set as small whose own values the Wald test accepts as well: "
+                                                  "the data hardly tell them apart"})
+    return out
 
 
 def rejection(c: Candidate, step: int, reason: str) -> dict:
@@ -219,24 +249,34 @@ def rejection(c: Candidate, step: int, reason: str) -> dict:
     return {"effect": c.effect, "sensors": list(c.sensors), "scope": c.scope, "step": step, "reason": reason}
 
 
-def tied(c: Candidate, passing: list) -> list:
+def tied(c: Candidate, passing: list, n_imus: int | None = None) -> list:
     """The passing candidates ranked after ``c`` whose scores tie with c's: the same dof and a BIC within
     ``BIC_GAP`` of c's (at most ``TIE_MAX`` - 1). The score test is a first-order approximation: within the gap
-    it does not order them, and on mirror-image scopes (e.g. an array's top and bottom) rounding alone would."""
+    it does not order them, and on mirror-image scopes (e.g. an array's top and bottom) rounding alone would.
+    With ``n_imus``, the same term at the complementary scope (same dof) is tied whatever its BIC: the two
+    differ only by a value common to every IMU, which the fused motion (nearly) absorbs."""
     after = passing[passing.index(c) + 1:]
-    return [o for o in after if o.dof == c.dof and o.delta_bic - c.delta_bic < BIC_GAP][:TIE_MAX - 1]
+    comp = set(range(n_imus)) - set(c.imus) if n_imus is not None else None
+
+    def complement(o):
+        return comp is not None and o.effect == c.effect and set(o.imus) == comp
+    out = [o for o in after if o.dof == c.dof and o.delta_bic - c.delta_bic < BIC_GAP][:TIE_MAX - 1]
+    return out + [o for o in after if o.dof == c.dof and complement(o) and o not in out]
 
 
 def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say, notes: list, rejected: list, *,
                 alpha: float = 0.01, indist: list | None = None, n_imus: int | None = None):
     """(candidate, result) kept among ``c`` (confirmed: ``result`` = (fit, gain)) and the candidates tied with it
     (:func:`tied`), each confirmed exactly by ``confirm_one(candidate)``: the largest exact log-likelihood gain
-    wins. A note says which were tied and what each gained; a tied candidate the exact fit does not confirm goes
+    of the hypothesis as reported wins (``Candidate.exact_gain``: a shared scope's shared value, not its
+    per-IMU refit's gain, which holds the per-IMU values' fitted noise). A note says which were tied and what each gained; a tied candidate the exact fit does not confirm goes
     to ``rejected`` with its reason.  A confirmed one whose gain is within ln(1/alpha) of the kept one's (a
     likelihood ratio below 1/alpha: the recording does not tell them apart) is appended to ``indist`` (the
-    report's "indistinguishable" entries) and named in the kept candidate's note: the finding may as well be it."""
-    best, gains = c, [(c, result[1])]
-    for o in tied(c, passing):
+    report's "indistinguishable" entries) and named in the kept candidate's note: the finding may as well be it.
+    So are the kept candidate's ``equivalents`` (the narrowing's sets that fit as well up to the gauge), each
+    entry with ``alternatives`` (the kept hypothesis first) for the suite's scorer."""
+    best, gains = c, [(c, _rank(c, result))]
+    for o in tied(c, passing, n_imus):
         say(f"step {step}: {o.effect} on {o.sensor} scores as {c.effect} on {c.sensor} does (BIC within "
             f"{o.delta_bic - c.delta_bic:.2g}): testing it exactly too")
         r = confirm_one(o)
@@ -244,22 +284,34 @@ def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say
             o.note = r
             rejected.append(rejection(o, step, r))
             continue
-        gains.append((o, r[1]))
-        if r[1] > result[1]:
+        gains.append((o, _rank(o, r)))
+        if gains[-1][1] > max(g for x, g in gains if x is best):
             best, result = o, r
     if len(gains) > 1:
         told = "; ".join(f"{o.effect} on {o.sensor} +{g:.4g}" for o, g in gains)
         notes.append(f"step {step}: the score test could not order {len(gains)} candidates (same dof, BIC within "
                      f"{BIC_GAP:g}); their exact log-likelihood gains: {told}; kept {best.effect} on {best.sensor}")
-    close = [(o, g) for o, g in gains if o is not best and result[1] - g < np.log(1.0 / alpha)]
+    top = max(g for x, g in gains if x is best)
+    close = [(o, g) for o, g in gains if o is not best and top - g < np.log(1.0 / alpha)]
     for o, g in close:
-        why = _alike(best, o, result[1] - g, alpha, n_imus)
+        why = _alike(best, o, top - g, alpha, n_imus)
         if indist is not None:
             indist.append({"effects": [best.effect, o.effect], "sensors": [best.sensor, o.sensor], "reason": why,
-                           "delta_loglik_gap": float(result[1] - g), "step": step,
+                           "delta_loglik_gap": float(top - g), "step": step,
                            "alternatives": [{"effect": x.effect, "sensors": list(x.sensors)} for x in (best, o)]})
         best.note = (best.note + "; " if best.note else "") + f"indistinguishable from {o.effect} on {o.sensor}: {why}"
+    for e in best.equivalents if indist is not None else ():  # the narrowing's sets that fit as well
+        indist.append({"effects": [best.effect, best.effect], "sensors": [best.sensor, e["sensors"][0]],
+                       "reason": e["reason"], "step": step,
+                       "alternatives": [{"effect": best.effect, "sensors": list(best.sensors)},
+                                        {"effect": best.effect, "sensors": list(e["names"])}]})
     return best, result
+
+
+def _rank(c: Candidate, result) -> float:
+    """The exact log-likelihood gain a tie is settled by: of the hypothesis as reported (``c.exact_gain``: a
+    shared scope's value, not its per-IMU fit's), else the refit's."""
+    return float(result[1] if c.exact_gain is None else c.exact_gain)
 
 
 def _alike(best: Candidate, o: Candidate, gap: float, alpha: float, n_imus: int | None) -> str:

@@ -71,7 +71,9 @@ class Candidate:
     cross-validated gain in log-likelihood over the folds; theta (P,): the
     one-step estimate (SI units of the term's parameters); blocks: blocks
     with data; scope: "imu" or a pooled scope's label (:mod:`.scopes`), imus: its IMU indexes (k the first),
-    sensor then names the scope.
+    sensor then names the scope.  exact_gain: the exact refit's log-likelihood gain of the hypothesis as
+    reported (a shared scope's: the per-IMU fit's less half its tie statistic); equivalents: [{"sensors",
+    "reason"}] other scopes of the term that fit as well (:func:`~.confirm.confirm`'s narrowing).
     """
 
     effect: str
@@ -92,6 +94,8 @@ class Candidate:
     scope: str = "imu"
     imus: tuple = ()
     sensors: tuple = ()
+    exact_gain: float | None = None
+    equivalents: list = field(default_factory=list)
 
     def __post_init__(self):
         self.imus = tuple(self.imus) or (self.k,)

@@ -18,7 +18,12 @@ on six IMUs without the effect.  After a pooled finding's exact refit (each IMU 
    the fit moves the term's values on the scope (a value common to identically oriented IMUs, absorbed by the
    motion and held by the fit), "nothing on IMU k" depends on the gauge: the values are re-expressed in every
    gauge that puts one IMU of the scope at its starting value and the sparsest representation is taken;
-   other sets as small and as adequate are named (the data hardly tell them apart).
+   other sets as small and as adequate are named (the data hardly tell them apart).  A gauge of more
+   dimensions than one IMU's parameters (an accelerometer bias on a planar array: a common bias and
+   omega_dot x r_k) can hide sets no single-IMU re-expression reaches ("b on 0, 2" is "-b on 1, 3"): on scopes
+   of at most :data:`GAUGE_SEARCH_MAX` IMUs every subset is also tested with one value shared up to the gauge
+   (:func:`shared_sets`), kept when it has no more IMUs than the own-value set, and the sets whose shared
+   value fits as well are named as equivalents.
 2. **Is the subset adequate?** The restriction is tested again by the exact likelihood ratio of the refit
    with only C free against the pooled fit, chi-square with the difference in free parameters, at alpha.
    When one value shared by the whole scope is adequate (its tie test accepts at alpha), it explains the data
@@ -45,10 +50,13 @@ import scipy.stats
 from imu_array_ros.model.terms import REGISTRY
 
 __all__ = ["term_indexes", "wald", "restricted", "Representation", "Proposal", "propose", "scope_label",
-           "is_own", "carriers", "EIG_RTOL", "EXHAUSTIVE"]
+           "is_own", "carriers", "gauge_basis", "shared_sets", "EIG_RTOL", "EXHAUSTIVE", "GAUGE_SEARCH_MAX"]
 
 #: scopes of at most this many IMUs: every subset is tried (smallest first); larger ones are grown greedily
 EXHAUSTIVE = 10
+#: scopes of at most this many IMUs whose term a gauge freedom moves: every subset (2^G) is also tried with one
+#: value shared by it, up to the gauge (:func:`shared_sets`)
+GAUGE_SEARCH_MAX = 8
 #: eigenvalue of a Jacobi-scaled covariance, relative to its largest, below which a direction is not identified
 EIG_RTOL = 1e-10
 
@@ -118,7 +126,10 @@ class Representation:
 class Proposal:
     """The IMUs (indexes) that carry a pooled finding's effect: p per IMU of its Wald test, the Wald statistic
     of "nothing on the others" (zero_stat, zero_dof) and of "one value on C, nothing on the others"
-    (shared_stat) in the representation chosen; alternatives: other carrier sets as sparse and as adequate."""
+    (shared_stat) in the representation chosen; alternatives: other carrier sets as sparse and as adequate.
+    in_gauge: C is the fewest IMUs one shared value on which explains the fit up to the gauge
+    (:func:`shared_sets`; p then holds, per IMU, the p of C without it); equivalents: [(IMU indexes,
+    statistic)] of the other sets whose shared value fits as well (within 2 ln(1/alpha)), the complement first."""
 
     imus: tuple[int, ...]
     p: dict = field(default_factory=dict)
@@ -128,6 +139,8 @@ class Proposal:
     level: float = 0.0
     zero: int | None = None
     alternatives: list = field(default_factory=list)
+    in_gauge: bool = False
+    equivalents: list = field(default_factory=list)
 
 
 def representations(fit, term: str, imus, base: np.ndarray) -> list[Representation]:
@@ -158,6 +171,73 @@ def representations(fit, term: str, imus, base: np.ndarray) -> list[Representati
         cov2[:, rows] = 0.0
         out.append(Representation(d2, cov2, j))
     return out
+
+
+def gauge_basis(fit, idx) -> np.ndarray:
+    """(n, r) orthonormal basis of how the fit's gauge freedoms move the parameters ``idx`` (r = 0: none does)."""
+    gd = np.asarray(fit.gauge_directions)
+    if gd.size == 0:
+        return np.zeros((len(idx), 0))
+    ds = gd[idx]
+    if np.linalg.norm(ds) < 1e-9 * max(np.linalg.norm(gd), 1e-300):
+        return np.zeros((len(idx), 0))
+    u, s, _ = np.linalg.svd(ds, full_matrices=False)
+    return u[:, s > 1e-9 * s.max()]
+
+
+def shared_sets(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: int, p: int):
+    """Every non-empty proper subset C of a scope's G IMUs with the Wald statistic of "one value shared by C (in
+    each sensor's own frame), nothing on the others, up to the gauge": d = T_C phi + B c with phi and c free (B
+    ``basis``, :func:`gauge_basis`), i.e. the changes' components across the gauge y = Q^T d (Q^T B = 0, so the
+    statistic does not depend on the gauge the fit held) against Q^T T_C phi.  Vectorised over the 2^G - 2 sets.
+    Returns (sets (S, G) bool, statistic (S,), dof (S,))."""
+    g, r = n_imus, basis.shape[1]
+    q = np.linalg.svd(basis, full_matrices=True)[0][:, r:] if r else np.eye(len(d))
+    w, keep, rank = _information(q.T @ cov @ q)
+    sets = ((np.arange(1, 2 ** g - 1)[:, None] >> np.arange(g)) & 1).astype(bool)
+    if rank == 0:
+        return sets, np.zeros(len(sets)), np.zeros(len(sets), dtype=np.int64)
+    x = (q.T @ d)[keep]
+    a = np.einsum("sg,gpm->smp", sets.astype(float), q.reshape(g, p, -1))[:, keep, :]  # Q^T T_C
+    b = np.einsum("smp,mn,n->sp", a, w, x)
+    info = np.einsum("smp,mn,snq->spq", a, w, a)
+    sc = np.sqrt(np.clip(np.einsum("spp->sp", info), 1e-300, None))  # Jacobi-scaled: parameters of any unit
+    lam, vec = np.linalg.eigh(info / (sc[:, :, None] * sc[:, None, :]))
+    ok = lam > EIG_RTOL * np.clip(lam.max(axis=1, keepdims=True), 0.0, None)
+    z = np.einsum("spk,sp->sk", vec, b / sc)
+    stat = float(x @ w @ x) - np.sum(np.where(ok, z ** 2 / np.where(ok, lam, 1.0), 0.0), axis=1)
+    return sets, np.clip(stat, 0.0, None), rank - ok.sum(axis=1)
+
+
+def _shared_in_gauge(fit, term: str, imus, base, alpha: float):
+    """The fewest IMUs of the scope one shared value on which explains the pooled fit up to the gauge
+    (:func:`shared_sets`, accepted at ``alpha``), lowest statistic first, and the other sets (any size) whose
+    shared value fits as well: statistic within 2 ln(1/alpha) of it (a likelihood ratio below 1/alpha), the
+    complement's first.  None when no gauge freedom moves the term on the scope, the scope has more than
+    :data:`GAUGE_SEARCH_MAX` IMUs, or no proper subset is adequate.  Returns (C positions, statistic, dof,
+    {position: p of C without it}, [(positions, statistic)])."""
+    g, p = len(imus), REGISTRY[term].dim()
+    idx = term_indexes(fit, term, imus)
+    basis = gauge_basis(fit, idx)
+    if g > GAUGE_SEARCH_MAX or basis.shape[1] == 0:
+        return None
+    d = fit.theta[idx] - np.asarray(base, dtype=float).reshape(-1)
+    sets, stat, dof = shared_sets(d, fit.covariance[np.ix_(idx, idx)], basis, g, p)
+    pv = np.where(dof > 0, scipy.stats.chi2.sf(stat, np.maximum(dof, 1)), 1.0)
+    size = sets.sum(axis=1)
+    ok = np.flatnonzero(pv >= alpha)
+    if ok.size == 0:
+        return None
+    n = size[ok].min()
+    best = ok[size[ok] == n][np.argmin(stat[ok][size[ok] == n])]
+    c = tuple(int(j) for j in np.flatnonzero(sets[best]))
+    code = {tuple(int(j) for j in np.flatnonzero(m)): i for i, m in enumerate(sets)}
+    drop = {j: float(pv[code[tuple(i for i in c if i != j)]]) if len(c) > 1 else 0.0 for j in c}
+    close = [i for i in ok if i != best and stat[i] - stat[best] < 2.0 * np.log(1.0 / alpha)]
+    comp = code.get(tuple(j for j in range(g) if j not in c))
+    close.sort(key=lambda i: (i != comp, stat[i]))
+    return c, float(stat[best]), int(dof[best]), drop, [(tuple(int(j) for j in np.flatnonzero(sets[i])),
+                                                         float(stat[i])) for i in close]
 
 
 class _Restrictions:
@@ -250,7 +330,8 @@ def _selector(n_imus: int, p: int, inside, shared: bool) -> np.ndarray:
 def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | None:
     """The IMUs that carry ``term``'s pooled finding on ``imus`` in the joint ``fit`` (module docstring, step 1):
     the smallest proper subset whose restriction the Wald test accepts at ``alpha`` (over the fit's gauge
-    representations), or None.  Positions in the Proposal are IMU indexes."""
+    representations), or one as small or smaller with one value shared up to the gauge (:func:`shared_sets`,
+    scopes of at most :data:`GAUGE_SEARCH_MAX` IMUs: fewer values), or None.  Positions in the Proposal are IMU indexes."""
     imus = list(imus)
     g, p = len(imus), REGISTRY[term].dim()
     found = []
@@ -260,6 +341,11 @@ def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | 
             if zero is not None and len(c) == g - 1 and zero not in c:
                 continue  # leaves out only the IMU the gauge puts at zero: on every IMU, up to the gauge
             found.append((len(c), zs, c, zd, rep, ps))
+    gs = _shared_in_gauge(fit, term, imus, base, alpha)
+    if gs is not None and (not found or len(gs[0]) <= min(x[0] for x in found)):  # as few IMUs, fewer values
+        c, zs, zd, drop, close = gs
+        return Proposal(tuple(imus[j] for j in c), {imus[j]: v for j, v in drop.items()}, zs, zd, zs, alpha,
+                        in_gauge=True, equivalents=[(tuple(imus[j] for j in e), st) for e, st in close])
     if not found:
         return None
     found.sort(key=lambda x: (x[0], x[1]))

@@ -4,8 +4,9 @@ Library classes: *correct* when the findings name exactly the injected terms, ea
 finding per IMU or one finding at a group/shared scope: a finding covers the IMUs of its ``sensors``), and
 nothing else; each effect is also scored on its own (``detected``).  A wrong answer whose finding discovery
 itself named indistinguishable from an alternative (the tie of :func:`~imu_array_ros.discovery.confirm.settle_ties`:
-exact gains within ln(1/alpha)) is marked ``named_alternative`` when taking that alternative instead would be
-correct: not counted correct (a report that says "this or that" has not found which), reported apart.
+exact gains within ln(1/alpha); or a narrowed scope's set that fits as well up to the gauge, ``Candidate.equivalents``)
+is marked ``named_alternative`` when taking that alternative instead would be correct: not counted correct (a report
+that says "this or that" has not found which), reported apart.
 Vibration: *located* (an unexplained entry whose band holds the mode's frequency and whose IMUs include a
 largest-amplitude one: the quadratic mode shapes are symmetric, so several IMUs often share the largest
 amplitude exactly) and nothing forced (no finding at all).  Null: correct without a finding.
