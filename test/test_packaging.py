@@ -221,6 +221,25 @@ def test_a_node_run_as_a_program_without_rclpy_says_so_in_one_line(tmp_path, mon
            "a ROS 2 Jazzy install (source /opt/ros/jazzy/setup.bash)" in lines[0], lines[0]
 
 
+@pytest.mark.parametrize("node", ["driver_node", "fusion_node", "calibration_node"])
+def test_node_help_lists_its_parameters_without_ros(tmp_path, node):
+    """``python -m imu_array_ros.nodes.NODE --help`` (rclpy hidden): how to start it and every parameter with its
+    default, status 0 -- not 'array_config is required' or a missing-ROS error."""
+    from imu_array_ros.nodes.parameters import NODE_PARAMS
+
+    shim = tmp_path / "no_ros" / "rclpy"
+    shim.mkdir(parents=True)
+    (shim / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'rclpy'\", name='rclpy')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(shim.parent), os.environ.get("PYTHONPATH")])))
+    proc = subprocess.run([sys.executable, "-m", f"imu_array_ros.nodes.{node}", "--help"], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert proc.stdout.startswith(f"usage: {node} --ros-args -p array_config:=FILE"), proc.stdout
+    listed = re.findall(r"^  (\w+) \(", proc.stdout, flags=re.M)
+    assert listed == [p.name for p in NODE_PARAMS[node]], listed
+    assert "  array_config (required)" in proc.stdout
+
+
 def test_rclpy_that_does_not_load_in_this_python_is_told_as_such(tmp_path):
     """A ROS 2 install sourced into a venv of another Python: ``rclpy`` is found but its C extension (built for
     the install's Python) is not. The one line says so and what to do, not that rclpy is missing."""

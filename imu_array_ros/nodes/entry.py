@@ -15,7 +15,7 @@ import importlib
 import importlib.util
 import sys
 
-__all__ = ["ROS_MODULES", "ROS_INSTALL", "ros_missing", "driver_node", "fusion_node", "calibration_node"]
+__all__ = ["ROS_MODULES", "ROS_INSTALL", "ros_missing", "usage", "driver_node", "fusion_node", "calibration_node"]
 
 #: the top-level ROS 2 modules the nodes import (from rclpy and the message packages)
 ROS_MODULES = ("rclpy", "rcl_interfaces", "sensor_msgs", "geometry_msgs", "std_srvs", "diagnostic_msgs", "std_msgs",
@@ -52,7 +52,30 @@ def _spec(name: str):
         return None
 
 
+def usage(node: str) -> str:
+    """``<node> --help``: how to start the node and its parameters with their defaults (ROS 2 not needed)."""
+    import textwrap
+
+    from imu_array_ros.nodes.parameters import NODE_PARAMS
+
+    lines = [f"usage: {node} --ros-args -p array_config:=FILE [-p NAME:=VALUE ...] [--params-file FILE]",
+             f"       ros2 run imu_array_ros {node} --ros-args ...  (a full ROS 2 install)",
+             "", "parameters (default; docs/nodes.md#parameters):"]
+    for p in NODE_PARAMS[node]:
+        default = "required" if p.required else repr(p.default)
+        allowed = (f"; {p.low:g} to {p.high:g}" if p.low is not None else "") + \
+            (f"; one of {', '.join(map(str, p.choices))}" if p.choices else "")
+        lines.append(f"  {p.name} ({default}{allowed})")
+        lines += textwrap.wrap(p.description, 100, initial_indent=" " * 6, subsequent_indent=" " * 6)
+    return "\n".join(lines)
+
+
 def _launch(node: str, args=None) -> int:
+    argv = list(sys.argv[1:] if args is None else args)
+    own = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    if "-h" in own or "--help" in own:
+        print(usage(node))
+        return 0
     try:
         module = importlib.import_module(f"imu_array_ros.nodes.{node}")
     except ImportError as err:
