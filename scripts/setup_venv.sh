@@ -15,5 +15,10 @@ pipq() {
 python3 -m venv "$venv"
 pipq install --upgrade pip
 pipq install -r "$here/requirements.txt"
-pipq install --no-deps -e "$here"
+# the package itself, editable; its build's notes (setuptools: "Editable installation ... folders in your
+# working directory with the same name as your package": that folder is this package) only if it fails
+if ! out="$(pipq install --no-deps -e "$here" 2>&1)"; then
+    printf '%s\n' "$out" >&2
+    exit 1
+fi
 echo "ready: $venv (imu-array: $venv/bin/imu-array)"
