@@ -2,7 +2,8 @@
 `launch` is not on PyPI).
 
     ros2 launch imu_array_ros imu_array.launch.py                        # serial array on /dev/ttyUSB0
-    ros2 launch imu_array_ros imu_array.launch.py port:=/tmp/imu-array   # e.g. `imu-array fake-device`
+    ros2 launch imu_array_ros imu_array.launch.py port:=/tmp/imu-array   # e.g. `imu-array fake-device --array
+        # config/array32.yaml --link /tmp/imu-array`: the same IMUs as array_config (default array32.yaml)
     ros2 launch imu_array_ros imu_array.launch.py mode:=replay bag:=/path/to/recording
     ros2 launch imu_array_ros imu_array.launch.py calibration_file:=/path/cal.yaml calibrate:=true
         # + calibration_node writing cal.yaml, which the fusion node reloads:

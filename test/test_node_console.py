@@ -239,6 +239,60 @@ def test_device_restart_said_once_per_restart(driver, capfd):
         os.close(slave)
 
 
+@needs_pty
+def test_a_device_streaming_other_imus_is_said_once(driver, capfd):
+    """Bytes arrive but no packet of the description's 8 IMUs parses (a board streaming 4 IMUs, or the launch
+    file's default 32-IMU array_config on an 8-IMU board): one warning naming the port, the IMU count and
+    array_config, about NO_PACKET_S after streaming began -- before, 'streaming 8 IMUs' and then silence."""
+    import select
+    import tty
+
+    from imu_array_ros.io.openshoe.framing import encode_packets
+    from imu_array_ros.io.openshoe.protocol import START_ACK
+    from imu_array_ros.nodes.driver_node import NO_PACKET_S
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    console = Console(capfd)
+    rng = np.random.default_rng(4)
+    try:
+        d = driver(f"port:={path}", "rate_divider:=5")
+        got = b""
+        end = time.monotonic() + 5
+        while len(got) < 9 and time.monotonic() < end:  # the start command
+            d.spin(0.02)
+            if select.select([master], [], [], 0)[0]:
+                got += os.read(master, 4096)
+        assert len(got) >= 9, got
+        os.write(master, START_ACK)
+        counter = 0
+
+        def four_imus() -> None:  # 5 packets of 4 IMUs: 62.5 Hz for 80 ms
+            nonlocal counter
+            os.write(master, encode_packets(counter + np.arange(5), 10**6 + (counter + np.arange(5)) * 1_024_000,
+                                            rng.integers(-3000, 3000, size=(5, 4, 6)).astype(np.int16)))
+            counter += 5
+
+        said = lambda: console.matching("but no packet")  # noqa: E731
+        end = time.monotonic() + NO_PACKET_S + 2.0
+        while not said() and time.monotonic() < end:
+            four_imus()
+            d.spin(0.08)
+        for _ in range(6):  # more of the same: not said again
+            four_imus()
+            d.spin(0.08)
+        lines = said()
+        assert len(lines) == 1 and lines[0][0] == "WARN", console.read()
+        text = lines[0][3]
+        assert f"serial port {path}: " in text and "no packet of 8 IMUs" in text and str(CORNERS) in text, text
+        streaming = console.matching("streaming 8 IMUs")
+        assert streaming and NO_PACKET_S <= lines[0][1] - streaming[0][1] < NO_PACKET_S + 1.0, (streaming, lines)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 # --------------------------------------------------------------------------- QoS: switch and incompatible peers
 
 

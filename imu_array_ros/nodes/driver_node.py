@@ -69,6 +69,9 @@ QOS_GRACE_S = 6.0
 #: start_delay -1 in replay: a downstream subscriber (of the fused topics) needs the fusion node to discover it
 #: too, which took 0.7-1.6 s after the fusion node's start in 5 of 9 runs (helper-31's trial, load 2-5)
 START_DELAY_S = 2.0
+#: seconds of bytes without a single packet of the description's IMUs before the serial driver says so (at
+#: 62.5 Hz a matching device sends ~120 packets by then)
+NO_PACKET_S = 2.0
 
 
 class DriverNode(Node):
@@ -97,6 +100,7 @@ class DriverNode(Node):
         self._t_start = time.monotonic()
         self._last_diag = (time.monotonic(), 0)
         self._link_seen = ("", "disconnected", 0, 0)  # (last_error, state, reconnects, device_restarts) logged
+        self._streaming_from = None  # (monotonic s, packets, bytes_in) when streaming began; None once said
         self._error_logged_at = -1e9
         self._ended = False
         self._clock_pub = None
@@ -204,6 +208,17 @@ class DriverNode(Node):
         if st.state == "streaming" and state != "streaming":
             again = f" again (reconnect {st.reconnects})" if st.connects > 1 else ""
             log.info(f"streaming {len(self.desc.names)} IMUs from {port}{again}")
+            self._streaming_from = (mono, st.packets, st.bytes_in)
+        if st.state == "streaming" and self._streaming_from is not None:
+            since, packets, bytes_in = self._streaming_from
+            if st.packets > packets:
+                self._streaming_from = None  # the device speaks the description's packets
+            elif mono - since >= NO_PACKET_S and st.bytes_in > bytes_in:
+                k = len(self.desc.names)
+                log.warning(f"serial port {port}: {st.bytes_in - bytes_in} bytes in {mono - since:.1f} s but no "
+                            f"packet of {k} IMUs ({st.bad_checksums} bad checksums): does the device stream the "
+                            f"IMUs of array_config {self.p.array_config} ({k}; imu_mask)? Nothing is published")
+                self._streaming_from = None
         if st.device_restarts > restarts:
             log.warning(f"device on {port} restarted (its packet counter went back; {st.device_restarts} restarts "
                         f"so far): stamps re-anchored")
