@@ -17,7 +17,13 @@
    is not observable from motion alone (engine docstring: omega (1 + e),
    positions / (1 + e)^2 read the same); the engine holds the reference IMU's
    gyroscope gain for it.  Skipped, with the reason, when there is no such
-   motion.
+   motion, and refused (skipped, the static stage's model kept) when its fit did
+   not converge or moved a value beyond what a real sensor has
+   (:func:`~imu_array_ros.calibration.guards.check_stage`: a position more than
+   5 mm, a gain more than 0.2, ...).
+4. **Timing stage** (``timing``): :func:`_timing_stage`.  Skipped, with the
+   reason, when the moving stage did not run or the data cannot identify the
+   timing terms; refused by the same check; the moving stage's model then kept.
 
 One description comes out with every calibrated field, its ``_std`` and a
 ``calibration:`` block listing each stage, the data it used and its residuals.
@@ -31,8 +37,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from imu_array_ros.calibration.guards import POSITION_BOUND, check_stage
 from imu_array_ros.calibration.result import provenance
-from imu_array_ros.errors import CalibrationError
+from imu_array_ros.errors import CalibrationError, FusionError, IdentifiabilityError
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
@@ -43,6 +50,9 @@ __all__ = ["MOVING_TERMS", "ArrayCalibration", "calibrate_array"]
 #: (the gyroscopes' full 3x3 relative to the reference: gain, misalignment and non-orthogonality; on the real
 #: MIMU4444BT captures leaving the non-orthogonality out left held-out moving NIS at 3.1e3 instead of 2.2e3)
 MOVING_TERMS = ("position", "gyroscope_gain", "gyroscope_misalignment", "gyroscope_nonorthogonality")
+#: what a stage raises when the recording cannot determine what it fits (a property of the data, not of the call):
+#: the stage is skipped with the reason and the earlier stages' result kept
+DATA_ERRORS = (CalibrationError, IdentifiabilityError, FusionError)
 
 
 @dataclass
@@ -50,8 +60,8 @@ class ArrayCalibration:
     """The stages of :func:`calibrate_array`: model (every stage applied), poses (StillPoses),
     static (StaticCalibration or None), moving (FitResult or None), skipped: stage -> reason,
     moving_samples: (used, total) of the moving stage, moving_window: the samples the moving stage
-    fitted (None: no moving stage), seconds, timed: the timing stage ran (its refit of the timing terms is
-    ``timing``, FitResult; the moving stage's positions and gyroscope terms are kept)."""
+    fitted (None: no moving stage), seconds, timing: the timing stage's refit of the timing terms (FitResult; the
+    moving stage's positions and gyroscope terms are kept; None: it did not run or was skipped)."""
 
     model: SensorModel
     poses: object
@@ -63,8 +73,12 @@ class ArrayCalibration:
     moving_window: ImuSamples | None = field(default=None, repr=False)
     seconds: float = 0.0
     timing_notes: list[str] = field(default_factory=list)
-    timed: bool = False
     timing: object | None = None
+
+    @property
+    def timed(self) -> bool:
+        """The timing stage ran and its result was kept."""
+        return self.timing is not None
 
     def stds(self) -> dict[str, np.ndarray]:
         """term -> (K, P) standard deviations of every calibrated field: the static stage's
@@ -147,12 +161,17 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                     static_terms: Sequence[str] | None = None, moving_terms: Sequence[str] = MOVING_TERMS,
                     gravity: float = STANDARD_GRAVITY, still_options: dict | None = None,
                     max_iterations: int = 50, progress: Callable[[str], None] | None = None,
-                    timing: bool = False, clock_period: float | None = 1e-3) -> ArrayCalibration:
+                    timing: bool = False, clock_period: float | None = 1e-3, checks: bool = True,
+                    position_bound: float = POSITION_BOUND) -> ArrayCalibration:
     """Calibrate what the recording can: static stage from its still poses, moving stage from the rest,
     then (``timing``) the timing stage (:mod:`~imu_array_ros.calibration.timing`: sample clocks of period
-    ``clock_period`` searched, then the time offsets fitted with the moving stage's terms held).
+    ``clock_period`` searched, then the time offsets fitted with the moving stage's terms held).  The moving and
+    timing stages' results are kept only when they pass :func:`~imu_array_ros.calibration.guards.check_stage`
+    (converged; positions within ``position_bound`` m; every other value within its term's bound);
+    ``checks=False`` (experts) keeps them as they come.
 
-    Raises :class:`CalibrationError` only when neither stage can run (the reasons of both)."""
+    Raises :class:`CalibrationError` only when neither the static nor the moving stage gives a result (the
+    reasons of both)."""
     from imu_array_ros.calibration.selection import MIN_EXCITATION, require_rotation, select_rotating
     from imu_array_ros.calibration.static import MIN_POSES, STATIC_TERMS, calibrate_static
     from imu_array_ros.calibration.still import check_poses, find_still_poses
@@ -191,23 +210,28 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
             say(f"moving stage: {', '.join(moving_terms)} on {used_total[0]} of {len(idx)} moving samples")
             window = moving_samples.select(used)
             from imu_array_ros.timing.session import active_clocks, estimate_session
-            if active_clocks(current):  # this recording's clock phases first
-                current = estimate_session(samples, current).model
-            moving = fit_terms(window, current, moving_terms, reference=reference, t0_ns=int(samples.stamps[0]),
-                               motion0=selection.motion[used], max_iterations=max_iterations,
-                               progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
-            current = moving.model
-            say(f"moving stage: NIS {moving.nis_before:.4g} -> {moving.nis_after:.4g}")
-        except CalibrationError as err:
+            start = estimate_session(samples, current).model if active_clocks(current) else current  # clock phases
+            fit = fit_terms(window, start, moving_terms, reference=reference, t0_ns=int(samples.stamps[0]),
+                            motion0=selection.motion[used], max_iterations=max_iterations,
+                            progress=lambda it, cost: say(f"moving stage: iteration {it}, cost {cost:.10g}"))
+            say(f"moving stage: NIS {fit.nis_before:.4g} -> {fit.nis_after:.4g}")
+            if checks:  # a refused result is neither written nor built on by the timing stage
+                check_stage(fit, start, position_bound=position_bound)
+            moving, current = fit, fit.model
+        except DATA_ERRORS as err:
             skipped["moving"] = str(err)
+            used_total, window = (0, 0), None
             say(f"moving stage skipped: {err}")
     timing_notes: list[str] = []
-    timed, timing_fit = False, None
+    timing_fit = None
     if timing and moving is not None:
-        timing_fit, current, timed_window, timing_notes = _timing_stage(samples, poses, current, skipped, reference,
-                                                                        clock_period, max_iterations, say)
+        timing_fit, current, timed_window, timing_notes = _timing_stage(
+            samples, poses, current, skipped, reference, clock_period, max_iterations, say,
+            position_bound if checks else None)
         if timed_window is not None:
-            window, used_total, timed = timed_window, (len(timed_window), len(samples)), True
+            window, used_total = timed_window, (len(timed_window), len(samples))
+    elif timing and moving_terms:
+        skipped["timing"] = "no moving stage result to build on (the moving stage was skipped)"
     if static is None and not moving_terms:
         raise CalibrationError(skipped["static"])
     if static is None and moving is None:
@@ -215,20 +239,22 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                                f"moving stage: {skipped['moving']}")
     return ArrayCalibration(model=current, poses=poses, static=static, moving=moving, skipped=skipped,
                             moving_samples=used_total, moving_terms=tuple(moving.free) if moving else moving_terms,
-                            timing_notes=timing_notes, timed=timed, timing=timing_fit,
+                            timing_notes=timing_notes, timing=timing_fit,
                             moving_window=window if moving is not None else None,
                             seconds=time.perf_counter() - t0)
 
 
-def _timing_stage(samples, poses, current, skipped, reference, clock_period, max_iterations, say):
+def _timing_stage(samples, poses, current, skipped, reference, clock_period, max_iterations, say, position_bound):
     """The timing stage (:mod:`~imu_array_ros.calibration.timing`): on the contiguous moving samples (the timing
     terms read the motion's time derivatives, so no sample is picked out), the timing terms fitted with the moving
     stage's positions and gyroscope terms held.  Not refitted with them: the time offsets open a weak direction (a
     common gyroscope scale with the positions growing as its square) along which each capture lands elsewhere --
     on the six real captures such a joint refit wrote gyroscope gains spreading 4.2x their std and arrays 6-18 %
     larger than the board, for 1-9 % of its held-out gain (benchmarks/results/real_calibration_trust_timing.md,
-    real_timing_heldout.md).  Returns (timing fit, model, window, notes); on failure (None, the moving stage's
-    model, None, []) and a skip reason."""
+    real_timing_heldout.md).  The fit is refused unless it passes
+    :func:`~imu_array_ros.calibration.guards.check_stage` against the moving stage's model (``position_bound``
+    None: not checked).  Returns (timing fit, model, window, notes); when the data cannot identify the timing terms
+    (:data:`DATA_ERRORS`) or the fit is refused, (None, the moving stage's model, None, []) and a skip reason."""
     from imu_array_ros.calibration.timing import prepare_timing
     from imu_array_ros.fitting.engine import fit_terms
 
@@ -245,12 +271,11 @@ def _timing_stage(samples, poses, current, skipped, reference, clock_period, max
                         t0_ns=int(samples.stamps[0]), hold=hold,
                         progress=lambda it, cost: say(f"timing stage: iteration {it}, cost {cost:.10g}"))
         say(f"timing stage: NIS {fit.nis_before:.4g} -> {fit.nis_after:.4g}")
-        if not fit.converged:  # an unconverged refit is not written over the moving stage's converged one
-            raise CalibrationError(f"the fit of {', '.join(setup.terms)} did not converge in {fit.iterations} "
-                                   "iterations; the moving stage's result is kept")
+        if position_bound is not None:  # a refused refit is not written over the moving stage's result
+            check_stage(fit, current, position_bound=position_bound)
         return fit, fit.model, window, setup.notes
-    except CalibrationError as err:
-        skipped["timing"] = str(err)
+    except DATA_ERRORS as err:
+        skipped["timing"] = f"{err}; the moving stage's result is kept"
         say(f"timing stage skipped: {err}")
         return None, current, None, []
 

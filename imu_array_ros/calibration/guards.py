@@ -24,7 +24,11 @@
     by more than :data:`~imu_array_ros.calibration.result.LOGLIK_TOLERANCE` -- a
     calibration that explains its data worse than where it started is refused.
 
-``checks=False`` in the dispatcher (Python API only) skips all three, for experts who
+A calibration made of stages (``calibrate all``: static, moving, timing) applies (a) and (b) to
+each stage that builds on an earlier one before the next runs (:func:`check_stage`): a refused
+stage is skipped with the reason and the earlier stages' result kept.
+
+``checks=False`` in the dispatcher (Python API only) skips all of them, for experts who
 judge the numbers themselves.  Session states (clock phases) are not
 tested: they are never written as device constants.
 """
@@ -38,8 +42,8 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
-__all__ = ["check_calibration", "check_converged", "check_plausible", "check_fits_better", "implausible",
-           "POSITION_BOUND"]
+__all__ = ["check_calibration", "check_converged", "check_plausible", "check_fits_better", "check_stage",
+           "implausible", "POSITION_BOUND"]
 
 #: default largest distance, m, a calibrated position may be from the position it started from
 POSITION_BOUND = 5e-3
@@ -71,6 +75,17 @@ def check_converged(cal: Calibration) -> None:
     if not cal.converged:
         raise CalibrationError(f"{cal.method}: refused: not converged ({_iterations(cal)}); {_NOTHING} "
                                "(a longer window with more rotation, or a higher iteration cap)")
+
+
+def check_stage(fit, start: SensorModel, *, position_bound: float = POSITION_BOUND) -> None:
+    """(a) and (b) for one stage of a calibration: ``fit`` (``converged``, ``iterations``, ``model``) the stage's
+    result, ``start`` the model the stage started from (the earlier stages' result); CalibrationError, one line
+    naming the reason, when the stage did not converge or changed a value beyond its bound."""
+    if not fit.converged:
+        raise CalibrationError(f"refused: not converged ({int(fit.iterations)} iterations)")
+    problem = implausible(fit.model, start, position_bound=position_bound)
+    if problem is not None:
+        raise CalibrationError(f"refused: {problem}")
 
 
 def _bound(field, model: SensorModel) -> float | None:

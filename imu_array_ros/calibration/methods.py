@@ -97,9 +97,13 @@ def whole_array(samples: ImuSamples | Sequence[ImuSamples], model: SensorModel, 
                 moving_terms: Sequence[str] = MOVING_TERMS, gravity: float = STANDARD_GRAVITY,
                 still_options: dict | None = None, max_iterations: int = 50,
                 progress: Callable[[str], None] | None = None, source=None, timing: bool = False,
-                clock_period: float | None = 1e-3) -> Calibration:
+                clock_period: float | None = 1e-3, checks: bool = True,
+                position_bound: float = POSITION_BOUND) -> Calibration:
     """Still poses -> static stage, then the motion -> ``moving_terms``, then the timing stage (``timing``:
-    sample clocks of ``clock_period`` s searched, time offsets and clock rates fitted) (``calibrate all``).
+    sample clocks of ``clock_period`` s searched, time offsets fitted) (``calibrate all``).  A moving or timing
+    stage that did not converge or is implausible (``position_bound``; ``checks=False``: not checked) is skipped
+    with the reason and the earlier stages' result kept
+    (:func:`~imu_array_ros.calibration.array.calibrate_array`).
 
     ``samples`` a list of recordings of the same array (``source`` then a list of their names): each calibrated
     on its own, then device constants combined and session states (biases) written with their turn-on
@@ -109,7 +113,8 @@ def whole_array(samples: ImuSamples | Sequence[ImuSamples], model: SensorModel, 
         check_terms(moving_terms)
     options = dict(reference=reference, static_method=static_method, static_terms=static_terms,
                    moving_terms=moving_terms, gravity=gravity, still_options=still_options,
-                   max_iterations=max_iterations, timing=timing, clock_period=clock_period)
+                   max_iterations=max_iterations, timing=timing, clock_period=clock_period, checks=checks,
+                   position_bound=position_bound)
     recordings = [samples] if isinstance(samples, ImuSamples) else list(samples)
     sources = list(source) if isinstance(source, (list, tuple)) else [source] * len(recordings)
     if len(sources) != len(recordings):
@@ -223,6 +228,8 @@ def calibrate(method: str, samples: ImuSamples, model: SensorModel, /, *, checks
         run = METHODS[method]
     except KeyError:
         raise CalibrationError(f"unknown calibration method {method!r} (known: {', '.join(METHODS)})") from None
+    if run is whole_array:  # its stages are checked as they run: a refused stage is skipped, the others kept
+        options.update(checks=checks, position_bound=position_bound)
     cal = run(samples, model, **options)
     if checks:
         check_calibration(cal, model, position_bound=position_bound)

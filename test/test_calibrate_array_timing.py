@@ -1,0 +1,162 @@
+"""The stages of ``calibrate all`` (imu_array_ros.calibration.array.calibrate_array) never build on nonsense:
+the timing stage recovers known time offsets and keeps the moving stage's terms; a moving stage that did not
+converge or is physically implausible is refused (skipped with the reason, the static stage's model kept, no timing
+stage on it); a timing fit the data cannot identify is skipped with the reason; the command line says so in one
+line, non-zero only when nothing could be calibrated."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import imu_array_ros.fitting.engine as engine
+from imu_array_ros.calibration.array import calibrate_array
+from imu_array_ros.errors import CalibrationError, IdentifiabilityError
+from imu_array_ros.model.description import save_description
+from imu_array_ros.model.layouts import tetrahedron4
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.simulation.icosahedron import simulate_icosahedron
+from imu_array_ros.simulation.simulator import simulate_twist
+
+from conftest import START, assert_user_error, cli
+
+#: the moving stage's terms, which the timing stage holds
+HELD = ("position", "gyroscope_gain", "gyroscope_misalignment", "gyroscope_nonorthogonality")
+#: still poses of 1 s at 62.5 Hz (the MIMU4444BT's read rate) are found with these
+STILL = dict(window_s=0.3, min_duration_s=0.3, settle_s=0.1)
+
+
+@pytest.fixture(scope="module")
+def nominal():
+    return SensorModel.from_description(tetrahedron4())
+
+
+@pytest.fixture(scope="module")
+def offsets(nominal):
+    """(K, 2) true time offsets, s (accelerometer, gyroscope): two gyroscopes 3 ms late and 2 ms early."""
+    to = np.zeros((nominal.n_imus, 2))
+    to[1, 1], to[3, 1] = 3e-3, -2e-3
+    return to
+
+
+@pytest.fixture(scope="module")
+def session(nominal, offsets):
+    """An icosahedron session of the tetrahedron with those offsets: 20 still poses of 1 s joined by 0.3 s of
+    handling, then 1.2 s of hand twisting, at 62.5 Hz."""
+    samples, _, _ = simulate_icosahedron(nominal.with_terms(time_offset=offsets), np.random.default_rng(1),
+                                         rate_hz=62.5, still_s=1.0, transition_s=0.3, twist_s=1.2)
+    return samples
+
+
+@pytest.fixture(scope="module")
+def twist(nominal):
+    """3.2 s of twisting at 62.5 Hz (200 samples) and no still pose."""
+    return simulate_twist(nominal, 3.2, 62.5, np.random.default_rng(2))[0]
+
+
+def test_the_timing_stage_recovers_known_offsets_and_keeps_the_moving_stage(session, nominal, offsets):
+    """Every fitted offset within 4 of its std of the truth; the reference gyroscope's held (the gauge of time);
+    the written positions and gyroscope terms are the moving stage's, bit for bit.  (On 8 seeds of this session
+    the accelerometers' common delay -- true 0 -- came out 6-8 std off on 2 and a gyroscope offset 4.0-4.6 std
+    off on 2: the std are those of the offsets given the moving stage's terms, whose own errors they do not
+    include.  This seed is the first one tried.)"""
+    cal = calibrate_array(session, nominal, timing=True, clock_period=None, still_options=STILL)
+    assert cal.skipped == {} and cal.static is not None and cal.moving is not None and cal.timing is not None
+    assert cal.timed and "-> timing" in cal.method()
+    est, std = cal.model.terms["time_offset"].values, cal.stds()["time_offset"]
+    fitted = np.isfinite(std) & (std > 0)
+    assert fitted.sum() == 2 * nominal.n_imus - 1 and not fitted[0, 1]
+    assert est[0, 1] == 0.0
+    z = (est - offsets)[fitted] / std[fitted]
+    print(f"\ntime offsets, us: {np.round(est * 1e6).tolist()}; |z| max {np.max(np.abs(z)):.2f}")
+    assert np.max(np.abs(z)) < 4.0, z
+    for term in HELD:
+        assert np.array_equal(cal.model.terms[term].values, cal.moving.model.terms[term].values), term
+    assert [s["stage"] for s in cal.record()["stages"]][-1] == "timing"
+
+
+def test_a_moving_stage_that_did_not_converge_is_refused_and_nothing_is_built_on_it(twist, nominal):
+    """The short twist without still poses, one iteration allowed: nothing to calibrate, one line naming both
+    stages (before: the unconverged moving stage was returned and the timing stage ran on it)."""
+    with pytest.raises(CalibrationError) as err:
+        calibrate_array(twist, nominal, timing=True, clock_period=None, max_iterations=1)
+    text = str(err.value)
+    assert "\n" not in text and text.startswith("nothing to calibrate: static stage: only 0 static poses")
+    assert "moving stage: refused: not converged" in text
+
+
+def far_apart(monkeypatch, spread: float = 1e3):
+    """fit_terms returns, for the moving terms, positions ``spread`` m apart (what the moving stage wrote on a
+    3.2 s clocked twist: ~3 km), converged; counts its calls per terms."""
+    real, calls = engine.fit_terms, []
+
+    def fake(samples, model, terms, **kwargs):
+        calls.append(tuple(terms))
+        fit = real(samples, model, terms, **kwargs)
+        if "position" not in terms:
+            return fit
+        far = fit.model.positions + spread * np.arange(model.n_imus)[:, None] * np.array([1.0, 0.0, 0.0])
+        return replace(fit, model=fit.model.with_terms(position=far), converged=True)
+
+    monkeypatch.setattr(engine, "fit_terms", fake)
+    return calls
+
+
+def test_an_implausible_moving_stage_is_refused_the_static_model_kept_and_timing_not_run(session, nominal,
+                                                                                       monkeypatch):
+    calls = far_apart(monkeypatch)
+    cal = calibrate_array(session, nominal, timing=True, clock_period=None, still_options=STILL)
+    assert calls == [HELD]  # no timing fit
+    assert cal.moving is None and cal.timing is None and not cal.timed
+    assert cal.skipped["moving"].startswith("refused: imu_03 position moved 3000000.")
+    assert "physically implausible" in cal.skipped["moving"] and "\n" not in cal.skipped["moving"]
+    assert "moving stage was skipped" in cal.skipped["timing"]
+    assert cal.model is cal.static.model and cal.moving_window is None and cal.moving_samples == (0, 0)
+    assert [s["stage"] for s in cal.record()["stages"]] == ["still poses", "static"]
+    assert "moving skipped: refused" in cal.summary()
+
+
+def test_checks_false_keeps_the_stages_as_they_come(session, nominal, monkeypatch):
+    """The dispatcher's checks=False (experts) reaches the stages: the 3 km moving stage is kept."""
+    from imu_array_ros.calibration.methods import calibrate
+
+    far_apart(monkeypatch)
+    cal = calibrate("all", session, nominal, checks=False, still_options=STILL)
+    assert cal.details.moving is not None and "moving" not in cal.details.skipped
+    assert np.ptp(cal.model.positions[:, 0]) > 1e3
+
+
+def test_a_timing_fit_the_data_cannot_identify_is_skipped_with_the_reason(session, nominal, monkeypatch):
+    """An IdentifiabilityError in the timing fit (as ModelFusion raised on the 3 km array): skipped with the
+    reason, the moving stage's model kept (before: the traceback)."""
+    real = engine.fit_terms
+
+    def fake(samples, model, terms, **kwargs):
+        if "time_offset" in terms:
+            raise IdentifiabilityError("array 'imu_array': the IMU positions span 3e+03 m")
+        return real(samples, model, terms, **kwargs)
+
+    monkeypatch.setattr(engine, "fit_terms", fake)
+    cal = calibrate_array(session, nominal, timing=True, clock_period=None, still_options=STILL)
+    assert cal.moving is not None and cal.timing is None and not cal.timed
+    assert cal.skipped == {"timing": "array 'imu_array': the IMU positions span 3e+03 m; the moving stage's result "
+                                     "is kept"}
+    assert cal.model is cal.moving.model and "timing" not in cal.method()
+
+
+def test_the_command_line_refuses_in_one_line_only_when_nothing_could_be_calibrated(tmp_path, capsys, monkeypatch):
+    """calibrate all --timing on a recording with no still poses whose moving stage is implausible: exit 2, one
+    line naming both stages, no traceback, nothing written."""
+    desc = tmp_path / "tetra.yaml"
+    save_description(tetrahedron4(), desc)
+    rec, out = tmp_path / "rec", tmp_path / "out.yaml"
+    assert cli(capsys, "simulate", "--array", desc, "--out", rec, "--duration", "3.2", "--rate", "62.5",
+               "--seed", "2", "--start-time", START, "-q")[0] == 0
+    far_apart(monkeypatch)
+    line = assert_user_error(cli(capsys, "calibrate", "all", rec, "--array", desc, "--out", out, "--timing",
+                                 "--clock-period", "0", "-q"),
+                             "nothing to calibrate", "static stage: only 0 static poses", "moving stage: refused",
+                             "physically implausible")
+    assert "timing" not in line and not out.exists()
