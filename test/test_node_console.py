@@ -194,11 +194,23 @@ def test_missing_then_lost_port_named_within_2_s_then_reconnect(driver, capfd, t
           f"{seconds_lost:.3f} s after the unplug (at most)")
 
 
+def _await_start_command(driver_node, master: int) -> None:
+    """Spin the driver until the start command (9 bytes or more) has reached the pty's master side."""
+    import select
+
+    got = b""
+    end = time.monotonic() + 5
+    while len(got) < 9 and time.monotonic() < end:
+        driver_node.spin(0.02)
+        if select.select([master], [], [], 0)[0]:
+            got += os.read(master, 4096)
+    assert len(got) >= 9, got
+
+
 @needs_pty
 def test_device_restart_said_once_per_restart(driver, capfd):
     """A device whose packet counter steps back (it restarted): one warning per restart naming the port and
     the count so far."""
-    import select
     import tty
 
     from imu_array_ros.io.openshoe.framing import encode_packets
@@ -216,13 +228,7 @@ def test_device_restart_said_once_per_restart(driver, capfd):
 
     try:
         d = driver(f"port:={path}", "rate_divider:=5")
-        got = b""
-        end = time.monotonic() + 5
-        while len(got) < 9 and time.monotonic() < end:  # the start command
-            d.spin(0.02)
-            if select.select([master], [], [], 0)[0]:
-                got += os.read(master, 4096)
-        assert len(got) >= 9, got
+        _await_start_command(d, master)
         os.write(master, START_ACK + packets(100, 20, 10**6))
         assert d.spin(3.0, lambda: console.matching("streaming 8 IMUs")), console.read()
         for restart in (1, 2):
@@ -244,7 +250,6 @@ def test_a_device_streaming_other_imus_is_said_once(driver, capfd):
     """Bytes arrive but no packet of the description's 8 IMUs parses (a board streaming 4 IMUs, or the launch
     file's default 32-IMU array_config on an 8-IMU board): one warning naming the port, the IMU count and
     array_config, about NO_PACKET_S after streaming began -- before, 'streaming 8 IMUs' and then silence."""
-    import select
     import tty
 
     from imu_array_ros.io.openshoe.framing import encode_packets
@@ -258,13 +263,7 @@ def test_a_device_streaming_other_imus_is_said_once(driver, capfd):
     rng = np.random.default_rng(4)
     try:
         d = driver(f"port:={path}", "rate_divider:=5")
-        got = b""
-        end = time.monotonic() + 5
-        while len(got) < 9 and time.monotonic() < end:  # the start command
-            d.spin(0.02)
-            if select.select([master], [], [], 0)[0]:
-                got += os.read(master, 4096)
-        assert len(got) >= 9, got
+        _await_start_command(d, master)
         os.write(master, START_ACK)
         counter = 0
 
