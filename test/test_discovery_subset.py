@@ -225,8 +225,10 @@ def test_a_diagonal_pair_is_found_up_to_a_six_dimensional_gauge():
     assert len(named) == 2
 
 
-def test_large_scopes_are_not_searched_in_the_gauge():
-    """Beyond GAUGE_SEARCH_MAX IMUs (2^G sets) the shared search is not made: the own-value carriers only."""
+def test_large_scopes_are_searched_along_the_split():
+    """Beyond GAUGE_SEARCH_MAX IMUs (2^G sets) only the splits along the values' leading direction are tested
+    with one shared value (:mod:`imu_array_ros.discovery.subset_split`): IMU 0 alone, the complement (the
+    opposite value on the other 8, the same fit up to the common offset) named."""
     from imu_array_ros.discovery.subset import GAUGE_SEARCH_MAX
 
     g = GAUGE_SEARCH_MAX + 1
@@ -235,7 +237,8 @@ def test_large_scopes_are_not_searched_in_the_gauge():
     gauge = np.tile(np.eye(3), (g, 1)) / np.sqrt(g)
     fit = _fit(d, [0.0] + [1.0] * (g - 1), gauge=gauge)
     prop = propose(fit, TERM, range(g), np.zeros((g, 3)), 0.01)
-    assert prop.imus == (0,) and not prop.in_gauge and prop.zero is not None
+    assert prop.imus == (0,) and prop.in_gauge and prop.zero_stat < 1e-6
+    assert prop.equivalents[0][0] == tuple(range(1, g)) and len(prop.equivalents) == 1
 
 
 def test_bias_on_a_diagonal_of_the_planar_four_is_reported_with_its_gauge_twin():

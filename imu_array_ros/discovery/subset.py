@@ -22,8 +22,13 @@ on six IMUs without the effect.  After a pooled finding's exact refit (each IMU 
    dimensions than one IMU's parameters (an accelerometer bias on a planar array: a common bias and
    omega_dot x r_k) can hide sets no single-IMU re-expression reaches ("b on 0, 2" is "-b on 1, 3"): on scopes
    of at most :data:`GAUGE_SEARCH_MAX` IMUs every subset is also tested with one value shared up to the gauge
-   (:func:`shared_sets`), kept when it has no more IMUs than the own-value set, and the sets whose shared
-   value fits as well are named as equivalents.
+   (:func:`shared_sets`), kept when it has no more IMUs than the own-value set (on larger scopes: when the
+   own-value set has more than one IMU, i.e. more values), and the sets whose shared
+   value fits as well are named as equivalents.  On larger scopes (gauge or near-gauge alike: a value common
+   to the IMUs only weakly observed) the candidates are both sides of every split of the IMUs sorted along
+   the leading direction of their whitened, gauge-free values (:mod:`.subset_split`), tested by the same
+   statistic (:func:`shared_statistics`); of the adequate ones only those within 2 ln(1/alpha) of the lowest
+   statistic count.
 2. **Is the subset adequate?** The restriction is tested again by the exact likelihood ratio of the refit
    with only C free against the pooled fit, chi-square with the difference in free parameters, at alpha.
    When one value shared by the whole scope is adequate (its tie test accepts at alpha), it explains the data
@@ -47,10 +52,12 @@ from itertools import combinations
 import numpy as np
 import scipy.stats
 
+from imu_array_ros.discovery.subset_split import split_sets
 from imu_array_ros.model.terms import REGISTRY
 
 __all__ = ["term_indexes", "wald", "restricted", "Representation", "Proposal", "propose", "scope_label",
-           "is_own", "carriers", "gauge_basis", "shared_sets", "EIG_RTOL", "EXHAUSTIVE", "GAUGE_SEARCH_MAX"]
+           "is_own", "carriers", "gauge_basis", "shared_sets", "shared_statistics",
+           "EIG_RTOL", "EXHAUSTIVE", "GAUGE_SEARCH_MAX"]
 
 #: scopes of at most this many IMUs: every subset is tried (smallest first); larger ones are grown greedily
 EXHAUSTIVE = 10
@@ -187,16 +194,22 @@ def gauge_basis(fit, idx) -> np.ndarray:
 
 def shared_sets(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: int, p: int):
     """Every non-empty proper subset C of a scope's G IMUs with the Wald statistic of "one value shared by C (in
-    each sensor's own frame), nothing on the others, up to the gauge": d = T_C phi + B c with phi and c free (B
-    ``basis``, :func:`gauge_basis`), i.e. the changes' components across the gauge y = Q^T d (Q^T B = 0, so the
-    statistic does not depend on the gauge the fit held) against Q^T T_C phi.  Vectorised over the 2^G - 2 sets.
-    Returns (sets (S, G) bool, statistic (S,), dof (S,))."""
-    g, r = n_imus, basis.shape[1]
+    each sensor's own frame), nothing on the others, up to the gauge" (:func:`shared_statistics`), vectorised
+    over the 2^G - 2 sets.  Returns (sets (S, G) bool, statistic (S,), dof (S,))."""
+    sets = ((np.arange(1, 2 ** n_imus - 1)[:, None] >> np.arange(n_imus)) & 1).astype(bool)
+    return (sets,) + shared_statistics(d, cov, basis, p, sets)
+
+
+def shared_statistics(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, p: int, sets: np.ndarray):
+    """The Wald statistic of "one value shared by C (in each sensor's own frame), nothing on the others, up to
+    the gauge" for each row C of ``sets`` (S, G) bool: d = T_C phi + B c with phi and c free (B ``basis``,
+    :func:`gauge_basis`), i.e. the changes' components across the gauge y = Q^T d (Q^T B = 0, so the statistic
+    does not depend on the gauge the fit held) against Q^T T_C phi.  Returns (statistic (S,), dof (S,))."""
+    g, r = sets.shape[1], basis.shape[1]
     q = np.linalg.svd(basis, full_matrices=True)[0][:, r:] if r else np.eye(len(d))
     w, keep, rank = _information(q.T @ cov @ q)
-    sets = ((np.arange(1, 2 ** g - 1)[:, None] >> np.arange(g)) & 1).astype(bool)
     if rank == 0:
-        return sets, np.zeros(len(sets)), np.zeros(len(sets), dtype=np.int64)
+        return np.zeros(len(sets)), np.zeros(len(sets), dtype=np.int64)
     x = (q.T @ d)[keep]
     a = np.einsum("sg,gpm->smp", sets.astype(float), q.reshape(g, p, -1))[:, keep, :]  # Q^T T_C
     b = np.einsum("smp,mn,n->sp", a, w, x)
@@ -206,33 +219,50 @@ def shared_sets(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: int, 
     ok = lam > EIG_RTOL * np.clip(lam.max(axis=1, keepdims=True), 0.0, None)
     z = np.einsum("spk,sp->sk", vec, b / sc)
     stat = float(x @ w @ x) - np.sum(np.where(ok, z ** 2 / np.where(ok, lam, 1.0), 0.0), axis=1)
-    return sets, np.clip(stat, 0.0, None), rank - ok.sum(axis=1)
+    return np.clip(stat, 0.0, None), rank - ok.sum(axis=1)
 
 
 def _shared_in_gauge(fit, term: str, imus, base, alpha: float):
     """The fewest IMUs of the scope one shared value on which explains the pooled fit up to the gauge
     (:func:`shared_sets`, accepted at ``alpha``), lowest statistic first, and the other sets (any size) whose
     shared value fits as well: statistic within 2 ln(1/alpha) of it (a likelihood ratio below 1/alpha), the
-    complement's first.  None when no gauge freedom moves the term on the scope, the scope has more than
-    :data:`GAUGE_SEARCH_MAX` IMUs, or no proper subset is adequate.  Returns (C positions, statistic, dof,
-    {position: p of C without it}, [(positions, statistic)])."""
+    complement's first.  On scopes of at most :data:`GAUGE_SEARCH_MAX` IMUs every subset is tried (None when no
+    gauge freedom moves the term there); on larger ones, gauge or not, only both sides of every split along the
+    values' leading direction (:func:`.subset_split.split_sets`), and of the adequate sets only those whose
+    statistic is within 2 ln(1/alpha) of the lowest adequate one count (with (G - 1) p dof adequacy alone keeps
+    sets far less likely than the best).  None when no proper subset is adequate.  Returns (C positions,
+    statistic, dof, {position: p of C without it}, [(positions, statistic)])."""
     g, p = len(imus), REGISTRY[term].dim()
     idx = term_indexes(fit, term, imus)
     basis = gauge_basis(fit, idx)
-    if g > GAUGE_SEARCH_MAX or basis.shape[1] == 0:
+    if g <= GAUGE_SEARCH_MAX and basis.shape[1] == 0:
         return None
     d = fit.theta[idx] - np.asarray(base, dtype=float).reshape(-1)
-    sets, stat, dof = shared_sets(d, fit.covariance[np.ix_(idx, idx)], basis, g, p)
+    cov = fit.covariance[np.ix_(idx, idx)]
+    if g <= GAUGE_SEARCH_MAX:
+        sets, stat, dof = shared_sets(d, cov, basis, g, p)
+    else:  # too many subsets: both sides of every split along the values' leading direction (.subset_split)
+        sets = split_sets(d, cov, basis, g, p)
+        stat, dof = shared_statistics(d, cov, basis, p, sets)
     pv = np.where(dof > 0, scipy.stats.chi2.sf(stat, np.maximum(dof, 1)), 1.0)
     size = sets.sum(axis=1)
     ok = np.flatnonzero(pv >= alpha)
     if ok.size == 0:
         return None
+    if g > GAUGE_SEARCH_MAX:  # many dof: adequacy alone keeps sets far less likely than the best adequate one
+        ok = ok[stat[ok] - stat[ok].min() < 2.0 * np.log(1.0 / alpha)]
     n = size[ok].min()
     best = ok[size[ok] == n][np.argmin(stat[ok][size[ok] == n])]
     c = tuple(int(j) for j in np.flatnonzero(sets[best]))
     code = {tuple(int(j) for j in np.flatnonzero(m)): i for i, m in enumerate(sets)}
-    drop = {j: float(pv[code[tuple(i for i in c if i != j)]]) if len(c) > 1 else 0.0 for j in c}
+    if len(c) > 1 and g > GAUGE_SEARCH_MAX:  # the set without each of its IMUs: not among the candidates
+        less = np.repeat(sets[best][None, :], len(c), axis=0)
+        less[np.arange(len(c)), list(c)] = False
+        s1, d1 = shared_statistics(d, cov, basis, p, less)
+        p1 = np.where(d1 > 0, scipy.stats.chi2.sf(s1, np.maximum(d1, 1)), 1.0)
+        drop = {j: float(p1[i]) for i, j in enumerate(c)}
+    else:
+        drop = {j: float(pv[code[tuple(i for i in c if i != j)]]) if len(c) > 1 else 0.0 for j in c}
     close = [i for i in ok if i != best and stat[i] - stat[best] < 2.0 * np.log(1.0 / alpha)]
     comp = code.get(tuple(j for j in range(g) if j not in c))
     close.sort(key=lambda i: (i != comp, stat[i]))
@@ -330,8 +360,10 @@ def _selector(n_imus: int, p: int, inside, shared: bool) -> np.ndarray:
 def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | None:
     """The IMUs that carry ``term``'s pooled finding on ``imus`` in the joint ``fit`` (module docstring, step 1):
     the smallest proper subset whose restriction the Wald test accepts at ``alpha`` (over the fit's gauge
-    representations), or one as small or smaller with one value shared up to the gauge (:func:`shared_sets`,
-    scopes of at most :data:`GAUGE_SEARCH_MAX` IMUs: fewer values), or None.  Positions in the Proposal are IMU indexes."""
+    representations), or one as small or smaller with one value shared up to the gauge (:func:`shared_sets` on
+    scopes of at most :data:`GAUGE_SEARCH_MAX` IMUs, :func:`.subset_split.split_sets` on larger ones, where it
+    is also kept against own-value sets of two or more IMUs: fewer values), or None.  Positions in the
+    Proposal are IMU indexes."""
     imus = list(imus)
     g, p = len(imus), REGISTRY[term].dim()
     found = []
@@ -342,7 +374,10 @@ def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | 
                 continue  # leaves out only the IMU the gauge puts at zero: on every IMU, up to the gauge
             found.append((len(c), zs, c, zd, rep, ps))
     gs = _shared_in_gauge(fit, term, imus, base, alpha)
-    if gs is not None and (not found or len(gs[0]) <= min(x[0] for x in found)):  # as few IMUs, fewer values
+    few = min((x[0] for x in found), default=0)
+    # as few IMUs, fewer values; on a large scope (own-value sets searched greedily, in gauges that absorb one
+    # IMU's value) any own-value set of two or more IMUs has more values than one shared value
+    if gs is not None and (not found or len(gs[0]) <= few or (g > GAUGE_SEARCH_MAX and few > 1)):
         c, zs, zd, drop, close = gs
         return Proposal(tuple(imus[j] for j in c), {imus[j]: v for j, v in drop.items()}, zs, zd, zs, alpha,
                         in_gauge=True, equivalents=[(tuple(imus[j] for j in e), st) for e, st in close])
