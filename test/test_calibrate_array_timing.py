@@ -1,6 +1,8 @@
 """The stages of ``calibrate all`` (imu_array_ros.calibration.array.calibrate_array) never build on nonsense:
-the timing stage recovers known time offsets and keeps the moving stage's terms; a moving stage that did not
-converge or is physically implausible is refused (skipped with the reason, the static stage's model kept, no timing
+the timing stage recovers known gyroscope time offsets and keeps the moving stage's terms (the accelerometers'
+common delay is biased by the engine's timing approximation on fast motion: a strict xfail); the simulated
+session reads a timed model at the true sample times; a moving stage that did not converge or is physically
+implausible is refused (skipped with the reason, the static stage's model kept, no timing
 stage on it); a timing fit the data cannot identify is skipped with the reason; the command line says so in one
 line, non-zero only when nothing could be calibrated."""
 
@@ -57,11 +59,9 @@ def twist(nominal):
 
 
 def test_the_timing_stage_recovers_known_offsets_and_keeps_the_moving_stage(session, nominal, offsets):
-    """Every fitted offset within 4 of its std of the truth; the reference gyroscope's held (the gauge of time);
-    the written positions and gyroscope terms are the moving stage's, bit for bit.  (On 8 seeds of this session
-    the accelerometers' common delay -- true 0 -- came out 6-8 std off on 2 and a gyroscope offset 4.0-4.6 std
-    off on 2: the std are those of the offsets given the moving stage's terms, whose own errors they do not
-    include.  This seed is the first one tried.)"""
+    """Every fitted gyroscope offset within 4 of its std of the truth; the reference gyroscope's held (the gauge
+    of time); the written positions and gyroscope terms are the moving stage's, bit for bit.  The accelerometers'
+    offsets: test_the_accelerometers_common_delay_is_biased (a known failure)."""
     cal = calibrate_array(session, nominal, timing=True, clock_period=None, still_options=STILL)
     assert cal.skipped == {} and cal.static is not None and cal.moving is not None and cal.timing is not None
     assert cal.timed and "-> timing" in cal.method()
@@ -69,12 +69,63 @@ def test_the_timing_stage_recovers_known_offsets_and_keeps_the_moving_stage(sess
     fitted = np.isfinite(std) & (std > 0)
     assert fitted.sum() == 2 * nominal.n_imus - 1 and not fitted[0, 1]
     assert est[0, 1] == 0.0
-    z = (est - offsets)[fitted] / std[fitted]
-    print(f"\ntime offsets, us: {np.round(est * 1e6).tolist()}; |z| max {np.max(np.abs(z)):.2f}")
-    assert np.max(np.abs(z)) < 4.0, z
+    z = (est - offsets) / std
+    print(f"\ntime offsets, us: {np.round(est * 1e6).tolist()}; z {np.round(z, 2).tolist()}")
+    assert np.max(np.abs(z[1:, 1])) < 4.0, z
     for term in HELD:
         assert np.array_equal(cal.model.terms[term].values, cal.moving.model.terms[term].values), term
     assert [s["stage"] for s in cal.record()["stages"]][-1] == "timing"
+
+
+@pytest.mark.xfail(strict=True, reason="the engine's timing approximation (local cubics of the motion over >= 5 "
+                   "samples) is biased on the 0.3 s transitions at 62.5 Hz: the accelerometers' common delay comes out "
+                   "~50 us early with the true model held (mean z -1.8); docs/timing.md")
+def test_the_accelerometers_common_delay_is_biased(session, nominal, offsets):
+    """Every fitted accelerometer offset within 4 of its std of the truth (true 0): fails, 3.7-4.3 std early on
+    this seed; over 24 fresh seeds the accelerometer offsets' z average -1.2
+    (benchmarks/results/calibrate_timing_trust.md).  The same fit with the true positions and gyroscope terms held
+    is as early (-1.8); with 1 s transitions it is not, at 250 Hz a third as much: the bias is the engine's timing
+    approximation, not the held terms' uncertainty (docs/timing.md)."""
+    cal = calibrate_array(session, nominal, timing=True, clock_period=None, still_options=STILL)
+    est, std = cal.model.terms["time_offset"].values[:, 0], cal.stds()["time_offset"][:, 0]
+    z = (est - offsets[:, 0]) / std
+    print(f"\naccelerometer offsets, us: {np.round(est * 1e6).tolist()}; z {np.round(z, 2).tolist()}")
+    assert np.max(np.abs(z)) < 4.0, z
+
+
+def test_the_simulated_session_reads_a_timed_model_at_the_true_sample_times(nominal):
+    """A gyroscope one sample period late reads the next sample's motion, an accelerometer one period early the
+    previous one's, to rounding (noise off).  Before 2026-11-28 simulate_icosahedron shifted the readings along
+    local cubics of the truth at the stamps, 0.7 rad/s off on the 0.3 s transitions at 62.5 Hz: with the true
+    model held, the timing fit then put the accelerometers ~300 us late and the gyroscope offsets 1 % short, 10
+    of their std (benchmarks/results/calibrate_timing_trust.md)."""
+    quiet = replace(nominal, acc_std=0 * nominal.acc_std, gyro_std=0 * nominal.gyro_std)
+    period = 1 / 62.5
+    to = np.zeros((nominal.n_imus, 2))
+    to[1, 1], to[2, 0] = period, -period
+    run = dict(rate_hz=62.5, still_s=1.0, transition_s=0.3, twist_s=1.2)
+    timed = simulate_icosahedron(quiet.with_terms(time_offset=to), np.random.default_rng(3), **run)[0]
+    plain = simulate_icosahedron(quiet, np.random.default_rng(3), **run)[0]
+    assert np.ptp(plain.gyro[:, 1]) > 5.0  # the session moves
+    np.testing.assert_allclose(timed.gyro[:-1, 1], plain.gyro[1:, 1], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(timed.accel[1:, 2], plain.accel[:-1, 2], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(timed.gyro[:, [0, 2, 3]], plain.gyro[:, [0, 2, 3]])
+
+
+@pytest.mark.parametrize("seed", [2, 3, 4, 5])
+def test_the_gyroscope_offsets_repeat_within_their_std(nominal, offsets, seed):
+    """On other seeds of the session the two late/early gyroscopes' offsets are within 4 of their written std of
+    the truth (24 fresh seeds in benchmarks/results/calibrate_timing_trust.md: |z| <= 2.7; with the session's
+    readings shifted along cubics of the truth, as simulated before, 20 of those 48 were 4-7.7 std off, and seed 5
+    here 4.6)."""
+    samples = simulate_icosahedron(nominal.with_terms(time_offset=offsets), np.random.default_rng(seed),
+                                   rate_hz=62.5, still_s=1.0, transition_s=0.3, twist_s=1.2)[0]
+    cal = calibrate_array(samples, nominal, timing=True, clock_period=None, still_options=STILL)
+    assert cal.timing is not None, cal.skipped
+    est, std = cal.model.terms["time_offset"].values[[1, 3], 1], cal.stds()["time_offset"][[1, 3], 1]
+    z = (est - offsets[[1, 3], 1]) / std
+    print(f"\nseed {seed}: gyroscope offsets {np.round(est * 1e6).tolist()} us, z {np.round(z, 2).tolist()}")
+    assert np.all(np.abs(z) < 4.0), z
 
 
 def test_a_moving_stage_that_did_not_converge_is_refused_and_nothing_is_built_on_it(twist, nominal):

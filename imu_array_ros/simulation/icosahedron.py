@@ -17,7 +17,8 @@ attitude is exact.  Optionally ``twist_s`` seconds of hand twisting follow
 attitude, faded in over 1 s so omega stays continuous), as in the real
 MIMU4444BT captures.  The measurements come from
 :func:`~imu_array_ros.simulation.simulator.simulate_measurements` (the one
-forward model).
+forward model); a timed model (time offsets, sample clocks) reads the exact
+motion at every reading's true sample time (``exact_timing``).
 """
 
 from __future__ import annotations
@@ -129,6 +130,83 @@ class _FadedTwist(TwistTrajectory):
         return self._envelope(t)[0] * super().acceleration_world(t)
 
 
+@dataclass(frozen=True)
+class _Handling:
+    """The faces and the transitions between them as a function of time (s from the start; before 0 at rest on
+    the first face, after the last transition on the last): (q (n, 4) [w, x, y, z] body -> world, omega,
+    omega_dot (n, 3) body, acceleration (n, 3) world)."""
+
+    q_face: np.ndarray
+    v: np.ndarray
+    wobble: np.ndarray
+    axis: np.ndarray
+    lift: np.ndarray
+    still_s: float
+    transition_s: float
+
+    def __call__(self, t: np.ndarray):
+        t = np.maximum(np.asarray(t, dtype=float), 0.0)
+        q_face, v, wobble, axis, lift, still_s = self.q_face, self.v, self.wobble, self.axis, self.lift, self.still_s
+        period = still_s + self.transition_s
+        seg = np.minimum(np.floor(t / period).astype(np.int64), FACES - 1)
+        local = t - seg * period
+        moving = (local >= still_s) & (seg < FACES - 1)
+        n = len(t)
+        q = q_face[np.clip(seg, 0, FACES - 1)].copy()
+        omega = np.zeros((n, 3))
+        omega_dot = np.zeros((n, 3))
+        acc_world = np.zeros((n, 3))
+        if moving.any():
+            j = seg[moving]
+            T = self.transition_s
+            u = (local[moving] - still_s) / T
+            p = u * (1.0 - u)
+            tau = u**3 * (10 - 15 * u + 6 * u * u)
+            d_tau = 30.0 * p * p / T
+            dd_tau = 60.0 * p * (1.0 - 2.0 * u) / T**2
+            bump = 64.0 * p**3
+            d_bump = 64.0 * 3.0 * p * p * (1.0 - 2.0 * u) / T
+            dd_bump = 64.0 * (6.0 * p * (1.0 - 2.0 * u) ** 2 - 6.0 * p * p) / T**2
+            b, db, ddb = (wobble[j] * x for x in (bump, d_bump, dd_bump))
+            c, vj = axis[j], v[j]
+            q_b = quat_exp(b[:, None] * c)
+            q[moving] = quat_multiply(quat_multiply(q_face[j], quat_exp(tau[:, None] * vj)), q_b)
+            rb_t = np.swapaxes(quat_to_matrix(q_b), 1, 2)  # R_B^T
+            w_a = np.einsum("nij,nj->ni", rb_t, d_tau[:, None] * vj)  # path rate seen in the wobbled frame
+            omega[moving] = w_a + db[:, None] * c
+            omega_dot[moving] = (-np.cross(db[:, None] * c, w_a)
+                                 + np.einsum("nij,nj->ni", rb_t, dd_tau[:, None] * vj) + ddb[:, None] * c)
+            acc_world[moving] = dd_bump[:, None] * lift[j]
+        return q, omega, omega_dot, acc_world
+
+
+@dataclass(frozen=True)
+class _SessionFunction:
+    """The session's motion as a function of int64 ns time (any shape): (omega, omega_dot, specific_force), each
+    shape + (3,), array frame -- the ``MotionContext.trajectory`` with which a timed model reads the motion at every
+    reading's true sample time (as :func:`~imu_array_ros.simulation.simulator.simulate_trajectory` does), not
+    through local cubics of the truth at the stamps (those smooth the 0.3 s transitions: at 62.5 Hz the fitted
+    accelerometer delays came out ~300 us late and gyroscope offsets 1 % short with the true model)."""
+
+    handling: _Handling
+    start_ns: int
+    twist: TwistTrajectory | None
+    twist_ns: int
+
+    def __call__(self, stamps_ns: np.ndarray):
+        stamps = np.asarray(stamps_ns, dtype=np.int64)
+        flat = stamps.reshape(-1)
+        q, omega, omega_dot, acc_world = self.handling((flat - np.int64(self.start_ns)) * 1e-9)
+        s = np.einsum("nji,nj->ni", quat_to_matrix(q), acc_world + np.array([0.0, 0.0, STANDARD_GRAVITY]))
+        if self.twist is not None:
+            on = flat >= self.twist_ns
+            if on.any():
+                w, wd, sf, _ = self.twist.motion_at(flat[on], self.twist_ns)
+                omega[on], omega_dot[on], s[on] = w, wd, sf
+        shape = stamps.shape + (3,)
+        return omega.reshape(shape), omega_dot.reshape(shape), s.reshape(shape)
+
+
 def simulate_icosahedron(
     model: SensorModel | ArrayDescription,
     rng: np.random.Generator,
@@ -140,12 +218,16 @@ def simulate_icosahedron(
     twist_s: float = 0.0,
     rms_rate: float = float(np.deg2rad(600.0)),
     start_ns: int = 0,
+    exact_timing: bool = True,
 ) -> tuple[ImuSamples, MotionTruth, IcosahedronInfo]:
     """An icosahedron session: 20 rests of ``still_s`` joined by ``transition_s`` of handling,
     then ``twist_s`` of hand twisting at ``rms_rate`` rad/s RMS (see the module docstring).
 
     Stamps start at ``start_ns`` and are 1/rate_hz apart; duration
     20 still_s + 19 transition_s + twist_s.  ``tilt_std``: rad about each horizontal (world) axis.
+    A timed model (time offsets, sample clocks) reads the motion at every reading's true sample time
+    (``exact_timing``, as :func:`~imu_array_ros.simulation.simulator.simulate_twist`); ``exact_timing=False``: through
+    local cubics of the truth at the stamps, as before 2026-11-28 (inexact on the 0.3 s transitions at 62.5 Hz).
     """
     if not (rate_hz > 0 and still_s > 0 and transition_s > 0 and tilt_std >= 0 and twist_s >= 0):
         raise ValueError("rate_hz, still_s and transition_s must be > 0, tilt_std and twist_s >= 0")
@@ -165,6 +247,7 @@ def simulate_icosahedron(
     axis = rng.normal(size=(FACES - 1, 3))
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
     lift = rng.normal(0.0, 0.02, (FACES - 1, 3)) + np.array([0.0, 0.0, 0.05])  # m: carried over, lifted ~5 cm
+    handling = _Handling(q_face, v, wobble, axis, lift, still_s, transition_s)
 
     period = still_s + transition_s
     faces_end = FACES * still_s + (FACES - 1) * transition_s
@@ -178,32 +261,8 @@ def simulate_icosahedron(
     moving = (local >= still_s) & (seg < FACES - 1)
     face = np.where(moving | twisting, -1, seg)
 
-    q = q_face[np.clip(seg, 0, FACES - 1)].copy()
-    omega = np.zeros((n, 3))
-    omega_dot = np.zeros((n, 3))
-    acc_world = np.zeros((n, 3))
-    if moving.any():
-        j = seg[moving]
-        T = transition_s
-        u = (local[moving] - still_s) / T
-        p = u * (1.0 - u)
-        tau = u**3 * (10 - 15 * u + 6 * u * u)
-        d_tau = 30.0 * p * p / T
-        dd_tau = 60.0 * p * (1.0 - 2.0 * u) / T**2
-        bump = 64.0 * p**3
-        d_bump = 64.0 * 3.0 * p * p * (1.0 - 2.0 * u) / T
-        dd_bump = 64.0 * (6.0 * p * (1.0 - 2.0 * u) ** 2 - 6.0 * p * p) / T**2
-        b, db, ddb = (wobble[j] * x for x in (bump, d_bump, dd_bump))
-        c, vj = axis[j], v[j]
-        q_b = quat_exp(b[:, None] * c)
-        q[moving] = quat_multiply(quat_multiply(q_face[j], quat_exp(tau[:, None] * vj)), q_b)
-        rb_t = np.swapaxes(quat_to_matrix(q_b), 1, 2)  # R_B^T
-        w_a = np.einsum("nij,nj->ni", rb_t, d_tau[:, None] * vj)  # path rate seen in the wobbled frame
-        omega[moving] = w_a + db[:, None] * c
-        omega_dot[moving] = (-np.cross(db[:, None] * c, w_a) + np.einsum("nij,nj->ni", rb_t, dd_tau[:, None] * vj)
-                             + ddb[:, None] * c)
-        acc_world[moving] = dd_bump[:, None] * lift[j]
-    twist_start = n
+    q, omega, omega_dot, acc_world = handling(t)
+    twist_start, traj = n, None
     if twisting.any():
         twist_start = int(np.flatnonzero(twisting)[0])
         traj = replace(_FadedTwist(*_twist_fields(TwistTrajectory.random(rng, rms_rate=rms_rate))),
@@ -224,7 +283,8 @@ def simulate_icosahedron(
     first = first[ids >= 0]
     intervals = np.column_stack([first, first + counts]).astype(np.int64)
     info = IcosahedronInfo(normals=normals, attitudes=q_face, face=face, intervals=intervals, twist_start=twist_start)
-    return simulate_measurements(model, truth, rng), truth, info
+    function = _SessionFunction(handling, int(start_ns), traj, int(start_ns) + int(round(faces_end * 1e9)))
+    return simulate_measurements(model, truth, rng, trajectory=function if exact_timing else None), truth, info
 
 
 def _twist_fields(traj: TwistTrajectory) -> tuple:
