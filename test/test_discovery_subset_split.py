@@ -57,6 +57,7 @@ def test_a_value_shared_by_an_unknown_set_of_32_is_found(seed, exact):
     prop = propose(fit, TERM, range(G), np.zeros((G, P)), 0.01)
     assert prop is not None and prop.in_gauge
     assert prop.imus == carriers
+    assert prop.gauge == exact  # the report says "up to the gauge" only where a gauge freedom moves the term
 
 
 @pytest.mark.parametrize("exact", [True, False], ids=["exact gauge", "near gauge"])

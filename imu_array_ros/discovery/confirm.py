@@ -154,7 +154,8 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
         return None
     sub = prop.imus
     names = [model.names[k] for k in sub]
-    how = ("one value shared by which, up to the fit's gauge freedoms," if prop.in_gauge else "")
+    how = (("one value shared by which, up to the fit's gauge freedoms," if prop.gauge else
+            "one value shared by which,") if prop.in_gauge else "")
     tried = (f"narrowing to {', '.join(names)} (the fewest IMUs of the scope {how + ' ' if how else ''}the Wald test "
              f"at alpha = {alpha:g} accepts)")
     try:
@@ -199,8 +200,9 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
     groups = geometry_groups(model.positions, model.rotations)
     label = scope_label(sub, model.names, groups, shared_c)  # one IMU: "imu_3 own" (its pooled figures kept)
     ps = ", ".join(f"{model.names[k]} {p:.2g}" for k, p in prop.p.items())
-    whose = ("one value shared by which explains the pooled fit up to the fit's gauge freedoms (the values the "
-             "fused motion absorbs; Wald test" if prop.in_gauge else
+    whose = (("one value shared by which explains the pooled fit up to the fit's gauge freedoms (the values the "
+              "fused motion absorbs; Wald test" if prop.gauge else
+              "one value shared by which explains the pooled fit (Wald test") if prop.in_gauge else
              "whose own values explain the pooled fit (Wald test of nothing on the others")
     each = "the set without each: p = " if prop.in_gauge else "each given the others: p = "
     note = (f"tested at scope '{old}' (score test, statistic {c.statistic:.4g} on {c.dof} dof; exact gain "
@@ -230,11 +232,13 @@ def _equivalents(prop, term: str, model, groups, alpha: float) -> list:
     for imus, stat in prop.equivalents[:TIE_MAX - 1]:
         where = f"{scope_label(imus, model.names, groups, True)} ({', '.join(model.names[k] for k in imus)})"
         comp = not set(imus) & sub and len(set(imus) | sub) == n
-        why = (f"one value shared by these IMUs fits as well up to the gauge (Wald statistic {stat:.3g} against "
-               f"{prop.zero_stat:.3g}, within 2 ln(1/alpha) = {two:.3g}; gauge: a common {term} is absorbed by the "
-               f"fused motion"
+        figures = f"Wald statistic {stat:.3g} against {prop.zero_stat:.3g}, within 2 ln(1/alpha) = {two:.3g}"
+        why = (f"one value shared by these IMUs fits as well up to the gauge ({figures}; gauge: a common {term} is "
+               f"absorbed by the fused motion"
                + (f", so {term} on one set differs from the opposite value on its complement only by it" if comp
-                  else "") + "): the recording does not tell them apart")
+                  else "") + "): the recording does not tell them apart") if prop.gauge else (
+            f"one value shared by these IMUs fits as well ({figures}; no gauge freedom of the fit moves {term} "
+            "here): the recording does not tell them apart")
         out.append({"sensors": [where], "names": [model.names[k] for k in imus], "reason": why})
     for imus in prop.alternatives[:TIE_MAX - 1]:
         where = f"{scope_label(imus, model.names, groups, False)} ({', '.join(model.names[k] for k in imus)})"

@@ -148,6 +148,7 @@ class Proposal:
     alternatives: list = field(default_factory=list)
     in_gauge: bool = False
     equivalents: list = field(default_factory=list)
+    gauge: bool = True  # with in_gauge: a gauge freedom of the fit moves the term's values (large scopes: maybe not)
 
 
 def representations(fit, term: str, imus, base: np.ndarray) -> list[Representation]:
@@ -231,7 +232,8 @@ def _shared_in_gauge(fit, term: str, imus, base, alpha: float):
     values' leading direction (:func:`.subset_split.split_sets`), and of the adequate sets only those whose
     statistic is within 2 ln(1/alpha) of the lowest adequate one count (with (G - 1) p dof adequacy alone keeps
     sets far less likely than the best).  None when no proper subset is adequate.  Returns (C positions,
-    statistic, dof, {position: p of C without it}, [(positions, statistic)])."""
+    statistic, dof, {position: p of C without it}, [(positions, statistic)], whether a gauge freedom moves the
+    term)."""
     g, p = len(imus), REGISTRY[term].dim()
     idx = term_indexes(fit, term, imus)
     basis = gauge_basis(fit, idx)
@@ -267,7 +269,7 @@ def _shared_in_gauge(fit, term: str, imus, base, alpha: float):
     comp = code.get(tuple(j for j in range(g) if j not in c))
     close.sort(key=lambda i: (i != comp, stat[i]))
     return c, float(stat[best]), int(dof[best]), drop, [(tuple(int(j) for j in np.flatnonzero(sets[i])),
-                                                         float(stat[i])) for i in close]
+                                                         float(stat[i])) for i in close], basis.shape[1] > 0
 
 
 class _Restrictions:
@@ -378,9 +380,10 @@ def propose(fit, term: str, imus, base: np.ndarray, alpha: float) -> Proposal | 
     # as few IMUs, fewer values; on a large scope (own-value sets searched greedily, in gauges that absorb one
     # IMU's value) any own-value set of two or more IMUs has more values than one shared value
     if gs is not None and (not found or len(gs[0]) <= few or (g > GAUGE_SEARCH_MAX and few > 1)):
-        c, zs, zd, drop, close = gs
+        c, zs, zd, drop, close, gauge = gs
         return Proposal(tuple(imus[j] for j in c), {imus[j]: v for j, v in drop.items()}, zs, zd, zs, alpha,
-                        in_gauge=True, equivalents=[(tuple(imus[j] for j in e), st) for e, st in close])
+                        in_gauge=True, equivalents=[(tuple(imus[j] for j in e), st) for e, st in close],
+                        gauge=bool(gauge))
     if not found:
         return None
     found.sort(key=lambda x: (x[0], x[1]))
