@@ -140,12 +140,14 @@ def _calibration_node(dds, out, *params):
 MAX_MISSING = 8
 #: candidate sets kept per size in the search beyond three missing IMUs
 BEAM = 64
+#: what a fused sample publishes
+FIELDS = ("omega", "omega_dot", "specific_force")
 
 
 def _distance(got, fused, i) -> np.ndarray:
     """Per row of ``fused``: how far it is from the published sample ``i`` (sum of squared relative errors)."""
     out = np.zeros(len(fused.stamps))
-    for n in ("omega", "omega_dot", "specific_force"):
+    for n in FIELDS:
         ref = np.asarray(got[n][i])
         out += np.sum((getattr(fused, n) - ref) ** 2, axis=1) / (np.sum(ref ** 2) + 1e-12)
     return out
@@ -153,7 +155,7 @@ def _distance(got, fused, i) -> np.ndarray:
 
 def _missing_imus(fusion, window, i, exact, distance, seen: list, search: bool = True):
     """The IMUs without which the offline fusion of ``window``'s sample ``i`` is exactly the published one:
-    (missing IMU indexes, that fusion as one row), or (None, None).  Tried in turn, each group fused as one
+    (missing IMU indexes, that fusion as one row), or None.  Tried in turn, each group fused as one
     batch (rows 1 ns apart): the sets that explained earlier rows (``seen``, appended to; topics held back
     together stay so for a few samples; only these when not ``search``), every single IMU, pair and triple, then a beam search (the
     :data:`BEAM` nearest sets of each size grown by one IMU) up to :data:`MAX_MISSING`.  ``exact(fused, j)``:
@@ -174,35 +176,25 @@ def _missing_imus(fusion, window, i, exact, distance, seen: list, search: bool =
         return fused
 
     def hit(sets):
+        """((missing, row) or None, the fusion of every set)."""
         fused = fuse(sets)
         j = next((j for j in range(len(sets)) if exact(fused, j)), None)
         if j is None:
             return None, fused
         seen.append(sets[j])
-        return sets[j], SimpleNamespace(**{n: getattr(fused, n)[j:j + 1] for n in ("omega", "omega_dot",
-                                                                                 "specific_force")})
+        return (sets[j], SimpleNamespace(**{n: getattr(fused, n)[j:j + 1] for n in FIELDS})), fused
 
-    if seen:
-        found = hit(list(dict.fromkeys(seen)))
-        if found[0] is not None or not search:
+    found = hit(list(dict.fromkeys(seen)))[0] if seen else None
+    if found is not None or not search:
+        return found
+    for size in range(1, MAX_MISSING + 1):
+        sets = (list(combinations(range(k), size)) if size <= 3 else
+                list(dict.fromkeys(tuple(sorted(b + (m,))) for b in beam for m in range(k) if m not in b)))
+        found, fused = hit(sets)
+        if found is not None:
             return found
-    if not search:
-        return None, None
-    beam = []
-    for size in (1, 2, 3):
-        sets = list(combinations(range(k), size))
-        missing, fused = hit(sets)
-        if missing is not None:
-            return missing, fused
-        if size == 3:
-            beam = [sets[j] for j in np.argsort(distance(fused))[:BEAM]]
-    for size in range(4, MAX_MISSING + 1):
-        sets = list(dict.fromkeys(tuple(sorted(b + (m,))) for b in beam for m in range(k) if m not in b))
-        missing, fused = hit(sets)
-        if missing is not None:
-            return missing, fused
         beam = [sets[j] for j in np.argsort(distance(fused))[:BEAM]]
-    return None, None
+    return None
 
 
 def _diagnose(got, window, samples, rows, calibrated, nominal, unexplained) -> str:
@@ -211,18 +203,16 @@ def _diagnose(got, window, samples, rows, calibrated, nominal, unexplained) -> s
     calibrated fusion it is closest to (another row: the node fused another sample's readings under this stamp)."""
     from imu_array_ros.model.samples import ImuSamples
 
-    fields = ("omega", "omega_dot", "specific_force")
-    every = np.arange(len(samples.stamps))
     every_cal, _ = calibrated.fuse(ImuSamples(samples.stamps, samples.accel, samples.gyro, samples.names))
     here_cal, _ = calibrated.fuse(window)
     here_nom, _ = nominal.fuse(window)
     notes = []
     for i in unexplained[:8]:
-        far = lambda f, j: max(float(np.abs(got[n][i] - getattr(f, n)[j]).max()) for n in fields)  # noqa: E731
-        rec = np.max([np.abs(getattr(every_cal, n) - got[n][i]).max(axis=1) for n in fields], axis=0)
+        far = lambda f, j: max(float(np.abs(got[n][i] - getattr(f, n)[j]).max()) for n in FIELDS)  # noqa: E731
+        rec = np.max([np.abs(getattr(every_cal, n) - got[n][i]).max(axis=1) for n in FIELDS], axis=0)
         j = int(np.argmin(rec))
         notes.append(f"sample {i} (recording row {rows[i]}): {far(here_cal, i):.3g} from the calibrated fusion, "
-                     f"{far(here_nom, i):.3g} from the nominal one; closest calibrated row {every[j]} ({rec[j]:.3g})")
+                     f"{far(here_nom, i):.3g} from the nominal one; closest calibrated row {j} ({rec[j]:.3g})")
     return "; ".join(notes)
 
 
@@ -286,25 +276,20 @@ def test_calibration_reaches_the_fusion_node(dds, caller, tmp_path):
     # node took it), also on several topics at once; the node then fuses that sample without the silent IMUs
     # once its sync timeout passes, and counts it as incomplete.  Such a row must be exactly the offline fusion
     # without some IMUs (_missing_imus finds which), and there are no more of them than the node counted.
-    fields = ("omega", "omega_dot", "specific_force")
     close = lambda f, i, j: all(np.allclose(got[n][i], getattr(f, n)[j], rtol=1e-9, atol=1e-9)  # noqa: E731
-                                for n in fields)
+                                for n in FIELDS)
     off = [i for i in range(len(want.stamps)) if not close(want, i, i)]
     names = nominal.names
-    unexplained, seen, lost = [], [], {}
+    seen, lost = [], {}
     for search in (True, False):  # again without a search: a row before the one whose search found its set
-        for i in (off if search else list(unexplained)):
-            missing, alone = _missing_imus(calibrated_fusion, window, i, lambda f, j: close(f, i, j),
-                                           lambda f: _distance(got, f, i), seen, search=search)
-            if missing is None:
-                if search:
-                    unexplained.append(i)
-                continue
-            lost[i] = missing, alone
-            if not search:
-                unexplained.remove(i)
+        for i in [i for i in off if i not in lost]:
+            found = _missing_imus(calibrated_fusion, window, i, lambda f, j: close(f, i, j),
+                                  lambda f: _distance(got, f, i), seen, search=search)
+            if found is not None:
+                lost[i] = found
+    unexplained = [i for i in off if i not in lost]
     for i, (missing, alone) in sorted(lost.items()):
-        for n in fields:
+        for n in FIELDS:
             getattr(want, n)[i] = getattr(alone, n)[0]
         print(f"sample {i}: fused without {', '.join(names[k] for k in missing)} (message(s) lost under load), "
               "as offline")
@@ -312,7 +297,7 @@ def test_calibration_reaches_the_fusion_node(dds, caller, tmp_path):
                              f"(those of earlier rows, every one up to three, a beam search to {MAX_MISSING}): "
                              f"{_diagnose(got, window, samples, rows, calibrated_fusion, build_fusion(nominal), unexplained)}; "
                              f"fusion node: {fusion_diag}")
-    for name in ("omega", "omega_dot", "specific_force"):
+    for name in FIELDS:
         np.testing.assert_allclose(got[name], getattr(want, name), rtol=1e-9, atol=1e-9,
                                    err_msg=f"{name}; fusion node: {fusion_diag}")
     # not an accident: every sample tells the two descriptions apart by far more than the tolerance
