@@ -144,13 +144,17 @@ class _Handling:
     still_s: float
     transition_s: float
 
+    def phase(self, t: np.ndarray):
+        """(face or transition index seg, s since its rest began, in a transition) at times t >= 0 (s)."""
+        period = self.still_s + self.transition_s
+        seg = np.minimum(np.floor(t / period).astype(np.int64), FACES - 1)
+        local = t - seg * period
+        return seg, local, (local >= self.still_s) & (seg < FACES - 1)
+
     def __call__(self, t: np.ndarray):
         t = np.maximum(np.asarray(t, dtype=float), 0.0)
         q_face, v, wobble, axis, lift, still_s = self.q_face, self.v, self.wobble, self.axis, self.lift, self.still_s
-        period = still_s + self.transition_s
-        seg = np.minimum(np.floor(t / period).astype(np.int64), FACES - 1)
-        local = t - seg * period
-        moving = (local >= still_s) & (seg < FACES - 1)
+        seg, local, moving = self.phase(t)
         n = len(t)
         q = q_face[np.clip(seg, 0, FACES - 1)].copy()
         omega = np.zeros((n, 3))
@@ -197,7 +201,7 @@ class _SessionFunction:
         stamps = np.asarray(stamps_ns, dtype=np.int64)
         flat = stamps.reshape(-1)
         q, omega, omega_dot, acc_world = self.handling((flat - np.int64(self.start_ns)) * 1e-9)
-        s = np.einsum("nji,nj->ni", quat_to_matrix(q), acc_world + np.array([0.0, 0.0, STANDARD_GRAVITY]))
+        s = _specific_force(q, acc_world)
         if self.twist is not None:
             on = flat >= self.twist_ns
             if on.any():
@@ -249,16 +253,13 @@ def simulate_icosahedron(
     lift = rng.normal(0.0, 0.02, (FACES - 1, 3)) + np.array([0.0, 0.0, 0.05])  # m: carried over, lifted ~5 cm
     handling = _Handling(q_face, v, wobble, axis, lift, still_s, transition_s)
 
-    period = still_s + transition_s
     faces_end = FACES * still_s + (FACES - 1) * transition_s
     n = int(round((faces_end + twist_s) * rate_hz))
     stamps = int(start_ns) + np.round(np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
     t = (stamps - int(start_ns)) * 1e-9
 
-    seg = np.minimum(np.floor(t / period).astype(np.int64), FACES - 1)
-    local = t - seg * period
+    seg, _, moving = handling.phase(t)
     twisting = t >= faces_end if twist_s > 0 else np.zeros(n, dtype=bool)
-    moving = (local >= still_s) & (seg < FACES - 1)
     face = np.where(moving | twisting, -1, seg)
 
     q, omega, omega_dot, acc_world = handling(t)
@@ -273,8 +274,7 @@ def simulate_icosahedron(
         omega_dot[twisting] = traj.omega_dot(tt)
         acc_world[twisting] = traj.acceleration_world(tt)
 
-    g_world = np.array([0.0, 0.0, -STANDARD_GRAVITY])
-    s = np.einsum("nji,nj->ni", quat_to_matrix(q), acc_world - g_world)
+    s = _specific_force(q, acc_world)
     truth = MotionTruth(stamps=stamps, omega=omega, omega_dot=omega_dot, specific_force=s, attitude=q)
     counts = np.bincount(face[face >= 0], minlength=FACES)
     if counts.min() < 1:
@@ -285,6 +285,11 @@ def simulate_icosahedron(
     info = IcosahedronInfo(normals=normals, attitudes=q_face, face=face, intervals=intervals, twist_start=twist_start)
     function = _SessionFunction(handling, int(start_ns), traj, int(start_ns) + int(round(faces_end * 1e9)))
     return simulate_measurements(model, truth, rng, trajectory=function if exact_timing else None), truth, info
+
+
+def _specific_force(q: np.ndarray, acc_world: np.ndarray) -> np.ndarray:
+    """(n, 3) body-frame specific force of attitudes q (n, 4) body -> world under world acceleration (n, 3)."""
+    return np.einsum("nji,nj->ni", quat_to_matrix(q), acc_world + np.array([0.0, 0.0, STANDARD_GRAVITY]))
 
 
 def _twist_fields(traj: TwistTrajectory) -> tuple:
