@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from imu_array_ros.discovery.subset import GAUGE_SEARCH_MAX, propose, shared_sets, shared_statistics
+from imu_array_ros.discovery.subset import EIG_RTOL, GAUGE_SEARCH_MAX, propose, shared_sets, shared_statistics
 from imu_array_ros.discovery.subset_split import split_sets
 
 TERM = "gyroscope_bias"  # 3 parameters
@@ -64,7 +64,7 @@ def test_a_value_shared_by_an_unknown_set_of_32_is_found(seed, exact):
 def test_the_carriers_are_a_split_along_the_whitened_values(exact):
     fit, carriers = _scenario(100, exact)
     basis = np.linalg.svd(fit.gauge_directions, full_matrices=False)[0] if exact else np.zeros((G * P, 0))
-    sets = split_sets(fit.theta, fit.covariance, basis, G, P)
+    sets = split_sets(fit.theta, fit.covariance, basis, G, P, rtol=EIG_RTOL)
     assert len(sets) == 2 * (G - 1)
     truth = np.zeros(G, dtype=bool)
     truth[list(carriers)] = True

@@ -244,7 +244,7 @@ def _shared_in_gauge(fit, term: str, imus, base, alpha: float):
     if g <= GAUGE_SEARCH_MAX:
         sets, stat, dof = shared_sets(d, cov, basis, g, p)
     else:  # too many subsets: both sides of every split along the values' leading direction (.subset_split)
-        sets = split_sets(d, cov, basis, g, p)
+        sets = split_sets(d, cov, basis, g, p, rtol=EIG_RTOL)
         stat, dof = shared_statistics(d, cov, basis, p, sets)
     pv = np.where(dof > 0, scipy.stats.chi2.sf(stat, np.maximum(dof, 1)), 1.0)
     size = sets.sum(axis=1)

@@ -18,17 +18,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["split_sets", "whitened_values", "EIG_RTOL"]
-
-#: eigenvalue of the covariance (parameters in a common unit), relative to its largest, below which a direction
-#: is not identified (the value of :data:`.subset.EIG_RTOL`)
-EIG_RTOL = 1e-10
+__all__ = ["split_sets", "whitened_values"]
 
 
-def whitened_values(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: int, p: int) -> np.ndarray:
+def whitened_values(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: int, p: int, *,
+                    rtol: float) -> np.ndarray:
     """(G, p): the changes ``d`` (G p,) across the gauge ``basis`` (G p, r), whitened by their covariance
     ``cov``: Q (Q^T C Q)^{+1/2} Q^T d with Q an orthonormal basis orthogonal to B, parameters first put in a
-    common unit per parameter (the median variance over the IMUs that estimate it)."""
+    common unit per parameter (the median variance over the IMUs that estimate it); directions whose eigenvalue is
+    below ``rtol`` times the largest are not identified (the caller's :data:`.subset.EIG_RTOL`)."""
     g = n_imus
     var = np.clip(np.diag(cov), 0.0, None).reshape(g, p)
     known = var > 0
@@ -40,17 +38,17 @@ def whitened_values(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: i
     lam, vec = np.linalg.eigh(q.T @ c @ q)
     if lam.size == 0 or lam.max() <= 0:
         return np.zeros((g, p))
-    ok = lam > EIG_RTOL * lam.max()
+    ok = lam > rtol * lam.max()
     y = vec[:, ok] @ ((vec[:, ok].T @ (q.T @ x)) / np.sqrt(lam[ok]))
     return (q @ y).reshape(g, p)
 
 
-def split_sets(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: int, p: int) -> np.ndarray:
+def split_sets(d: np.ndarray, cov: np.ndarray, basis: np.ndarray, n_imus: int, p: int, *, rtol: float) -> np.ndarray:
     """Candidate sets (S, G) bool of "one value shared by C, up to the gauge": both sides of every contiguous
     split of the IMUs sorted along the leading principal direction of their whitened, gauge-free values
     (:func:`whitened_values`)."""
     g = n_imus
-    e = whitened_values(d, cov, basis, g, p)
+    e = whitened_values(d, cov, basis, g, p, rtol=rtol)
     c = e - e.mean(axis=0)
     t = c @ np.linalg.eigh(c.T @ c)[1][:, -1]
     order = np.argsort(t, kind="stable")
