@@ -233,12 +233,15 @@ def _equivalents(prop, term: str, model, groups, alpha: float) -> list:
         where = f"{scope_label(imus, model.names, groups, True)} ({', '.join(model.names[k] for k in imus)})"
         comp = not set(imus) & sub and len(set(imus) | sub) == n
         figures = f"Wald statistic {stat:.3g} against {prop.zero_stat:.3g}, within 2 ln(1/alpha) = {two:.3g}"
-        why = (f"one value shared by these IMUs fits as well up to the gauge ({figures}; gauge: a common {term} is "
-               f"absorbed by the fused motion"
-               + (f", so {term} on one set differs from the opposite value on its complement only by it" if comp
-                  else "") + "): the recording does not tell them apart") if prop.gauge else (
-            f"one value shared by these IMUs fits as well ({figures}; no gauge freedom of the fit moves {term} "
-            "here): the recording does not tell them apart")
+        if prop.gauge:
+            why = (f"one value shared by these IMUs fits as well up to the gauge ({figures}; gauge: a common {term} "
+                   "is absorbed by the fused motion"
+                   + (f", so {term} on one set differs from the opposite value on its complement only by it"
+                      if comp else ""))
+        else:
+            why = (f"one value shared by these IMUs fits as well ({figures}; no gauge freedom of the fit moves "
+                   f"{term} here")
+        why += "): the recording does not tell them apart"
         out.append({"sensors": [where], "names": [model.names[k] for k in imus], "reason": why})
     for imus in prop.alternatives[:TIE_MAX - 1]:
         where = f"{scope_label(imus, model.names, groups, False)} ({', '.join(model.names[k] for k in imus)})"
