@@ -24,17 +24,18 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import subprocess
 import time
 from datetime import datetime, timezone
 
 import numpy as np
 
+from benchmarks.harness import command, commit
 from imu_array_ros.calibration.array import MOVING_TERMS, calibrate_array
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.layouts import tetrahedron4
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.simulation.icosahedron import simulate_icosahedron
+from imu_array_ros.util.files import atomic_write_text
 
 STILL = dict(window_s=0.3, min_duration_s=0.3, settle_s=0.1)
 
@@ -132,20 +133,18 @@ def main(argv=None) -> dict:
                                                                  axis=0).tolist()))
     summary["truth_held_error_mean_us"] = dict(zip(names, np.mean([r["truth_held_error_us"] for r in done],
                                                                   axis=0).tolist()))
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     meta = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "machine": platform.node(),
             "cpu": platform.processor() or platform.machine(), "python": platform.python_version(),
-            "commit": commit, "seeds": args.seeds, "timed": len(done), "total": len(rows)}
+            "commit": commit(), "seeds": args.seeds, "timed": len(done), "total": len(rows)}
     result = {"meta": meta, "summary": summary, "rows": rows}
     for kind in KINDS:
         s = summary[kind]["all"]
         print(f"{kind}: z std {s['std']:.2f}, rms {s['rms']:.2f}, |z|>3 {s['frac_abs_gt_3']:.1%}, "
               f"max {s['max_abs']:.1f} (n={s['n']})")
     if args.out:
-        with open(args.out + ".json", "w") as fh:
-            json.dump(result, fh, indent=1)
-        with open(args.out + ".md", "w") as fh:
-            fh.write(report(result, " ".join(["python -m benchmarks.calibrate_timing_trust"] + list(argv or []))))
+        atomic_write_text(args.out + ".json", json.dumps(result, indent=1))
+        atomic_write_text(args.out + ".md", report(result, command(None if argv is None else
+                                                                  ["benchmarks/calibrate_timing_trust.py", *argv])))
     return result
 
 
