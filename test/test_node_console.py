@@ -286,7 +286,10 @@ def test_a_device_streaming_other_imus_is_said_once(driver, capfd):
         text = lines[0][3]
         assert f"serial port {path}: " in text and "no packet of 8 IMUs" in text and str(CORNERS) in text, text
         streaming = console.matching("streaming 8 IMUs")
-        assert streaming and NO_PACKET_S <= lines[0][1] - streaming[0][1] < NO_PACKET_S + 1.0, (streaming, lines)
+        # the node times NO_PACKET_S on the monotonic clock read before each line is formatted; the console stamps
+        # are the wall clock when the line is logged, so the two lines' stamps may be a few ms closer than
+        # NO_PACKET_S (CI: 1.9985 s): 50 ms slack below, still failing a warning given early
+        assert streaming and NO_PACKET_S - 0.05 <= lines[0][1] - streaming[0][1] < NO_PACKET_S + 1.0, (streaming, lines)
     finally:
         os.close(master)
         os.close(slave)
