@@ -17,10 +17,12 @@ benchmarks/results/discovery_speed.json (one entry per tree and run) and the mar
 stage finds on the *whole* capture (their phases re-estimated on the window, as ``discover`` does for a
 description with clocks), so a window exercises the clocked model's refits (the timing stage finds no clock on a window of exp_3
 alone: 60+180, 300+180 and 0+300 s gave largest sawtooths 4.2-5.6x their median, 8x needed; the whole
-capture 38-46x on every gyroscope).
+capture 38-46x on every gyroscope).  ``--rates`` (with ``--window``): discover runs in the reading rates' scope,
+as ``imu-array discover`` does (its timing stage then tests each sample's reading rates; without it, as before,
+it does not); a window longer than the whole capture is the whole capture.
 
     python -m benchmarks.bench_discovery_speed [--capture exp_2] [--tree DIR --label NAME ...]
-        [--window START DURATION --max-findings N [--clocks]]
+        [--window START DURATION --max-findings N [--clocks] [--rates]]
 """
 
 from __future__ import annotations
@@ -99,9 +101,12 @@ model = as_model(desc)
 if sys.argv[7] == "clocks":  # the whole capture's sample clocks (not timed)
     from imu_array_ros.discovery.timing import timing_stage
     model = timing_stage(whole, model).model
+from contextlib import nullcontext
+from imu_array_ros.fitting.reading_rates import rates_scope
 t0 = time.perf_counter()
-d = discover(samples, model, options=DiscoveryOptions(max_findings=n),
-             progress=lambda text: print(f"{time.perf_counter() - t0:8.1f} s {text}", file=sys.stderr, flush=True))
+with rates_scope() if sys.argv[8] == "rates" else nullcontext():  # the reading rates' decision, as the CLI's
+    d = discover(samples, model, options=DiscoveryOptions(max_findings=n),
+                 progress=lambda text: print(f"{time.perf_counter() - t0:8.1f} s {text}", file=sys.stderr, flush=True))
 print(json.dumps({"wall_s": time.perf_counter() - t0, "samples": len(samples), "timings": d.timings,
                   "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "findings": [f"{f.effect}@{f.scope}:{','.join(f.candidate.sensors)}" for f in d.findings],
@@ -112,14 +117,16 @@ print(json.dumps({"wall_s": time.perf_counter() - t0, "samples": len(samples), "
 
 
 def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_findings: int,
-                  clocks: bool = False, log: Path | None = None) -> dict:
+                  clocks: bool = False, log: Path | None = None, rates: bool = False) -> dict:
     """discover (Python API, defaults but max_findings) on a window of the capture, from ``cal`` (``clocks``: with
-    the whole capture's sample clocks); its progress lines (seconds since its start) into ``log``."""
+    the whole capture's sample clocks; ``rates``: in the reading rates' scope, as ``imu-array discover`` runs it);
+    its progress lines (seconds since its start) into ``log``."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     say(f"[{label}] discover on {window[1]:g} s from {window[0]:g} s, at most {max_findings} findings"
         + (", the whole capture's sample clocks" if clocks else ""))
     out = subprocess.run(["nice", sys.executable, "-c", CHUNK, str(capture), str(cal), str(window[0]), str(window[1]),
-                          str(max_findings), str(ARRAY), "clocks" if clocks else "-"], env=env, capture_output=True,
+                          str(max_findings), str(ARRAY), "clocks" if clocks else "-", "rates" if rates else "-"],
+                         env=env, capture_output=True,
                          text=True, cwd=tree)
     if log is not None:
         log.write_text(out.stderr)
@@ -128,7 +135,7 @@ def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_
     r = json.loads(out.stdout.strip().splitlines()[-1])
     say(f"[{label}] {r['wall_s']:.1f} s")
     return {"label": label, "capture": capture.stem, "window_s": list(window), "max_findings": max_findings,
-            "clocks": clocks, **r, "load_average": load_average()}
+            "clocks": clocks, "rates": rates, **r, "load_average": load_average()}
 
 
 def _table(entries: list[dict]) -> str:
@@ -153,6 +160,8 @@ def main() -> int:
     ap.add_argument("--max-findings", type=int, default=8, help="with --window (default 8)")
     ap.add_argument("--clocks", action="store_true", help="with --window: start from the whole capture's sample "
                                                          "clocks (module docstring)")
+    ap.add_argument("--rates", action="store_true", help="with --window: discover in the reading rates' scope, as "
+                                                        "imu-array discover runs it (its timing stage decides them)")
     args = ap.parse_args()
     trees = [Path(t).resolve() for t in args.tree] or [REPO]
     labels = args.label or [("current" if t == REPO else t.name) for t in trees]
@@ -168,12 +177,13 @@ def main() -> int:
         _run(REPO, ["calibrate", "all", str(capture), "--array", str(ARRAY), "--out", str(cal), "-q"],
              work / "calibrate.log")
         runs = [measure_chunk(t, lab, capture, cal, args.window, args.max_findings, args.clocks,
-                              work / f"{lab.replace(' ', '_').replace('/', '_')}_progress.log")
+                              work / f"{lab.replace(' ', '_').replace('/', '_')}_progress.log", args.rates)
                 for t, lab in zip(trees, labels)]
         say(f"progress logs in {work}")
         text = "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
         text += "|---|---|---|---|---|---|---|---|---|\n" + "".join(
-            f"| {r['label']} | {r['capture']}{' (clocks)' if r['clocks'] else ''} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | "
+            f"| {r['label']} | {r['capture']}{' (clocks)' if r['clocks'] else ''}"
+            f"{' (rates)' if r.get('rates') else ''} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | "
             f"{r['max_findings']} | "
             f"{r['samples']} | "
             f"{r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | {'; '.join(r['findings']) or '—'} | "
@@ -202,7 +212,8 @@ def _write_md() -> None:
         text += ("\n## A window of the capture (`--window`), discover alone, trees in turn\n\n"
                  "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
                  "|---|---|---|---|---|---|---|---|---|\n" + "".join(
-                     f"| {r['label']} | {r.get('capture', '?')}{' (clocks)' if r.get('clocks') else ''} | "
+                     f"| {r['label']} | {r.get('capture', '?')}{' (clocks)' if r.get('clocks') else ''}"
+                     f"{' (rates)' if r.get('rates') else ''} | "
                      f"{r['window_s'][0]:g}+{r['window_s'][1]:g} | "
                      f"{r['max_findings']} | "
                      f"{r['samples']} | {r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | "

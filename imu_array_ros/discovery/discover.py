@@ -327,15 +327,25 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     loc_before = _localize(res, exp, motion, samples, model, opts.still_threshold)
     timings["locate"] = time.perf_counter() - t1
 
-    # 3b. timing physics the model lacks (.timing): sample clocks, found by search
-    timing, current = None, model
+    # 3b. timing physics the model lacks (.timing): sample clocks, found by search; on a long recording their
+    # likelihood tested on the subsample the search starts on, the whole recording's motion fitted only when needed
+    rungs = search_rungs(blocks, model.n_imus, opts.search_readings, opts.folds, opts.ladder_from)
+    on = rungs[0][0] if rungs else None
+    timing, current, whole_ml = None, model, True
     if opts.timing:
         t1 = time.perf_counter()
-        timing = timing_stage(samples, model, motion=motion, loglik=base_ll, residuals=base_r, say=say)
+        timing = timing_stage(samples, model, motion=motion, loglik=base_ll, residuals=base_r, say=say, on=on,
+                              on_label=f"every {_nth(rungs[0][2])} time block" if rungs else "")
         if timing.model is not model:
             current = timing.model
-            # the scores below start from its ML motion (the timing stage's own, when it kept it)
-            motion = timing.motion if timing.motion is not None else fit_motion(samples, current, motion)[0]
+            # the scores below start from its ML motion (the timing stage's own, when it kept it): of the first
+            # subsample alone on a long recording, elsewhere the input model's as the start of a later fit
+            part = samples if on is None else samples.select(on)
+            found = timing.motion if timing.motion is not None else fit_motion(part, current, motion[on] if
+                                                                               rungs else motion)[0]
+            motion, whole_ml = (found, True) if on is None else (motion.copy(), False)
+            if on is not None:
+                motion[on] = found
         timings["timing"] = time.perf_counter() - t1
 
     # 4. explain (.search): on a long recording first on an evenly spread subsample of its blocks
@@ -347,7 +357,6 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
                                                                 c, delta, step, c.scope, c.imus), notes=notes)
     whole = SearchData(samples, motion, blocks, fold_of_block)
     start_model, start_motion = current, motion
-    rungs = search_rungs(blocks, model.n_imus, opts.search_readings, opts.folds, opts.ladder_from)
     ladder = [SearchData(samples.select(index), motion[index], sub_blocks,
                          np.arange(int(sub_blocks[-1]) + 1) % opts.folds, f"every {_nth(k)} time block",
                          SUBSAMPLE_SHARE / len(rungs), index) for index, sub_blocks, k in rungs] + [whole]
@@ -396,6 +405,9 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         unexplained, empirical = _unexplained(loc_after, sb, motion, samples, current, blocks, fold_of_block)
     heldout = {}
     if opts.heldout and findings and data is not whole:
+        if not whole_ml:  # the timing stage fitted the start model on the first subsample only
+            say("held-out blocks: fitting the whole recording's motion under the model the search started from")
+            start_motion = fit_motion(samples, start_model, fill(motion, start_motion))[0]
         say("held-out blocks: scoring the findings on the blocks the subsample left out")
         start_r = residuals_only(samples, start_model, start_motion, blocks).residuals
         heldout = complement_gain(sb.residuals, start_r, data.index, data.label)

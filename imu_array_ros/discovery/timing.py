@@ -24,6 +24,14 @@ each sawtooth leaves moved into the sensor's ``time_offset``), and the log-likel
 the engine's ML motion (:func:`~imu_array_ros.fitting.engine.fit_motion`) under the model with the
 clocks held against the model without.  ``discover --apply`` writes the periods and rates; phases are
 session states, never written.
+
+On a long recording (``on``: the samples of the first subsample discovery searches, every k-th time block,
+:func:`~imu_array_ros.discovery.blocks.search_rungs`) the clocks are searched and their phases estimated on the
+whole recording (the sawtooth's spectrum needs it), but the two likelihood comparisons -- the clocks' gain and
+the reading rates' test -- are made on those samples alone, so that no motion fit of the whole recording under
+the clocked model precedes the search; ``motion`` is then the ML motion of those samples.  Both are tests of
+a difference on blocks chosen by their place in time, valid on any of them; the real captures pass them by
+orders of magnitude (exp_3: the rates gain 1,200 times chance on the whole recording).
 """
 
 from __future__ import annotations
@@ -140,6 +148,9 @@ class TimingDiscovery:
     motion: object = field(default=None, repr=False)
     #: the reading rates' test (:func:`_rates_decision`), when made
     rates: dict = field(default_factory=dict)
+    #: the samples (indexes) the likelihood comparisons and ``motion`` are of (None: the whole recording); what they are
+    on: object = field(default=None, repr=False)
+    on_label: str = "the whole recording"
 
     @property
     def used(self) -> bool:
@@ -158,6 +169,7 @@ class TimingDiscovery:
                 "snr": {s: [float(x) for x in v] for s, v in self.snr.items()},
                 "delta_loglik": self.delta_loglik, "loglik_before": self.loglik_before,
                 "loglik_after": self.loglik_after, "reading_rates": dict(self.rates),
+                "loglik_on": self.on_label if self.on is None else f"{self.on_label} ({len(self.on)} samples)",
                 "false_finding_control": {
                     "test": f"sawtooth spectral peak >= {MIN_SNR:g} x the spectrum's median over the searched rates",
                     "false_alarm_rate_per_chip_bound": false_alarm_bound(),
@@ -166,17 +178,22 @@ class TimingDiscovery:
 
 
 def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, loglik: float | None = None,
-                 residuals=None, say=None) -> TimingDiscovery:
+                 residuals=None, say=None, on=None, on_label: str = "a subsample") -> TimingDiscovery:
     """Sample clocks of ``samples`` not in ``model`` (module docstring).  motion, loglik, residuals: what
-    :func:`~imu_array_ros.fitting.engine.fit_motion` gives for ``samples`` under ``model``, when computed.  Never raises for too little
-    motion: the reason goes into the notes."""
+    :func:`~imu_array_ros.fitting.engine.fit_motion` gives for ``samples`` under ``model``, when computed.  on: sample
+    indexes the likelihood comparisons are made on (module docstring; ``on_label`` says what they are), None: the
+    whole recording.  Never raises for too little motion: the reason goes into the notes."""
     say = say or (lambda text: None)
     out = TimingDiscovery(model, period=period)
+    fit_on = samples
+    if on is not None:
+        out.on, out.on_label, fit_on = np.asarray(on), on_label, samples.select(on)
+        motion, loglik, residuals = None if motion is None else np.asarray(motion)[on], None, None
     if active_clocks(model):
         session = estimate_session(samples, model)
         out.model = session.model
         out.notes.append("the description has sample clocks: not searched; " + "; ".join(session.notes))
-        _rates_decision(samples, out, motion, None, say)
+        _rates_decision(fit_on, out, motion, None, say)
         return out
     say(f"timing: searching every chip's gyroscope and accelerometer for a sample clock of {period * 1e3:g} ms")
     try:
@@ -207,33 +224,39 @@ def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, l
         return out
     session = estimate_session(samples, search.model, search_common=False)
     clocked = session.model if session.estimated else search.model
-    say("timing: log-likelihood of the clocks at the ML motion")
+    say("timing: log-likelihood of the clocks at the ML motion"
+        + ("" if on is None else f" of {out.on_label} ({len(out.on)} of {len(samples)} samples)"))
     if motion is None or residuals is None or loglik is None:
-        motion, loglik, residuals = fit_motion(samples, model, motion)
+        motion, loglik, residuals = fit_motion(fit_on, model, motion)
     with reading_rates(False):  # like for like: the clocks' own gain, not that of the reading rates they allow
-        motion1, loglik1, r1 = fit_motion(samples, clocked, motion)
+        motion1, loglik1, r1 = fit_motion(fit_on, clocked, motion)
     out.loglik_before, out.loglik_after = float(loglik), float(loglik1)
+    if on is not None:
+        out.notes.append(f"the clocks' log-likelihood gain and the reading rates' test are of {out.on_label} "
+                         f"({len(out.on)} of {len(samples)} samples), the subsample the search starts on: no fit of "
+                         f"the whole recording under the clocks before the search")
     if out.delta_loglik > 0:
         out.model, out.motion = clocked, motion1
-        _rates_decision(samples, out, motion1, loglik1, say)
+        _rates_decision(fit_on, out, motion1, loglik1, say)
     else:
         out.notes.append(f"the clocks found ({', '.join(f'{f.imu} {f.sensor}' for f in out.findings)}) do not "
                          f"raise the log-likelihood ({out.delta_loglik:.4g}): rejected")
         out.findings = []
         return out
-    out.evidence = _evidence(samples, model, clocked, out, motion1, residuals, r1)
+    out.evidence = _evidence(samples, model, clocked, out, motion1, residuals, r1, search.delays)
     return out
 
 
-def _evidence(samples, model, clocked, out: TimingDiscovery, motion, r0, r1) -> dict:
+def _evidence(samples, model, clocked, out: TimingDiscovery, motion, r0, r1, known=None) -> dict:
     """Arrays of the timing evidence plot for the IMU whose clock is clearest: its reading delays relative
     to the other IMUs (moving samples) and its sawtooth; its gyroscope residual RMS vs |omega_dot| before
-    and after the clocks."""
+    and after the clocks.  known: sensor -> its reading delays under ``model``, when the search made them."""
     best = max(out.findings, key=lambda f: f.snr)
     sensor, k = best.sensor, best.k
     t0 = int(samples.stamps[0])
-    fused = ModelFusion(model, t0_ns=t0).fuse(samples)[0]
-    delays = reading_delays(samples, model, fused, t0_ns=t0, sensor=sensor)
+    delays = (known or {}).get(sensor)
+    if delays is None:
+        delays = reading_delays(samples, model, ModelFusion(model, t0_ns=t0).fuse(samples)[0], t0_ns=t0, sensor=sensor)
     w = session_weights(delays)[:, k]
     d = delays.relative()[:, k]
     clock = clocked.terms[SENSOR_CLOCKS[sensor]].values

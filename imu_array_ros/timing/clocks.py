@@ -39,7 +39,8 @@ class ClockSearch:
     """model: the input with the clocks found (rates, this session's phases) and time offsets moved by the
     constant delays the sawtooths leave; per sensor: rates (K,) ppm (NaN: none), snr (K,) peak amplitude
     over the spectrum's median, found (K,) bool; rms_before/after (s): weighted RMS of the unexplained
-    relative delays; notes."""
+    relative delays; notes; delays: per sensor searched before any clock was found, its reading delays under the
+    input model (the search's first look; discovery's evidence plot reuses them)."""
 
     model: SensorModel
     rates: dict = field(default_factory=dict)
@@ -49,6 +50,7 @@ class ClockSearch:
     rms_after: dict = field(default_factory=dict)
     moving_seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
+    delays: dict = field(default_factory=dict, repr=False)
 
     @property
     def count(self) -> int:
@@ -82,6 +84,8 @@ def find_sample_clocks(samples: ImuSamples, model: SensorModel, *, period: float
     for sensor in sensors:
         term = SENSOR_CLOCKS[sensor]
         delays = reading_delays(samples, current, fused, t0_ns=t0, sensor=sensor)
+        if current is model:
+            out.delays[sensor] = delays
         out.moving_seconds = delays.moving_seconds
         if delays.moving_seconds < MIN_MOVING_S:
             raise ValueError(f"only {delays.moving_seconds:.1f} s of motion: at least {MIN_MOVING_S:.0f} s of "
