@@ -59,12 +59,16 @@ ITERATIONS, PROBE = 40, 4
 
 
 def field_basis(positions: np.ndarray, rotations: np.ndarray, acc_std: np.ndarray | None = None, *,
-                smooth: bool = True) -> np.ndarray:
+                smooth: bool = True, min_scale: float = 0.0) -> np.ndarray:
     """(3K, V) orthonormal basis, in the space of the stacked normalised accelerometer residuals (sensor axes,
     each divided by its noise std), of the fields no rigid motion makes: orthogonal to every field affine in
     the position (e_k = s + C p_k, 12 directions, rank-aware: a planar array loses C's third column), and,
     when ``smooth``, within the quadratic fields (e_k = sum_ij c_ij p_ki p_kj, 18 directions): a mode smooth
-    over the array.  acc_std (K, 3) m/s^2 (None: equal)."""
+    over the array.  acc_std (K, 3) m/s^2 (None: equal).  min_scale: only the quadratic directions whose singular
+    value (of the quadratic fields of unit coefficients, positions scaled to a largest |coordinate| of 1, beyond the
+    affine ones) is at least min_scale x the largest: a field smooth over the array's extent puts at most that
+    share of its size along the others (on a thin board: the quadratics in the thickness direction, 0.1 of the
+    rest on the 8 corner IMUs stacked 2 mm apart across 19 mm)."""
     p = np.asarray(positions, dtype=float)
     k = len(p)
     rot = np.asarray(rotations, dtype=float)
@@ -88,8 +92,9 @@ def field_basis(positions: np.ndarray, rotations: np.ndarray, acc_std: np.ndarra
     _, comp = orth(design(funcs_aff))
     if not smooth:
         return comp
-    basis, _ = orth(comp @ (comp.T @ design(funcs_quad)))
-    return basis
+    u, sv, _ = np.linalg.svd(comp @ (comp.T @ design(funcs_quad)), full_matrices=False)
+    top = float(sv[0]) if len(sv) else 0.0
+    return u[:, sv > max(1e-8, float(min_scale)) * max(top, 1e-300)]
 
 
 def field_channels(residuals: np.ndarray, basis: np.ndarray) -> np.ndarray:

@@ -36,13 +36,21 @@ end) raises the floor with the PSD and is no line.
   (:mod:`~imu_array_ros.discovery.coherent`): a mode spread thinly over many IMUs and a resonance
   a few bins wide, too weak in every channel for the two tests above; its channels from their
   coherence with the mode's reference process (:func:`~imu_array_ros.discovery.coherent.mode_channels`).
-  With ``coherent="bank"`` the template bank of :mod:`~imu_array_ros.discovery.bank` takes its place (the same
-  share of alpha; its band mapped on the fine Welch bins); not the default (benchmarks/results/
-  discovery_vibration_bank.md: no more found, more false modes).
+* *matched* (same condition): the largest eigenvalue of the Lorentzian-weighted cross-spectrum of the field
+  channels on the full-length DFT, resonances 0.25-2 Hz wide (:mod:`~imu_array_ros.discovery.matched`): a
+  resonance's tails count, and its widest templates are tested down to a few Hz; its band mapped on the fine
+  Welch bins, its channels as the coherent test's.
 
-Family-wise false-alarm rate of the detector on a recording: <= ``alpha`` (each
-resolution alpha / 2, each of its two tests alpha / 4; with the coherent test, it and
-each resolution alpha / 3) (:data:`MODE_ALPHA`), measured on null recordings by
+  The array-wide tests run are ``coherent`` ("welch", "matched", "bank", joined by "+"; default
+  ``COHERENT_TEST`` = "welch+matched"); "bank" is the template bank of :mod:`~imu_array_ros.discovery.bank`
+  (not in the default: benchmarks/results/discovery_vibration_bank.md, no more found, more false modes).  Their
+  field basis keeps the quadratic directions of at least ``SMOOTH_SCALE`` of the largest
+  (:func:`~imu_array_ros.discovery.coherent.field_basis` ``min_scale``): the 8 corner IMUs, stacked 2 mm apart
+  across 19 mm, have 3 field channels, not 9 (a smooth mode puts ~0.1 of its size on the others).
+
+Family-wise false-alarm rate of the detector on a recording: <= ``alpha`` (:data:`MODE_ALPHA`): Bonferroni over
+the resolutions and the array-wide tests, alpha / (2 + tests) each (alpha / 4 by default; without positions and
+rotations alpha / 2), each resolution's two tests half of its share; measured on null recordings by
 ``benchmarks/discovery_modes.py`` and ``benchmarks/discovery_generalisation.py``.
 
 **Each mode** (runs of significant bins, 2-bin gaps merged): frequency (the
@@ -76,6 +84,7 @@ from scipy import signal, stats
 
 from imu_array_ros.discovery.bank import bank_scan
 from imu_array_ros.discovery.coherent import coherent_scan, field_basis, field_channels, mode_channels
+from imu_array_ros.discovery.matched import matched_scan
 from imu_array_ros.discovery.modeshape import bandpass, describe_shape, heldout_model, presence
 from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor, relative_psd
 from imu_array_ros.fusion.residuals import AXES
@@ -94,8 +103,10 @@ RESOLUTIONS_HZ = (0.25, 1.0)
 GUARD, HALF_WINDOW = FLOOR_GUARD, FLOOR_HALF_WINDOW
 #: effective share of the floor's bins (adjacent Hann bins are correlated; the median is 64 % efficient)
 FLOOR_EFFICIENCY = 0.5 * 0.64
-#: the array-wide test: "welch" (coherent.py) or "bank" (bank.py)
-COHERENT_TEST = "welch"
+#: the array-wide tests: "welch" (coherent.py), "matched" (matched.py), "bank" (bank.py), joined by "+"
+COHERENT_TEST = "welch+matched"
+#: field basis: the quadratic directions of at least this share of the largest (coherent.field_basis min_scale)
+SMOOTH_SCALE = 0.25
 #: at most this many modes per recording (the strongest)
 MAX_MODES = 8
 #: the line follows the motion when the out-of-band relation to the motion predicts this share of its power
@@ -193,9 +204,9 @@ class ModeSearch:
                           "resolution_hz": float(self.freqs[1] - self.freqs[0]) if len(self.freqs) > 1 else None,
                           "pooled_threshold": self.pooled_threshold, "channel_threshold": self.channel_threshold,
                           "welch_dof": self.nu, "modes": len(self.modes), "motion_lines": len(self.motion_lines),
-                          "false_alarm_rate": f"family-wise <= {self.alpha:g} per recording (two resolutions, "
-                                              f"each with a pooled test over the bins and a per-channel test over "
-                                              f"bins x channels at {self.alpha / 4:g}, Bonferroni)"})
+                          "false_alarm_rate": f"family-wise <= {self.alpha:g} per recording (Bonferroni over two "
+                                              f"resolutions, each a pooled and a per-channel test, and the "
+                                              f"array-wide tests)"})
 
 
 def _clipped_moments(t: np.ndarray) -> tuple[float, float]:
@@ -267,8 +278,9 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
     valid (N, K, 6) bool (default: finite); positions (K, 3) m, rotations (K, 3, 3) sensor -> array: the
     shape description; std (K, 6) noise stds: amplitudes in SI units; still (N,) bool: the regime;
     motion (N, 9) fitted [omega, omega_dot, s]: the motion-line check.  heldout: fit the empirical model.
-    coherent: the array-wide test, "bank" (:mod:`~imu_array_ros.discovery.bank`) or "welch"
-    (:mod:`~imu_array_ros.discovery.coherent`); None: COHERENT_TEST.
+    coherent: the array-wide tests, "welch" (:mod:`~imu_array_ros.discovery.coherent`), "matched"
+    (:mod:`~imu_array_ros.discovery.matched`), "bank" (:mod:`~imu_array_ros.discovery.bank`) joined by "+"
+    ("" none); None: COHERENT_TEST.
     """
     coherent = COHERENT_TEST if coherent is None else coherent
     r = np.asarray(residuals, dtype=float)
@@ -284,28 +296,32 @@ def detect_modes(residuals: np.ndarray, fs: float, *, valid: np.ndarray | None =
     basis = None
     if positions is not None and rotations is not None and k >= 4:
         acc_std = None if std is None else np.asarray(std, dtype=float).reshape(k, 6)[:, :3]
-        basis = field_basis(positions, rotations, acc_std)
+        basis = field_basis(positions, rotations, acc_std, min_scale=SMOOTH_SCALE)
         basis = basis if basis.shape[1] >= 2 else None
-    share = alpha / (len(npers) + (1 if basis is not None else 0))
+    arraywide = [t for t in coherent.split("+") if t] if basis is not None else []
+    share = alpha / (len(npers) + len(arraywide))
     scans = [sc for sc in (_scan(x, chan_ok, fs, nper, share) for nper in npers) if sc is not None]
     if not scans:
         return empty
     cands = sorted((c + (i,) for i, sc in enumerate(scans) for c in sc["cands"]), key=lambda c: c[0])
-    if basis is not None and scans[0]["nper"] == npers[0] and coherent == "bank":
-        co = bank_scan(field_channels(np.where(valid, r, np.nan), basis), fs, share)
-        if co is not None:
-            fine = scans[0]["freqs"][1] - scans[0]["freqs"][0]
-            last = len(scans[0]["freqs"]) - 1
-            for pv, f_lo, f_hi, f_pk, w_hz in co["cands"]:  # the band on the fine Welch bins
-                lo, hi = (int(np.clip(np.rint(f / fine), 1, last - 1)) for f in (f_lo, f_hi))
-                cands.append((pv, lo, max(lo, hi), int(np.clip(np.rint(f_pk / fine), lo, max(lo, hi))),
-                              f"coherent bank ({w_hz:.2g} Hz template)", 0))
-            cands.sort(key=lambda c: c[0])
-    elif basis is not None and scans[0]["nper"] == npers[0]:
-        co = coherent_scan(field_channels(np.where(valid, r, np.nan), basis), fs, npers[0], share)
-        if co is not None:
-            cands = sorted(cands + [(pv, lo, hi, pk, f"coherent ({w} bins)", 0) for pv, lo, hi, pk, w in co["cands"]],
-                           key=lambda c: c[0])
+    unknown = [t for t in arraywide if t not in ("welch", "bank", "matched")]
+    if unknown:
+        raise ValueError(f"unknown array-wide mode test {unknown[0]!r} (welch, bank, matched)")
+    fine = scans[0]["freqs"][1] - scans[0]["freqs"][0]
+    last = len(scans[0]["freqs"]) - 1
+    for test in arraywide if scans[0]["nper"] == npers[0] else []:
+        if test == "welch":
+            co = coherent_scan(field_channels(np.where(valid, r, np.nan), basis), fs, npers[0], share)
+            cands += [(pv, lo, hi, pk, f"coherent ({w} bins)", 0) for pv, lo, hi, pk, w in (co or {}).get("cands", [])]
+            continue
+        co = (bank_scan(field_channels(np.where(valid, r, np.nan), basis), fs, share) if test == "bank" else
+              matched_scan(np.where(valid, r, np.nan)[:, :, :3].reshape(n, 3 * k), basis, fs, share))
+        name = "coherent bank ({:.2g} Hz template)" if test == "bank" else "coherent matched ({:.2g} Hz wide)"
+        for pv, f_lo, f_hi, f_pk, w_hz in (co or {}).get("cands", []):  # the band on the fine Welch bins
+            lo, hi = (int(np.clip(np.rint(f / fine), 1, last - 1)) for f in (f_lo, f_hi))
+            cands.append((pv, lo, max(lo, hi), int(np.clip(np.rint(f_pk / fine), lo, max(lo, hi))),
+                          name.format(w_hz), 0))
+    cands.sort(key=lambda c: c[0])
     modes, motion_lines, taken = [], [], []
     for pval, lo, hi, pk, test, i in cands:
         if len(modes) + len(motion_lines) >= MAX_MODES:
