@@ -6,16 +6,16 @@ coherently over top-hat windows of Welch bins at most ~2 Hz wide, each field cha
 floors and the eigenvalue against its neighbours; :mod:`~imu_array_ros.discovery.bank` over top-hat bands of the
 full-length DFT.  Both spend the evidence of a resonance's tails on noise and, near DC, test their widest windows
 not at all.  This test weights the bins as the likelihood ratio of a Lorentzian line does and whitens each
-accelerometer channel, not each field channel, against its own spectrum (benchmarks/results/
-discovery_vibration_matched.md).
+accelerometer channel, not each field channel, against its own colour (docs/discovery.md; benchmarks/results/
+discovery_generalisation_vibration_64024.md).
 
 **Whitening.**  One DFT of the whole recording per accelerometer channel (IMU x axis, normalised residuals;
 Tukey taper ``TAPER``: white unit noise gives E|y|^2 = 1 per bin), divided by the square root of its colour:
-its running median of |y|^2 over +- ``FLOOR_HZ`` (symmetric, shrunk towards DC and Nyquist: the median over a
-symmetric window is the centre's value for any monotone spectrum) over its median over the tested bins, when
-above 1 (not the floor itself: the motion fit's leverage lowers a channel's level, 0.6-0.9 of the noise, without
-colouring it).  One IMU's coloured noise is whitened where it is coloured, before it can look coherent across
-the field channels.
+its running median of |y|^2 over +- ``FLOOR_HZ`` (every other bin, evaluated every quarter window; symmetric,
+shrunk towards DC and Nyquist: the median over a symmetric window is the centre's value for any monotone
+spectrum) over its median over the tested bins, where above ``COLOURED`` (not the floor itself: the motion
+fit's leverage lowers a channel's level, 0.6-0.9 of the noise, without colouring it).  One IMU's coloured
+noise is whitened where it is coloured, before it can look coherent across the field channels.
 
 **Channels.**  The whitened spectra on the field basis of :func:`~imu_array_ros.discovery.coherent.field_basis`
 (the accelerometer fields no rigid motion makes, smooth over the array; orthonormal), each divided by the square
@@ -68,7 +68,7 @@ LEVEL_CENTRES = 8
 #: Tukey taper fraction of the full-length DFT
 TAPER = 0.1
 #: white-noise recordings simulated for the null law of the scan's maximum
-NULL_DRAWS = 60
+NULL_DRAWS = 40
 #: a line's band: its centre +- this many widths of its smallest-p template (56 % of a Lorentzian's power)
 BAND = 0.6
 
@@ -96,12 +96,12 @@ def whitened_fields(acc: np.ndarray, basis: np.ndarray, fs: float, min_hz: float
     lo, top = _tested_bins(n, fs, min_hz)
     glob = np.median(pw[lo:top + 1], axis=0)                              # (C,)
     w = max(MIN_FLOOR_BINS, int(FLOOR_HZ * n / fs))
-    grid = np.unique(np.concatenate([np.arange(1, top + 1, max(1, w // 8)), [top]]))
+    grid = np.unique(np.concatenate([np.arange(1, top + 1, max(1, w // 4)), [top]]))
     half = np.clip(np.minimum(grid - 1, top - grid), MIN_FLOOR_BINS, w)
     run = np.empty((len(grid), a.shape[1]))
-    for m in np.unique(half):  # a symmetric window, shrunk towards DC and Nyquist
-        sel = half == m
-        idx = np.clip(grid[sel][:, None] + np.arange(-m, m + 1)[None], 1, top)
+    for m in np.unique(half):  # a symmetric window, shrunk towards DC and Nyquist; every other bin (the taper
+        sel = half == m        # correlates neighbours)
+        idx = np.clip(grid[sel][:, None] + np.arange(-m, m + 1, 2)[None], 1, top)
         run[sel] = np.median(pw[idx], axis=1)
     bins = np.arange(len(pw))
     floor = np.stack([np.interp(bins, grid, run[:, c]) for c in range(a.shape[1])], axis=1)
@@ -202,7 +202,8 @@ def matched_scan(acc: np.ndarray, basis: np.ndarray, fs: float, alpha: float, *,
     basis (3K, V), family-wise level alpha.  Returns freqs (F,) of the full-length DFT, per width ("widths":
     fwhm -> {"centres", "stat", "level", "p"}; p = 1 where not tested) and cands: [(p, band lo Hz, band hi Hz,
     peak Hz, fwhm Hz)] significant at alpha (overlapping or touching templates are one line, with the centre
-    +- ``BAND`` x the width of its smallest-p template), sorted by p; None when too short or fewer than 2 field channels."""
+    +- ``BAND`` x the width of its smallest-p template), sorted by p; None when too short or fewer than 2 field
+    channels."""
     acc = np.asarray(acc, dtype=float)
     n = len(acc)
     if basis.shape[1] < 2 or n < 256 or not np.isfinite(fs) or fs <= 0:
