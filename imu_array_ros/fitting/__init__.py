@@ -93,14 +93,16 @@ nothing is regularised silently.
 Approximation
 -------------
 The timing terms (time offsets, sample clocks, stamp clocks) evaluate every reading at its true sample
-time along the motion near its sample: local cubics through the current motion estimate
-(:func:`~imu_array_ros.model.trajectory.timing_context`, as the fusion compensates them), held fixed
+time along the motion near its sample: local quartics through the current motion estimate
+(:func:`~imu_array_ros.model.trajectory.timing_context` with ``ENGINE_DEGREE``: the fusion compensates along
+cubics, whose smoothing biased fitted time offsets on fast motion; see :mod:`imu_array_ros.model.trajectory`),
+held fixed
 through an optimisation round, in the predictions, the Jacobians and the cost of the trial steps, and rebuilt
 from the motion found between rounds until the fixed point (:mod:`.rounds`: a Gauss-Newton step on the motion's
 own trajectory moves no parameter by 0.05 std; ``converged`` False when the round cap comes first); their
-Jacobians are first order in the delay (d y / d theta = dx/dt d delay / d theta, the slopes of the same cubics;
+Jacobians are first order in the delay (d y / d theta = dx/dt d delay / d theta, the slopes of the same quartics;
 a gyroscope's rate of change is that of the angular-rate estimates, not the omega_dot state, which a bias
-field's gauge may shift).  The dependence of sample n's readings on its neighbours' motion through the cubics is
+field's gauge may shift).  The dependence of sample n's readings on its neighbours' motion through the quartics is
 neglected (keeps the normal equations block-arrow), and the iteration converges to the point that is optimal for
 the trajectory of its own motion.  The effect is second order in the delay (milliseconds) times the noise of the
 motion estimate.

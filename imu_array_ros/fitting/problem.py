@@ -18,7 +18,7 @@ from imu_array_ros.fitting.reading_rates import RATES, chip_clock, rate_columns,
 from imu_array_ros.fitting.schur import accumulate_c, factor, gram, stacked_g
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context, motion_derivative
-from imu_array_ros.model.trajectory import timing_context
+from imu_array_ros.model import trajectory
 from imu_array_ros.model.terms import REGISTRY, term_names
 from imu_array_ros.model.terms.timing import TimingTerm
 from imu_array_ros.util.names import did_you_mean
@@ -276,13 +276,15 @@ class Problem:
 
     def derivatives(self, motion: np.ndarray) -> tuple:
         """(omega_ddot, specific_force_dot, omega_rate, trajectory) of the whole recording: the local
-        cubics through the motion (:func:`~imu_array_ros.model.trajectory.timing_context`), or those
+        quartics through the motion (:func:`~imu_array_ros.model.trajectory.timing_context` with
+        ``ENGINE_DEGREE`` and ``ENGINE_WINDOW_S``), or those
         held by :meth:`freeze`; all None when no timing term reads them."""
         if not self.needs_derivatives:
             return None, None, None, None
         if getattr(self, "frozen", None) is not None:
             return self.frozen
-        tc = timing_context(self.stamps, self.expand(motion))
+        tc = trajectory.timing_context(self.stamps, self.expand(motion), degree=trajectory.ENGINE_DEGREE,
+                                       window_s=trajectory.ENGINE_WINDOW_S)
         return tc["omega_ddot"], tc["specific_force_dot"], None, tc["trajectory"]
 
     def context(self, model: SensorModel, motion: np.ndarray, derivs: tuple, lo: int, hi: int):

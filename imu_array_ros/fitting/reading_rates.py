@@ -4,7 +4,7 @@ per-sample motion coordinates (the fitting engine's option, on inside :func:`rea
 When every chip samples its sensors on its own free-running clock (``sample_clock``, ``gyroscope_sample_clock``:
 a ~1 kHz sawtooth of reading ages), the readings of one array sample are up to a clock period apart.  The model
 predicts each reading at its own instant along the estimated motion (:mod:`imu_array_ros.model.terms.timing`):
-first order from the sample's omega_dot (gyroscopes) or the local cubics' ds/dt (accelerometers).  At a low read
+first order from the sample's omega_dot (gyroscopes) or the local polynomials' ds/dt (accelerometers).  At a low read
 rate (62.5 Hz on the MIMU4444BT captures) the signals change within that millisecond by more than those rates
 say -- the motion has content the read rate cannot follow -- and the readings of chips with different ages
 disagree by it.  On the real captures the moving residual of two IMUs grows ~5-10x from equal ages to ages

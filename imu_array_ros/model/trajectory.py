@@ -1,16 +1,17 @@
 """The estimated motion near each sample as a function of time: what the fusion, the fitting engine and
 the residuals evaluate readings along when they were sampled at other instants than their stamps.
 
-:class:`MotionTrajectory` fits, around every sample n, a cubic polynomial in time to the estimates
+:class:`MotionTrajectory` fits, around every sample n, a polynomial in time to the estimates
 [omega, omega_dot, s] of the samples within a window (local polynomial regression, a
 Savitzky-Golay filter on the true, possibly irregular, stamps): at least ``2 * MIN_HALF + 1`` samples
-and about ``WINDOW_S`` seconds.  Called with int64 ns times ``when`` of shape (N, ...) -- row n near
+and about a window's seconds.  The fusion's are cubics over ``WINDOW_S``, the fitting engine's quartics over
+``ENGINE_WINDOW_S`` (below).  Called with int64 ns times ``when`` of shape (N, ...) -- row n near
 stamp n -- it returns the motion there from sample n's polynomial, which is what
 :attr:`MotionContext.trajectory <imu_array_ros.model.terms.base.MotionContext>` expects.  The timing
 stage then shifts every reading by p_n(t + Delta) - p_n(t).
 
-Why this and not the alternatives (measured on 32 IMUs at 500 Hz with time offsets of 1 ms, readings
-simulated from the exact motion; NEES of the fused [omega, omega_dot, s], 9 expected):
+The fusion's cubics, and why not the alternatives (measured on 32 IMUs at 500 Hz with time offsets of 1 ms,
+readings simulated from the exact motion; NEES of the fused [omega, omega_dot, s], 9 expected):
 
 * first-order shift x + Delta dx/dt with dx/dt from central differences: the neglected
   Delta^2/2 d^2x/dt^2 is several gyroscope sigma on hand motion, and the two-sample slope is noisy
@@ -18,7 +19,20 @@ simulated from the exact motion; NEES of the fused [omega, omega_dot, s], 9 expe
 * an interpolating cubic spline through the estimates: no truncation error, but its slope carries the
   estimates' noise over one sample spacing, and more passes feed it back: NEES 15-27 growing with passes;
 * the local cubic over a window of ~25 ms: the slope's noise falls as W^(-3/2), its bias (the motion's
-  fourth derivative times W^3) stays far below the noise for hand motion up to several Hz.
+  fourth derivative times W^3) stays far below the noise for hand motion up to several Hz.  Quartics
+  instead (``ENGINE_DEGREE``, either window) raise that NEES on hand twisting by 1-2.5 % (9.02 -> 9.12 at
+  500 Hz, 9.17 -> 9.39 at 250 Hz, 9.04 -> 9.11 at 62.5 Hz; 3-6 seeds), so the fusion keeps the cubics.
+
+The fitting engine's quartics: a cubic's second- and third-order coefficients, which carry a reading's shift
+beyond first order (Delta^2 a_2 + Delta^3 a_3), are biased by the motion's fourth derivative times the window
+squared.  On the 0.3 s transitions of a simulated icosahedron session that put the fitted time offsets off: at
+62.5 Hz (the window widened to 5 samples, 64 ms) the accelerometers' common delay ~40 us early and the moved
+gyroscopes' offsets ~1.5 of their std too large, still 13-16 us at 250-500 Hz (24 ms).  A quartic is exact to
+the fourth degree.  Its window: at 62.5-200 Hz the 5 samples it interpolates (a reading's delay is small
+against the spacing there, so the estimates' noise barely enters), above about ``ENGINE_WINDOW_S`` = 35 ms,
+wider than the cubics' so that its higher coefficients are no noisier (a quartic over 25 ms, 5 samples at
+200 Hz with time offsets of ~2 ms, left a fit's NIS at 1.32: test_fit_terms' Monte Carlo).  With the true terms
+held its fitted offsets match those along the exact motion at 62.5, 200 and 500 Hz (docs/timing.md).
 """
 
 from __future__ import annotations
@@ -32,30 +46,34 @@ from numpy.lib.stride_tricks import sliding_window_view
 from imu_array_ros.model.samples import FusedSamples
 
 __all__ = ["MotionTrajectory", "timing_context", "fused_timing_context", "shared_fits", "LocalFits", "fit_weights",
-           "solve_spd", "WINDOW_S", "MIN_HALF", "DEGREE"]
+           "solve_spd", "WINDOW_S", "MIN_HALF", "DEGREE", "ENGINE_DEGREE", "ENGINE_WINDOW_S"]
 
 #: window of the local polynomials, seconds (widened to 2 MIN_HALF + 1 samples at low rates)
 WINDOW_S = 0.025
 #: fewest samples on each side of the centre
 MIN_HALF = 2
-#: degree of the local polynomials
+#: degree of the fusion's local polynomials (cubics)
 DEGREE = 3
+#: degree of the fitting engine's local polynomials (quartics; see the module docstring)
+ENGINE_DEGREE = 4
+#: window of the fitting engine's local quartics, seconds (at least 2 MIN_HALF + 1 samples)
+ENGINE_WINDOW_S = 0.035
 #: a step of more than this many median spacings splits the samples into segments no window crosses
 GAP = 2.5
 #: ridge on the scaled higher coefficients (only matters where a segment is shorter than the degree needs)
 RIDGE = 1e-9
 
 
-def _windows(stamps: np.ndarray):
+def _windows(stamps: np.ndarray, degree: int = DEGREE, window_s: float = WINDOW_S):
     """The samples each local polynomial is fitted to: (idx (N, W) their indexes, inside (N, W) False where a
     window reaches past its segment's end, dt (N, W) s relative to each centre, scale (s) of the scaled time,
     degree)."""
     n = len(stamps)
     steps = np.diff(stamps)
     spacing = float(np.median(steps)) * 1e-9
-    half = max(MIN_HALF, int(round(0.5 * WINDOW_S / spacing)))
+    half = max(MIN_HALF, int(round(0.5 * window_s / spacing)))
     width = min(2 * half + 1, n)
-    degree = min(DEGREE, width - 1)
+    degree = min(degree, width - 1)
     # a window never reaches across a gap (more than GAP spacings): segments of consecutive samples
     seg = np.concatenate([[0], np.cumsum(steps > GAP * np.median(steps))])
     first = np.searchsorted(seg, seg, side="left")
@@ -107,8 +125,8 @@ class LocalFits:
     On a regular grid most windows have the same offsets: those share one set of weights, solved once, and
     their coefficients are one matrix product over the windows of the motion (no gathered copy)."""
 
-    def __init__(self, stamps: np.ndarray) -> None:
-        idx, inside, dt, scale, degree = _windows(stamps)
+    def __init__(self, stamps: np.ndarray, degree: int = DEGREE, window_s: float = WINDOW_S) -> None:
+        idx, inside, dt, scale, degree = _windows(stamps, degree, window_s)
         n, width = idx.shape
         rel = stamps[idx] - stamps[:, None]
         same = inside.all(axis=1) & (rel == rel[n // 2]).all(axis=1)
@@ -149,11 +167,11 @@ class LocalFits:
         return out
 
 
-def fit_weights(stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fit_weights(stamps: np.ndarray, degree: int = DEGREE, window_s: float = WINDOW_S) -> tuple[np.ndarray, np.ndarray]:
     """(idx (N, W), weights (N, D+1, W)): the local polynomials' coefficients (per second^d) are
     ``weights @ motion[idx]`` (:class:`LocalFits`, every sample's weights written out)."""
-    fits = LocalFits(np.asarray(stamps, dtype=np.int64))
-    idx, _, _, _, _ = _windows(np.asarray(stamps, dtype=np.int64))
+    fits = LocalFits(np.asarray(stamps, dtype=np.int64), degree, window_s)
+    idx, _, _, _, _ = _windows(np.asarray(stamps, dtype=np.int64), degree, window_s)
     weights = np.empty((fits.n,) + fits.shape)
     for a, b in fits.runs:
         weights[a:b] = fits.shared_t.T
@@ -177,25 +195,29 @@ def shared_fits():
         _SHARED.slot = outer
 
 
-def _fits_of(stamps: np.ndarray) -> LocalFits:
+def _fits_of(stamps: np.ndarray, degree: int, window_s: float) -> LocalFits:
     slot = getattr(_SHARED, "slot", None)
     if slot is None:
-        return LocalFits(stamps)
+        return LocalFits(stamps, degree, window_s)
     held = slot.get("stamps")
-    if held is None or len(held) != len(stamps) or not np.array_equal(held, stamps):
-        slot["fits"] = LocalFits(stamps)
-        slot["stamps"] = stamps.copy()
+    if (held is None or slot.get("shape") != (degree, window_s) or len(held) != len(stamps)
+            or not np.array_equal(held, stamps)):
+        slot["fits"] = LocalFits(stamps, degree, window_s)
+        slot["stamps"], slot["shape"] = stamps.copy(), (degree, window_s)
     return slot["fits"]
 
 
 class MotionTrajectory:
-    """Local cubic fits of an estimated motion around each sample (see module docstring)."""
+    """Local polynomial fits of an estimated motion around each sample (see module docstring)."""
 
-    def __init__(self, stamps: np.ndarray, motion: np.ndarray, *, solver: str = "lapack") -> None:
+    def __init__(self, stamps: np.ndarray, motion: np.ndarray, *, solver: str = "lapack",
+                 degree: int = DEGREE, window_s: float = WINDOW_S) -> None:
         """``solver``: how each sample's normal equations are solved -- "lapack" (one LAPACK solve per sample, the
         fitting engine's numbers) or "cholesky" (:class:`LocalFits`: every sample's at once, the same fit to
         rounding, many times faster, and shared by fits at the same stamps inside :func:`shared_fits`; what
-        the fusion uses)."""
+        the fusion uses).  ``degree``: of the polynomials (at most the window's samples - 1): ``DEGREE`` (cubics,
+        the fusion's) or ``ENGINE_DEGREE`` (quartics, the fitting engine's); ``window_s``: their window, s (at
+        least ``2 * MIN_HALF + 1`` samples): ``WINDOW_S`` (the fusion's) or ``ENGINE_WINDOW_S`` (the engine's)."""
         stamps = np.asarray(stamps, dtype=np.int64)
         motion = np.asarray(motion, dtype=float)
         n = len(stamps)
@@ -205,9 +227,9 @@ class MotionTrajectory:
             raise ValueError(f"solver must be 'lapack' or 'cholesky', got {solver!r}")
         self.stamps = stamps
         if solver == "cholesky":
-            self.coef = _fits_of(stamps).coefficients(motion)  # (N, D+1, 9) per second^d
+            self.coef = _fits_of(stamps, degree, window_s).coefficients(motion)  # (N, D+1, 9) per second^d
             return
-        idx, inside, dt, scale, degree = _windows(stamps)
+        idx, inside, dt, scale, degree = _windows(stamps, degree, window_s)
         powers = (dt / scale)[..., None] ** np.arange(degree + 1) * inside[..., None]  # (N, W, D+1), scaled
         gram = np.einsum("nwi,nwj->nij", powers, powers)
         # short segments: a small ridge on the higher coefficients gives the lower-degree fit (a lone sample:
@@ -286,16 +308,18 @@ class MotionTrajectory:
         return x[..., 0:3], x[..., 3:6], x[..., 6:9]
 
 
-def timing_context(stamps: np.ndarray, motion: np.ndarray, *, solver: str = "lapack") -> dict:
+def timing_context(stamps: np.ndarray, motion: np.ndarray, *, solver: str = "lapack", degree: int = DEGREE,
+                   window_s: float = WINDOW_S) -> dict:
     """The motion-context arguments the timing terms read, from an estimated motion (N, 9)
-    [omega, omega_dot, s] at ``stamps``: the trajectory and the slopes of the local cubics, ``omega_ddot`` and
-    ``specific_force_dot``.  Fewer than two samples: no trajectory, zero slopes.  ``solver``: see
-    :class:`MotionTrajectory` (the fitting engine's default, "lapack")."""
+    [omega, omega_dot, s] at ``stamps``: the trajectory and the slopes of the local polynomials, ``omega_ddot`` and
+    ``specific_force_dot``.  Fewer than two samples: no trajectory, zero slopes.  ``solver``, ``degree``,
+    ``window_s``: see :class:`MotionTrajectory` (the fitting engine passes "lapack", ``ENGINE_DEGREE`` and
+    ``ENGINE_WINDOW_S``)."""
     motion = np.asarray(motion, dtype=float)
     if len(stamps) < 2:
         z = np.zeros((len(stamps), 3))
         return dict(trajectory=None, omega_ddot=z, specific_force_dot=z)
-    traj = MotionTrajectory(stamps, motion, solver=solver)
+    traj = MotionTrajectory(stamps, motion, solver=solver, degree=degree, window_s=window_s)
     slope = traj.derivative()
     return dict(trajectory=traj, omega_ddot=slope[:, 3:6], specific_force_dot=slope[:, 6:9])
 
