@@ -1,6 +1,7 @@
 """On a long recording discovery's timing stage tests the clocks it found on the subsample the search starts on
 (issue 23 item 7, speed): no motion fit of the whole recording under the clocked model before the search, the
-same clocks found and used, and the whole recording fitted under the start model only for the held-out check."""
+same clocks found and used; the held-out check then scores the blocks half-way between the searched ones, each
+model fitted on them alone, instead of fitting the whole recording under the model the search started from."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 from imu_array_ros.discovery import discover as discover_module
+from imu_array_ros.discovery import heldout as heldout_module
 from imu_array_ros.discovery import timing as timing_module
 from imu_array_ros.discovery.blocks import search_rungs, time_blocks
 from imu_array_ros.discovery.discover import DiscoveryOptions, discover
@@ -40,7 +42,7 @@ def recording():
     return nominal, samples
 
 
-def test_the_clocks_are_tested_on_the_first_subsample_and_the_whole_fitted_only_for_the_held_out_check(
+def test_the_clocks_are_tested_on_the_first_subsample_and_held_out_on_the_blocks_between(
         recording, monkeypatch):
     nominal, samples = recording
     fits, lines = [], []
@@ -49,7 +51,7 @@ def test_the_clocks_are_tested_on_the_first_subsample_and_the_whole_fitted_only_
     def counted(s, model, *args, **kwargs):  # every motion fit: how many samples, clocked or not, at which stage
         fits.append((len(s.stamps), bool(active_clocks(model)), len(lines)))
         return real(s, model, *args, **kwargs)
-    for module in (discover_module, timing_module):
+    for module in (discover_module, timing_module, heldout_module):
         monkeypatch.setattr(module, "fit_motion", counted)
     opts = DiscoveryOptions(terms=("gyroscope_bias",), empirical=False, max_findings=1, search_readings=BUDGET,
                             ladder_from=0)
@@ -63,13 +65,16 @@ def test_the_clocks_are_tested_on_the_first_subsample_and_the_whole_fitted_only_
     assert (len(first), True) in before  # the clocks' gain on the first subsample
     assert (len(samples.stamps), True) not in before  # ... and no clocked fit of the whole recording
     whole_clocked = [at for n, clocked, at in fits if n == len(samples.stamps) and clocked]
-    assert whole_clocked and min(whole_clocked) > scoring  # after the search: the held-out check needs it
+    assert len(whole_clocked) == 1 and whole_clocked[0] > scoring  # once, after the search, under the findings
     np.testing.assert_array_equal(t.on, first)
     assert t.to_dict()["loglik_on"] == f"every 4th time block ({len(first)} samples)"
-    assert any(line.startswith("held-out blocks: fitting the whole recording's motion") for line in lines)
     assert [(f.effect, f.sensor) for f in d.findings] == [("gyroscope_bias", "imu_3")]
     assert d.settings["searched_on"] == "every 4th time block"
-    assert d.heldout["samples"] == len(samples.stamps) - len(first) and np.isfinite(d.heldout["delta_loglik"])
+    # held out: the blocks half-way between the searched ones (2, 6, 10, ...), each model fitted on them alone
+    between = np.flatnonzero(time_blocks(samples.stamps, opts.block_s) % 4 == 2)
+    assert d.heldout["samples"] == len(between) and "every 4th time block from the 3rd" in d.heldout["method"]
+    assert [n for n, clocked, at in fits if at > scoring and n == len(between)] == [len(between)] * 2
+    assert d.heldout["delta_loglik"] > 100  # the bias the search found on the others
 
 
 def test_the_evidence_plot_reuses_the_searchs_reading_delays(recording, monkeypatch):

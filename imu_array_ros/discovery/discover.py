@@ -50,7 +50,7 @@ from imu_array_ros.discovery.blocks import (LADDER_FROM, SEARCH_READINGS, search
                                             time_blocks)
 from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.eliminate import backward_eliminate
-from imu_array_ros.discovery.heldout import complement_gain, heldout_gain
+from imu_array_ros.discovery.heldout import between_gain, complement_gain, heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, scopes_for
 from imu_array_ros.discovery.search import (SearchData, SearchSpace, SearchState, fill, ladder_search,
                                             residuals_only)
@@ -404,10 +404,14 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         say("modelling the unexplained residual empirically")
         unexplained, empirical = _unexplained(loc_after, sb, motion, samples, current, blocks, fold_of_block)
     heldout = {}
-    if opts.heldout and findings and data is not whole:
-        if not whole_ml:  # the timing stage fitted the start model on the first subsample only
-            say("held-out blocks: fitting the whole recording's motion under the model the search started from")
-            start_motion = fit_motion(samples, start_model, fill(motion, start_motion))[0]
+    if opts.heldout and findings and data is not whole and not whole_ml:
+        # the timing stage fitted the start model on the first subsample only: held out, the blocks half-way
+        # between the searched ones (as many), not a fit of the whole recording under the start model
+        k = rungs[next(i for i, rung in enumerate(ladder) if rung is data)][2]
+        say("held-out blocks: scoring the findings on the blocks half-way between the searched ones")
+        heldout = between_gain(samples, current, start_model, motion, np.flatnonzero(blocks % k == k // 2),
+                               data.label, f"every {_nth(k)} time block from the {_nth(k // 2 + 1)}")
+    elif opts.heldout and findings and data is not whole:
         say("held-out blocks: scoring the findings on the blocks the subsample left out")
         start_r = residuals_only(samples, start_model, start_motion, blocks).residuals
         heldout = complement_gain(sb.residuals, start_r, data.index, data.label)

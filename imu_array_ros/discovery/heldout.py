@@ -1,5 +1,7 @@
 """Held-out check of discovery's findings: refitted on half of the time blocks, scored on the other half; or, when
-they were found on a subsample of a long recording's blocks, scored on the blocks it left out."""
+they were found on a subsample of a long recording's blocks, scored on the blocks it left out (all of them when the
+whole recording's motion under the model the search started from is at hand, else the blocks half-way between the
+searched ones, :func:`between_gain`)."""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["heldout_gain", "complement_gain", "HELDOUT_SCALE"]
+__all__ = ["heldout_gain", "complement_gain", "between_gain", "HELDOUT_SCALE"]
 
 #: held-out scale of the readings' sigma: samples of held-out blocks keep their motion but give the parameters
 #: 1e-8 of their information
@@ -59,3 +61,19 @@ def complement_gain(after_r: np.ndarray, start_r: np.ndarray, searched: np.ndarr
             "ratio_after_before": a / b if b > 0 else None,
             "method": f"findings fitted on {label} (the search's), scored on the blocks it left out; the motion "
                       f"re-estimated there, the model the search started from as the baseline"}
+
+
+def between_gain(samples, found: SensorModel, start: SensorModel, motion, held: np.ndarray, label: str,
+                 between: str) -> dict:
+    """Held-out check of findings fitted on a subsample (``label``) when the whole recording's motion under the
+    model the search started from is not at hand: the samples ``held`` (``between``: the blocks half-way between
+    the searched ones, chosen by their place in time) fitted alone under the findings (model ``found``) and under
+    ``start``, the motion re-estimated from ``motion`` (the whole recording's under ``found``); the log-likelihood
+    of the two compared there, as :func:`complement_gain` does on every left-out block."""
+    part = samples.select(held)
+    a = float((np.nan_to_num(fit_motion(part, found, motion[held])[2]) ** 2).sum())
+    b = float((np.nan_to_num(fit_motion(part, start, motion[held])[2]) ** 2).sum())
+    return {"delta_loglik": 0.5 * (b - a), "samples": int(len(held)), "sum_r2_before": b, "sum_r2_after": a,
+            "ratio_after_before": a / b if b > 0 else None,
+            "method": f"findings fitted on {label} (the search's), scored on {between} (held out, each fitted alone "
+                      f"under the findings and under the model the search started from, the motion re-estimated)"}
