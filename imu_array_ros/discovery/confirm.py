@@ -116,8 +116,16 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     gain, dof, tie = delta, c.dof, None
     if c.scope != "imu" and not is_own(c.scope):
         tie = tie_test(fit, c.effect, list(c.imus), model.names, model.terms[c.effect].values[list(c.imus)])
-        if tie["p"] >= alpha:
+        if tie["p"] >= alpha and c.extends:  # against the grown finding's one value (the refit frees its IMUs')
+            grown = list(accepted[c.extends].imus)
+            had = (tie_test(fit, c.effect, grown, model.names, model.terms[c.effect].values[grown])["statistic"]
+                   if len(grown) > 1 else 0.0)
+            gain = delta - 0.5 * (tie["statistic"] - had)
+        elif tie["p"] >= alpha:
             gain = delta - 0.5 * tie["statistic"]
+        elif c.extends:  # one value on one more IMU (.extend): only as one value
+            return (f"not confirmed by the exact fit: one value on {', '.join(c.sensors)} is not adequate (tie "
+                    f"test p = {tie['p']:.3g} < alpha = {alpha:g})")
         else:
             dof = tie["dof"] + c.dof
     need = 0.5 * scipy.stats.chi2.isf(level, dof)
@@ -125,14 +133,19 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
         return (f"not confirmed by the exact fit: log-likelihood gain {gain:.3g} < {need:.3g} "
                 f"(the score test's first-order gain was {c.delta_loglik:.3g})")
     c.exact_gain = float(gain)  # ties are ranked by it (settle_ties); the narrowing replaces it
-    if c.scope != "imu":
+    if c.extends:
+        c.note = (f"{c.note}: score test {c.statistic:.4g} on 1 dof; one value shared by all {len(c.imus)} (tie test "
+                  f"p = {tie['p']:.3g} >= alpha = {alpha:g}); exact gain {gain:.4g} >= {need:.3g}")
+    elif c.scope != "imu":
         narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha, say)
         if narrowed is not None:
             fit, delta = narrowed
     problem = implausible(fit.model, model)
     if problem is not None:  # never report what no real sensor has: the term stands in for something else
         return f"{IMPLAUSIBLE}: the exact fit takes {problem}"
-    trade = trading(fit, current, accepted.values(), c.effect, c.imus)
+    grown = accepted.get(c.extends) if c.extends else None  # its values move with the grown finding's by design
+    new = tuple(k for k in c.imus if grown is None or k not in grown.imus)
+    trade = trading(fit, current, [f for f in accepted.values() if f is not grown], c.effect, new)
     if trade is not None and trade.traded:  # its values trade with the earlier findings' (.trading)
         return trade.reason()
     return fit, float(delta)

@@ -350,9 +350,10 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
 
     # 4. explain (.search): on a long recording first on an evenly spread subsample of its blocks
     t1 = time.perf_counter()
-    scopes, tied = scopes_for(model.n_imus, geometry_groups(model.positions, model.rotations))
+    groups = geometry_groups(model.positions, model.rotations)
+    scopes, tied = scopes_for(model.n_imus, groups)
     space = SearchSpace(model, terms, scopes, tied, terms if model.n_imus <= OWN_MAX_IMUS else (), opts.alpha,
-                        opts.max_findings, opts.block_s)
+                        opts.max_findings, opts.block_s, groups)
     state = SearchState(current, lambda c, delta, step: Finding(c.effect, c.k, c.sensor, np.zeros(0), np.zeros(0),
                                                                 c, delta, step, c.scope, c.imus), notes=notes)
     whole = SearchData(samples, motion, blocks, fold_of_block)

@@ -52,7 +52,7 @@ import scipy.stats
 from imu_array_ros.discovery.drift import GIVEN, candidate_blocks
 from imu_array_ros.discovery.scopes import Scope, scoped_blocks
 
-__all__ = ["Candidate", "evaluate_candidates", "evaluate_scopes", "confounded", "BIC_GAP", "EIG_RTOL"]
+__all__ = ["Candidate", "evaluate_candidates", "evaluate_scopes", "confounded", "block_tests", "BIC_GAP", "EIG_RTOL"]
 
 #: BIC difference (2 ln Bayes factor) below which two candidates count as explaining equally well (Kass & Raftery:
 #: >= 10 is "very strong" evidence for the better one)
@@ -73,7 +73,8 @@ class Candidate:
     with data; scope: "imu" or a pooled scope's label (:mod:`.scopes`), imus: its IMU indexes (k the first),
     sensor then names the scope.  exact_gain: the exact refit's log-likelihood gain of the hypothesis as
     reported (a shared scope's: the per-IMU fit's less half its tie statistic); equivalents: [{"sensors",
-    "reason"}] other scopes of the term that fit as well (:func:`~.confirm.confirm`'s narrowing).
+    "reason"}] other scopes of the term that fit as well (:func:`~.confirm.confirm`'s narrowing); extends: the
+    key of an accepted finding whose one value this candidate puts on one more IMU (:mod:`.extend`), else ().
     """
 
     effect: str
@@ -96,6 +97,7 @@ class Candidate:
     sensors: tuple = ()
     exact_gain: float | None = None
     equivalents: list = field(default_factory=list)
+    extends: tuple = ()  # the key of the shared finding this candidate grows by one IMU (:mod:`.extend`)
 
     def __post_init__(self):
         self.imus = tuple(self.imus) or (self.k,)
@@ -148,7 +150,7 @@ def evaluate_candidates(sb, names, folds: np.ndarray, *, terms=None, exclude=(),
             if (t, k) in exclude:
                 continue
             gb, Sb = candidate_blocks(sb, t, k)  # bias_drift: tested given the IMU's biases (.drift)
-            c = _candidate(gb[have], Sb[have], folds[have], fold_ids)
+            c = block_tests(gb[have], Sb[have], folds[have], fold_ids)
             if c is None:
                 continue
             stat, q, lrt_p, log_p, robust_p, heldout, theta = c
@@ -175,7 +177,7 @@ def evaluate_scopes(sb, names, folds: np.ndarray, scopes: list[Scope], *, terms=
             if (t, sc.label, sc.imus) in exclude or (sc.kind == "own" and t not in sb.S_cross):
                 continue
             gb, Sb = scoped_blocks(sb, t, sc)
-            c = _candidate(gb[have], Sb[have], folds[have], fold_ids)
+            c = block_tests(gb[have], Sb[have], folds[have], fold_ids)
             if c is None:
                 continue
             stat, q, lrt_p, log_p, robust_p, heldout, theta = c
@@ -195,7 +197,9 @@ def _chi2_logsf(x: float, q: int) -> float:
     return float((q / 2 - 1) * np.log(x / 2) - x / 2 - scipy.special.gammaln(q / 2))
 
 
-def _candidate(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.ndarray):
+def block_tests(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.ndarray):
+    """(statistic, dof, lrt_p, log_p, robust_p, heldout, theta) of a candidate from its per-block score gb (B, P)
+    and information Sb (B, P, P) (the module's tests), or None when the recording identifies no direction."""
     S = Sb.sum(axis=0)
     Q = _reduced(S)
     if Q is None:

@@ -18,6 +18,7 @@ import numpy as np
 from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, rejection, settle_ties, update_finding
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import confounded, evaluate_candidates, evaluate_scopes
+from imu_array_ros.discovery.extend import extension_candidates
 from imu_array_ros.discovery.scopes import score_given
 from imu_array_ros.fitting.engine import fit_motion, score_blocks
 from imu_array_ros.model.sensor_model import SensorModel
@@ -54,7 +55,8 @@ class SearchData:
 @dataclass
 class SearchSpace:
     """What every step tests: the model discovery started from, the candidate terms, the pooled scopes and the
-    groups tied in the score (:func:`~.scopes.scopes_for`), the terms scored with their cross-IMU blocks."""
+    groups tied in the score (:func:`~.scopes.scopes_for`), the terms scored with their cross-IMU blocks; groups:
+    the geometry groups (the labels of the scopes an accepted finding is grown to, :mod:`.extend`)."""
 
     model: SensorModel
     terms: tuple
@@ -64,6 +66,7 @@ class SearchSpace:
     alpha: float
     max_findings: int
     block_s: float
+    groups: list = field(default_factory=list)  # the geometry groups, [(name, IMU indexes)] (scope labels)
 
 
 @dataclass
@@ -134,6 +137,9 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
             (t, sc.label, sc.imus) for t in terms for sc in scopes
             if any((t, k) in cover for k in sc.imus) and (sc.kind == "own" or all((t, k) in cover for k in sc.imus))}
         cands += evaluate_scopes(sb, names, data.fold_of_block, scopes, terms=terms, exclude=gone, step=step)
+        cands += [c for c in extension_candidates(sb, names, data.fold_of_block, state.accepted, state.current,
+                                                  model, space.groups, exclude=cover | state.excluded, step=step)
+                  if c.key not in gone]
         if not cands:
             return sb, NONE_PASS
         level = alpha * data.share / len(cands)
@@ -186,7 +192,11 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
                 "correlation": other["correlation"], "delta_bic_gap": other["delta_bic_gap"]})
             state.excluded.add((other["effect"], best.k))
         state.current = fit.model
+        grown = state.accepted.pop(best.extends, None) if best.extends else None  # replaced by its extension
         state.accepted[best.key] = state.make_finding(best, delta, step)
+        if grown is not None:
+            state.notes.append(f"step {step}: {best.effect} on {grown.sensor} (step {grown.step}) grown to "
+                               f"{best.sensor}: {best.note}")
         for f in state.accepted.values():  # every finding's values and std from the latest joint fit
             update_finding(f, fit, model, alpha)
         say(f"step {step}: found {best.effect} on {best.sensor}: log-likelihood +{delta:.4g}")

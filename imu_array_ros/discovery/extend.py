@@ -1,0 +1,74 @@
+"""Growing a finding's one value to one more IMU: a carrier outside the scope the finding was tested at.
+
+A shared effect on an arbitrary set of IMUs (a batch of chips, a group no geometry names) is found at the pooled
+scope that holds most of its carriers and narrowed to those (:mod:`.subset`); a carrier outside that scope then
+has only its own evidence, tested like any IMU's term with all its parameters at the step's Bonferroni level: an
+effect on five IMUs of 32 was reported on the four the 'back' scope held (suite seed 116783, group 7).  Once the
+value is known, whether IMU k carries it too is a question of one number: the term on k along the finding's
+value v, c v, with c = 0 under "nothing on k".  Its score test has one degree of freedom (the same blocks and
+tests as every candidate, :func:`~.explain.block_tests`, on the projection g_b v, v^T S_b v), so a carrier with a
+few tens of evidence passes where the three-parameter test on k alone does not.
+
+Every step adds, for every finding that holds one value (one IMU, or a pooled scope whose tie test accepts one
+value) and every IMU outside it without the term, one such candidate; they are counted in the step's number of
+candidates like every other, so the step's family-wise false-finding rate stays alpha.  A passing one is
+confirmed by the exact refit of the finding on its IMUs plus k (:func:`~.confirm.confirm`): one value on all of
+them must be adequate (tie test p >= alpha) and gain at the step's level on one degree of freedom; it then
+replaces the finding it grows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imu_array_ros.discovery.drift import GIVEN, candidate_blocks
+from imu_array_ros.discovery.explain import Candidate, block_tests
+from imu_array_ros.discovery.subset import scope_label
+
+__all__ = ["extension_candidates", "shared_change"]
+
+
+def shared_change(f, current, start) -> np.ndarray | None:
+    """The one value (its change from the model discovery started from) a finding puts on its IMUs, or None when
+    it has none (a pooled finding whose IMUs keep their own values)."""
+    if f.scope == "imu":
+        return (np.asarray(current.terms[f.effect].values[f.k], float)
+                - np.asarray(start.terms[f.effect].values[f.k], float))
+    return np.asarray(f.values, float) if f.shared else None
+
+
+def extension_candidates(sb, names, folds: np.ndarray, accepted: dict, current, start, groups, *, exclude=(),
+                         step: int = 0) -> list[Candidate]:
+    """The candidates that put an accepted finding's one value on one more IMU (module docstring), scored from
+    ``sb`` (given the findings); accepted: Candidate.key -> Finding; current / start: the model with the findings
+    and the model discovery started from; groups: the geometry groups (scope labels); exclude: (term, IMU) pairs
+    not to test (IMUs holding the term, ruled out)."""
+    folds = np.asarray(folds)
+    fold_ids = np.unique(folds)
+    have = sb.counts > 0
+    n_obs = max(sb.valid_axes, 2)
+    out = []
+    for key, f in accepted.items():
+        if f.effect in GIVEN or f.effect not in sb.offsets:
+            continue
+        v = shared_change(f, current, start)
+        if v is None or not np.all(np.isfinite(v)) or not np.any(v):
+            continue
+        members = set(f.imus)
+        for k in range(len(names)):
+            if k in members or (f.effect, k) in exclude:
+                continue
+            gb, Sb = candidate_blocks(sb, f.effect, k)
+            r = block_tests((gb @ v)[have, None], np.einsum("bpq,p,q->b", Sb, v, v)[have, None, None], folds[have],
+                            fold_ids)
+            if r is None:
+                continue
+            stat, q, lrt_p, log_p, robust_p, heldout, theta = r
+            imus = tuple(sorted(members | {k}))
+            label = scope_label(imus, names, groups, True)
+            sensors = tuple(names[i] for i in imus)
+            out.append(Candidate(f.effect, imus[0], f"{label} ({', '.join(sensors)})", stat, q, lrt_p, robust_p,
+                                 0.5 * stat, q * np.log(n_obs) - stat, heldout, theta[0] * v, log_p, step,
+                                 scope=label, imus=imus, sensors=sensors, extends=key,
+                                 note=f"{f.effect}'s value on {f.sensor} put on {names[k]} too (1 dof)"))
+    return out
