@@ -27,8 +27,8 @@ The fitting engine's quartics: a cubic's second- and third-order coefficients, w
 beyond first order (Delta^2 a_2 + Delta^3 a_3), are biased by the motion's fourth derivative times the window
 squared.  On the 0.3 s transitions of a simulated icosahedron session that put the fitted time offsets off: at
 62.5 Hz (the window widened to 5 samples, 64 ms) the accelerometers' common delay ~40 us early and the moved
-gyroscopes' offsets ~1.5 of their std too large, still 13-16 us at 250-500 Hz (24 ms).  A quartic is exact to
-the fourth degree.  Its window: at 62.5-200 Hz the 5 samples it interpolates (a reading's delay is small
+gyroscopes' offsets ~1.5 of their std too large, still 11-13 us at 250-500 Hz (24 ms).  A quartic is exact to
+the fourth degree.  Its window: below ~140 Hz the 5 samples it interpolates (a reading's delay is small
 against the spacing there, so the estimates' noise barely enters), above about ``ENGINE_WINDOW_S`` = 35 ms,
 wider than the cubics' so that its higher coefficients are no noisier (a quartic over 25 ms, 5 samples at
 200 Hz with time offsets of ~2 ms, left a fit's NIS at 1.32: test_fit_terms' Monte Carlo).  With the true terms
@@ -48,7 +48,7 @@ from imu_array_ros.model.samples import FusedSamples
 __all__ = ["MotionTrajectory", "timing_context", "fused_timing_context", "shared_fits", "LocalFits", "fit_weights",
            "solve_spd", "WINDOW_S", "MIN_HALF", "DEGREE", "ENGINE_DEGREE", "ENGINE_WINDOW_S"]
 
-#: window of the local polynomials, seconds (widened to 2 MIN_HALF + 1 samples at low rates)
+#: window of the fusion's local cubics, seconds (widened to 2 MIN_HALF + 1 samples at low rates)
 WINDOW_S = 0.025
 #: fewest samples on each side of the centre
 MIN_HALF = 2
@@ -293,7 +293,11 @@ class MotionTrajectory:
             c = self.coef
             if order:
                 c = c[:, 1:] * np.arange(1, c.shape[1])[None, :, None]
-            x = np.matmul(dt[..., None] ** np.arange(c.shape[1]), c)  # (N, K, D+1) @ (N, D+1, 9)
+            powers = np.empty(dt.shape + (c.shape[1],))  # dt^d by products (a power ** is ~20x slower)
+            powers[..., :1] = 1.0
+            for d in range(1, c.shape[1]):
+                np.multiply(powers[..., d - 1], dt, out=powers[..., d])
+            x = np.matmul(powers, c)  # (N, K, D+1) @ (N, D+1, 9)
             return x[..., 0:3], x[..., 3:6], x[..., 6:9]
         if when.shape[:1] != self.stamps.shape:
             raise ValueError(f"times must have one row per fused sample ({len(self.stamps)}), got {when.shape}")
