@@ -14,7 +14,14 @@ it and identifiable), z = (estimate - truth) / std for
   moving and timing terms at the written point (``fit_terms`` with ``max_iterations=0``: the inverse of the Schur
   complement of the offsets' block, sandwich) -- the held terms' uncertainty propagated;
 * ``truth_held``: the timing fit on the same window with the TRUE positions and gyroscope terms held (what no
-  propagation of the held terms' uncertainty can do better than).
+  propagation of the held terms' uncertainty can do better than);
+* which held term carries the gyroscopes' delays: the timing fit with only the TRUE ``gyroscope_gain``
+  (``true_gain_held``) or only the TRUE positions (``true_position_held``) put in, the other moving-stage terms
+  as written;
+* candidate estimators: ``gain_joint``: the time offsets fitted jointly with the gyroscope gains (the reference
+  IMU's gain held, positions, misalignment and non-orthogonality as written), its own std -- and the written
+  gains' z against the fitted gains' (``gain z``); ``bcd``: one more round of block coordinate descent (the
+  moving terms refitted on the same window with the written time offsets in the model, then the offsets again).
 
 Usage: python -m benchmarks.calibrate_timing_trust --seeds 100-115 [--out benchmarks/results/NAME]
 """
@@ -46,7 +53,7 @@ def truth_offsets(n_imus: int) -> np.ndarray:
     return to
 
 
-KINDS = ("written", "written_cubic", "schur", "truth_held")
+KINDS = ("written", "written_cubic", "schur", "truth_held", "true_gain_held", "true_position_held", "gain_joint", "bcd")
 REFERENCE = "imu_00 gyroscope.time_offset"  # the gauge of time the timing stage holds
 
 
@@ -84,12 +91,40 @@ def one_seed(seed: int) -> dict:
                                      time_offset=np.zeros_like(to))
     fit = fit_terms(cal.moving_window, true_held, ("time_offset",), hold=[REFERENCE], t0_ns=t0)
     z["truth_held"] = (fit.model.terms["time_offset"].values - to)[fitted] / fit.std_robust["time_offset"][fitted]
+    z.update(diagnose(cal, nominal, to, t0, fitted, row))
     row.update({"seconds": seconds, "names": [f"{cal.model.names[k]} {('accelerometer', 'gyroscope')[s]}"
                                               for k, s in zip(*np.nonzero(fitted))],
                 "error_us": (err * 1e6).tolist(), "written_std_us": (std[fitted] * 1e6).tolist(),
                 "truth_held_error_us": ((fit.model.terms["time_offset"].values - to)[fitted] * 1e6).tolist()})
     row.update({f"z_{k}": v.tolist() for k, v in z.items()})
     return row
+
+
+def diagnose(cal, nominal, to, t0, fitted, row) -> dict:
+    """The z of the time offsets for the diagnostic kinds (module docstring); the gains' z into ``row``."""
+    z = {}
+    zero = np.zeros_like(to)
+
+    def offsets_z(fit):
+        return (fit.model.terms["time_offset"].values - to)[fitted] / fit.std_robust["time_offset"][fitted]
+
+    for kind, term in (("true_gain_held", "gyroscope_gain"), ("true_position_held", "position")):
+        model = cal.model.with_terms(**{term: nominal.terms[term].values}, time_offset=zero)
+        z[kind] = offsets_z(fit_terms(cal.moving_window, model, ("time_offset",), hold=[REFERENCE], t0_ns=t0))
+    gauge = [h for h in cal.moving.held if "gyroscope" in h]  # the reference IMU's gain
+    fit = fit_terms(cal.moving_window, cal.model.with_terms(time_offset=zero), ("gyroscope_gain", "time_offset"),
+                    hold=[REFERENCE] + gauge, t0_ns=t0)
+    z["gain_joint"] = offsets_z(fit)
+    true_gain = nominal.terms["gyroscope_gain"].values
+    written_std = cal.stds()["gyroscope_gain"]
+    free = np.isfinite(written_std) & (written_std > 0)
+    row["gain_z_written"] = ((cal.model.terms["gyroscope_gain"].values - true_gain)[free] / written_std[free]).tolist()
+    row["gain_z_gain_joint"] = ((fit.model.terms["gyroscope_gain"].values - true_gain)[free]
+                                / fit.std_robust["gyroscope_gain"][free]).tolist()
+    moving = fit_terms(cal.moving_window, cal.model, MOVING_TERMS, hold=list(cal.moving.held), t0_ns=t0)
+    z["bcd"] = offsets_z(fit_terms(cal.moving_window, moving.model.with_terms(time_offset=zero), ("time_offset",),
+                                   hold=[REFERENCE], t0_ns=t0))
+    return z
 
 
 def spread(z: np.ndarray) -> dict:
@@ -127,6 +162,8 @@ def main(argv=None) -> dict:
         z = np.array([r[f"z_{kind}"] for r in done])
         summary[kind] = {"all": spread(z.reshape(-1)), "per_parameter": {n: spread(z[:, i]) for i, n in
                                                                          enumerate(names)}}
+    summary["gain_z"] = {k: spread(np.array([r[f"gain_z_{k}"] for r in done]).reshape(-1))
+                         for k in ("written", "gain_joint")}
     err = np.array([r["error_us"] for r in done])
     summary["error_rms_us"] = dict(zip(names, np.sqrt(np.mean(err ** 2, axis=0)).tolist()))
     summary["written_std_median_us"] = dict(zip(names, np.median([r["written_std_us"] for r in done],
@@ -170,6 +207,12 @@ def report(result: dict, command: str) -> str:
                  for k in KINDS]
         lines.append(f"| {n} | " + " | ".join(cells) + f" | {summary['written_std_median_us'][n]:.1f} | "
                      f"{summary['truth_held_error_mean_us'][n]:.1f} |")
+    lines += ["", "The gyroscope gains' z (true gain 1; the reference IMU's held), written (the moving stage's) and "
+              "fitted jointly with the time offsets (`gain_joint`):", "",
+              "| gains | n | rms z | mean z | abs(z) > 3 | max abs(z) |", "|---|---|---|---|---|---|"]
+    for kind, a in summary["gain_z"].items():
+        lines.append(f"| {kind} | {a['n']} | {a['rms']:.2f} | {a['mean']:.2f} | {a['frac_abs_gt_3']:.1%} | "
+                     f"{a['max_abs']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
