@@ -113,7 +113,7 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
     delta = fit.loglik_after - fit.loglik_before
-    gain, dof, tie = delta, c.dof, None
+    gain, dof, tie, widened = delta, c.dof, None, ""
     if c.scope != "imu" and not is_own(c.scope):
         tie = tie_test(fit, c.effect, list(c.imus), model.names, model.terms[c.effect].values[list(c.imus)])
         if tie["p"] >= alpha and c.extends:  # against the grown finding's one value (the refit frees its IMUs')
@@ -128,6 +128,10 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
                     f"test p = {tie['p']:.3g} < alpha = {alpha:g})")
         else:
             dof = tie["dof"] + c.dof
+            wide = _widen(samples, current, pairs, c, tie, motion, level, model, alpha, say)
+            if wide is not None:
+                fit, delta, dof = wide
+                gain, tie, widened = delta, None, c.note
     need = 0.5 * scipy.stats.chi2.isf(level, dof)
     if not np.isfinite(gain) or gain < need:
         return (f"not confirmed by the exact fit: log-likelihood gain {gain:.3g} < {need:.3g} "
@@ -140,6 +144,8 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
         narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha, say)
         if narrowed is not None:
             fit, delta = narrowed
+        if widened and c.note != widened:
+            c.note = f"{widened}; then {c.note}"
     problem = implausible(fit.model, model)
     if problem is not None:  # never report what no real sensor has: the term stands in for something else
         return f"{IMPLAUSIBLE}: the exact fit takes {problem}"
@@ -153,6 +159,41 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
 
 def _free(fit) -> int:
     return int(np.sum(np.diag(fit.covariance) > 0))
+
+
+def _widen(samples, current, pairs, c: Candidate, tie, motion, level, model, alpha, say=None):
+    """(fit, delta, dof) of ``c``'s term with every IMU its own value, ``c`` changed in place to "all own", when
+    one value shared by ``c``'s proper scope is rejected by its exact fit (``tie``) and every IMU's own value passes
+    the step's ``level``; else None.  The scope came
+    from the score test of one shared value, which the exact fit rejects: the carriers are not that group.  On a
+    proper scope the IMUs outside it, held by the fit, fix what a value common to the IMUs would move (a gauge:
+    a common time offset or accelerometer bias is absorbed by the fused motion; a near-gauge: a common
+    accelerometer gain, only weakly observed), so the scope's values are relative to a mixture of carriers and
+    non-carriers outside it and its narrowing cannot find the carriers (a time offset on 14 IMUs of 32 was
+    reported on a side of 16 holding 7 of them, an accelerometer gain on 10 of 32 on a side holding 7).  On every
+    IMU the narrowing (:mod:`.subset`) sees them all, up to the gauge."""
+    term, n = c.effect, model.n_imus
+    if len(c.imus) >= n or any(t == term for t, _ in pairs):
+        return None
+    every = tuple(range(n))
+    try:
+        fit_all = _refit(samples, current, pairs + [(term, every)], motion,
+                         _ticker(say, f"exact fit of {term} on every IMU"))
+    except CalibrationError:
+        return None
+    idx = term_indexes(fit_all, term, every)
+    free = int(np.sum(np.diag(fit_all.covariance)[idx] > 0))
+    delta = fit_all.loglik_after - fit_all.loglik_before
+    if not np.isfinite(delta) or delta < 0.5 * scipy.stats.chi2.isf(level, max(free, 1)):
+        return None  # too weak on every IMU's own values: the scope as tested stands
+    label = scope_label(every, model.names, geometry_groups(model.positions, model.rotations), False)
+    c.note = (f"tested at scope '{c.scope} ({', '.join(c.sensors)})': one shared value rejected by the exact fit "
+              f"(tie test p = {tie['p']:.3g} < alpha = {alpha:g}), so its carriers are sought on every IMU (the "
+              f"IMUs outside a scope hold what a value common to the IMUs would move; exact gain {delta:.4g} on "
+              f"{free} free parameters)")
+    c.scope, c.imus, c.sensors, c.k = label, every, tuple(model.names), 0
+    c.sensor = f"{label} ({', '.join(model.names)})"
+    return fit_all, float(delta), free
 
 
 def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motion, level, model, alpha,
