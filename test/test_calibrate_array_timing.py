@@ -24,8 +24,8 @@ from imu_array_ros.simulation.simulator import simulate_twist
 
 from conftest import START, assert_user_error, cli
 
-#: the moving stage's terms, which the timing stage holds
-HELD = ("position", "gyroscope_gain", "gyroscope_misalignment", "gyroscope_nonorthogonality")
+#: the moving stage's terms which the timing stage holds (it refits the gyroscope gains with the time offsets)
+HELD = ("position", "gyroscope_misalignment", "gyroscope_nonorthogonality")
 #: still poses of 1 s at 62.5 Hz (the MIMU4444BT's read rate) are found with these
 STILL = dict(window_s=0.3, min_duration_s=0.3, settle_s=0.1)
 
@@ -60,8 +60,9 @@ def twist(nominal):
 
 def test_the_timing_stage_recovers_known_offsets_and_keeps_the_moving_stage(session, nominal, offsets):
     """Every fitted gyroscope offset within 4 of its std of the truth; the reference gyroscope's held (the gauge
-    of time); the written positions and gyroscope terms are the moving stage's, bit for bit.  The accelerometers'
-    offsets: test_the_accelerometers_delays_are_within_their_std."""
+    of time); the written positions, gyroscope misalignment and non-orthogonality are the moving stage's, bit for
+    bit, and so is the gyroscope gains' std (the reference IMU's gain held).  The accelerometers' offsets:
+    test_the_accelerometers_delays_are_within_their_std."""
     cal = calibrate_array(session, nominal, timing=True, clock_period=None, still_options=STILL)
     assert cal.skipped == {} and cal.static is not None and cal.moving is not None and cal.timing is not None
     assert cal.timed and "-> timing" in cal.method()
@@ -74,6 +75,10 @@ def test_the_timing_stage_recovers_known_offsets_and_keeps_the_moving_stage(sess
     assert np.max(np.abs(z[1:, 1])) < 4.0, z
     for term in HELD:
         assert np.array_equal(cal.model.terms[term].values, cal.moving.model.terms[term].values), term
+    assert cal.timing.free == ("time_offset", "gyroscope_gain")
+    gain_std = cal.stds()["gyroscope_gain"]
+    assert np.array_equal(gain_std, cal.moving.std_robust["gyroscope_gain"], equal_nan=True)
+    assert cal.model.terms["gyroscope_gain"].values[0, 0] == cal.moving.model.terms["gyroscope_gain"].values[0, 0]
     assert [s["stage"] for s in cal.record()["stages"]][-1] == "timing"
 
 

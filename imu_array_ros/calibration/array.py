@@ -60,8 +60,9 @@ class ArrayCalibration:
     """The stages of :func:`calibrate_array`: model (every stage applied), poses (StillPoses),
     static (StaticCalibration or None), moving (FitResult or None), skipped: stage -> reason,
     moving_samples: (used, total) of the moving stage, moving_window: the samples the moving stage
-    fitted (None: no moving stage), seconds, timing: the timing stage's refit of the timing terms (FitResult; the
-    moving stage's positions and gyroscope terms are kept; None: it did not run or was skipped)."""
+    fitted (None: no moving stage), seconds, timing: the timing stage's refit of the timing terms and the gyroscope
+    gains (FitResult; the moving stage's positions, gyroscope misalignment and non-orthogonality are kept; None: it
+    did not run or was skipped)."""
 
     model: SensorModel
     poses: object
@@ -90,9 +91,10 @@ class ArrayCalibration:
         if self.moving is not None:
             for t in self.moving.free:
                 out[t] = self.moving.std_robust.get(t, self.moving.std[t])
-        if self.timing is not None:
-            for t in self.timing.free:
-                out[t] = self.timing.std_robust.get(t, self.timing.std[t])
+        if self.timing is not None:  # a term the moving stage fitted keeps its std (the timing fit's is conditional
+            for t in self.timing.free:  # on the held positions and gyroscope axes' terms, too small)
+                if self.moving is None or t not in self.moving.free:
+                    out[t] = self.timing.std_robust.get(t, self.timing.std[t])
         return out
 
     def summary(self) -> str:
@@ -153,7 +155,8 @@ class ArrayCalibration:
             return "calibrate static: " + " -> ".join(stages)
         stages.append("moving (positions, gyroscope gain, misalignment and non-orthogonality)")
         if self.timed:
-            stages.append("timing (sample clocks, time offsets; the moving stage's positions and gyroscope terms kept)")
+            stages.append("timing (sample clocks, time offsets with the gyroscope gains; the moving stage's positions, "
+                          "gyroscope misalignment and non-orthogonality kept)")
         return "calibrate all: " + " -> ".join(stages)
 
 
@@ -165,7 +168,8 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                     position_bound: float = POSITION_BOUND) -> ArrayCalibration:
     """Calibrate what the recording can: static stage from its still poses, moving stage from the rest,
     then (``timing``) the timing stage (:mod:`~imu_array_ros.calibration.timing`: sample clocks of period
-    ``clock_period`` searched, then the time offsets fitted with the moving stage's terms held).  The moving and
+    ``clock_period`` searched, then the time offsets fitted with the gyroscope gains, the moving stage's other
+    terms held).  The moving and
     timing stages' results are kept only when they pass :func:`~imu_array_ros.calibration.guards.check_stage`
     (converged; positions within ``position_bound`` m; every other value within its term's bound);
     ``checks=False`` (experts) keeps them as they come.
@@ -226,7 +230,7 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
     timing_fit = None
     if timing and moving is not None:
         timing_fit, current, timed_window, timing_notes = _timing_stage(
-            samples, poses, current, skipped, reference, clock_period, max_iterations, say,
+            samples, poses, current, moving, skipped, reference, clock_period, max_iterations, say,
             position_bound if checks else None)
         if timed_window is not None:
             window, used_total = timed_window, (len(timed_window), len(samples))
@@ -244,14 +248,16 @@ def calibrate_array(samples: ImuSamples, model: SensorModel, *, reference=None, 
                             seconds=time.perf_counter() - t0)
 
 
-def _timing_stage(samples, poses, current, skipped, reference, clock_period, max_iterations, say, position_bound):
+def _timing_stage(samples, poses, current, moving, skipped, reference, clock_period, max_iterations, say, position_bound):
     """The timing stage (:mod:`~imu_array_ros.calibration.timing`): on the contiguous moving samples (the timing
-    terms read the motion's time derivatives, so no sample is picked out), the timing terms fitted with the moving
-    stage's positions and gyroscope terms held.  Not refitted with them: the time offsets open a weak direction (a
-    common gyroscope scale with the positions growing as its square) along which each capture lands elsewhere --
-    on the six real captures such a joint refit wrote gyroscope gains spreading 4.2x their std and arrays 6-18 %
-    larger than the board, for 1-9 % of its held-out gain (benchmarks/results/real_calibration_trust_timing.md,
-    real_timing_heldout.md).  The fit is refused unless it passes
+    terms read the motion's time derivatives, so no sample is picked out), the timing terms fitted with the
+    gyroscope gains (:func:`_timing_terms`), the moving stage's positions, gyroscope misalignment and
+    non-orthogonality held.  Not refitted with the positions: the time offsets open a weak direction (a common
+    gyroscope scale with the positions growing as its square) along which each capture lands elsewhere -- on the
+    six real captures such a joint refit wrote gyroscope gains spreading 4.2x their std and arrays 6-18 % larger
+    than the board, for 1-9 % of its held-out gain (benchmarks/results/real_calibration_trust_timing_joint.md,
+    real_timing_heldout.md); with the positions and the reference IMU's gain held that direction is closed.  The
+    gains are written with the moving stage's std (:meth:`ArrayCalibration.stds`).  The fit is refused unless it passes
     :func:`~imu_array_ros.calibration.guards.check_stage` against the moving stage's model (``position_bound``
     None: not checked).  Returns (timing fit, model, window, notes); when the data cannot identify the timing terms
     (:data:`DATA_ERRORS`) or the fit is refused, (None, the moving stage's model, None, []) and a skip reason."""
@@ -264,10 +270,10 @@ def _timing_stage(samples, poses, current, skipped, reference, clock_period, max
         for note in setup.notes:
             say(f"timing stage: {note}")
         window = samples.select(idx)
-        hold = _timing_gauge(current, reference, setup.terms)
-        say(f"timing stage: {', '.join(setup.terms)} on the {len(idx)} moving samples (the moving stage's terms "
+        terms, hold = _timing_terms(current, reference, setup.terms, moving)
+        say(f"timing stage: {', '.join(terms)} on the {len(idx)} moving samples (the moving stage's other terms "
             f"held); held: {', '.join(hold) or 'nothing'}")
-        fit = fit_terms(window, setup.model, setup.terms, reference=reference, max_iterations=max_iterations,
+        fit = fit_terms(window, setup.model, terms, reference=reference, max_iterations=max_iterations,
                         t0_ns=int(samples.stamps[0]), hold=hold,
                         progress=lambda it, cost: say(f"timing stage: iteration {it}, cost {cost:.10g}"))
         say(f"timing stage: NIS {fit.nis_before:.4g} -> {fit.nis_after:.4g}")
@@ -280,12 +286,19 @@ def _timing_stage(samples, poses, current, skipped, reference, clock_period, max
         return None, current, None, []
 
 
-def _timing_gauge(model: SensorModel, reference, terms) -> list[str]:
-    """The parameters the timing fit holds: the gauge of time, the reference IMU's gyroscope delay (the fused
-    motion then refers to the instant the reference gyroscope samples; a common delay of every reading is
-    absorbed by the motion)."""
+def _timing_terms(model: SensorModel, reference, terms, moving) -> tuple[tuple[str, ...], list[str]]:
+    """What the timing fit frees and holds.  With ``time_offset``: the gyroscope gains too, when the moving stage
+    fitted them (fitted there without the delays, they absorb part of the gyroscopes' delays: on the simulated
+    session the moved gyroscopes' offsets came out 1.3-1.6 of their std short, unbiased with the true gains put in,
+    unchanged with the true positions; benchmarks/results/calibrate_timing_trust.md); held: the gauge of time, the
+    reference IMU's gyroscope delay (the fused motion then refers to the instant the reference gyroscope samples; a
+    common delay of every reading is absorbed by the motion), and the gains the moving stage held (its gauge)."""
     from imu_array_ros.model.reference import reference_index
 
     if "time_offset" not in terms:
-        return []
-    return [f"{model.names[reference_index(model.names, reference)]} gyroscope.time_offset"]
+        return tuple(terms), []
+    hold = [f"{model.names[reference_index(model.names, reference)]} gyroscope.time_offset"]
+    if "gyroscope_gain" in moving.free:
+        terms = tuple(terms) + ("gyroscope_gain",)
+        hold += [h for h in moving.held if " gyroscope.gain[" in h]
+    return terms, hold
