@@ -168,7 +168,8 @@ def fit_terms(samples: ImuSamples, model: SensorModel, free: Sequence[str], *, i
     before = lin.cost
     first = min(max_iterations, FAR_ITERATIONS) if prob.needs_derivatives else max_iterations  # on a held trajectory
     model, motion, lin, iterations, converged = levenberg_marquardt(prob, model, motion, lin, gauge_fix, first,
-                                                                    tolerance, progress, cost_tolerance)
+                                                                    tolerance, progress, cost_tolerance,
+                                                                    last_lin=not prob.needs_derivatives)
     if prob.needs_derivatives:  # the timing terms' trajectory was held: rounds to its fixed point
         model, motion, lin, more, converged = timing_rounds(prob, model, motion, lin, gauge_fix, max_iterations,
                                                             tolerance, progress, cost_tolerance)

@@ -4,6 +4,8 @@ does not lower the cost (theory: :mod:`imu_array_ros.fitting`)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg
 
@@ -12,11 +14,20 @@ from imu_array_ros.fitting.gauge import Gauge
 from imu_array_ros.fitting.problem import Linearization, Problem
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["levenberg_marquardt", "inverse"]
+__all__ = ["levenberg_marquardt", "inverse", "CostOnly"]
+
+
+@dataclass
+class CostOnly:
+    """What :func:`levenberg_marquardt` returns in place of the linearisation at its last step when the caller
+    does not want it (``last_lin`` False): that point's cost, sum r^2 / 2 with the derivatives held."""
+
+    cost: float
 
 
 def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Linearization, gauge: Gauge,
-                        max_iterations: int, tolerance: float, progress, cost_tolerance: float | None = None):
+                        max_iterations: int, tolerance: float, progress, cost_tolerance: float | None = None, *,
+                        last_lin: bool = True):
     """Levenberg-Marquardt on the reduced system (damping on S's diagonal, a step accepted when the cost
     drops); returns (model, motion, lin, iterations, converged).
 
@@ -30,7 +41,12 @@ def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, l
     lin: the linearisation at (model, motion); converged when every parameter step is below ``tolerance``
     standard deviations and the RMS motion step below ``tolerance`` of its own, or (``cost_tolerance`` given)
     when an accepted step lowered the cost by less than ``cost_tolerance`` (log-likelihood units: a caller that
-    needs the likelihood, not the last digits of the estimate); progress(iteration, cost) or None."""
+    needs the likelihood, not the last digits of the estimate); progress(iteration, cost) or None.
+
+    last_lin False: a caller that re-linearises at the returned point anyway (a timing round re-freezes the
+    trajectory first, :func:`~imu_array_ros.fitting.rounds.timing_rounds`) gets, when the loop ends on a step
+    (``max_iterations`` reached or ``cost_tolerance`` met), a :class:`CostOnly` (that step's cost) instead of the
+    linearisation there: one pass over every sample less, the same iterates bit for bit."""
     lam, iterations, converged = 0.0, 0, False
     for _ in range(max_iterations):
         if progress is not None:
@@ -60,9 +76,12 @@ def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, l
         model, motion = new_model, new_motion
         iterations += 1
         drop = lin.cost - cost
+        done = cost_tolerance is not None and drop < cost_tolerance
         lin = None  # memory: the last linearisation (and its G) goes before the next is made
+        if not last_lin and (done or iterations == max_iterations):
+            return model, motion, CostOnly(cost), iterations, done
         lin = prob.linearize(model, motion)
-        if cost_tolerance is not None and drop < cost_tolerance:
+        if done:
             converged = True
             break
     return model, motion, lin, iterations, converged

@@ -181,7 +181,8 @@ def timing_rounds(prob: Problem, model: SensorModel, motion: np.ndarray, lin: Li
         # ROUND_STD so that the extrapolation sees the map, not the optimiser's leftovers
         model, motion, lin, more, _ = levenberg_marquardt(
             prob, model, motion, lin, gauge, max_iterations if near else min(max_iterations, FAR_ITERATIONS),
-            ROUND_STD / 5 if near else tolerance, progress, None if near else cost_tolerance)
+            ROUND_STD / 5 if near else tolerance, progress, None if near else cost_tolerance,
+            last_lin=False)  # the next round re-freezes and linearises there: only the cost of its last step
         if not more:  # the optimiser saw nothing to do, the criterion's gain is the motion's: polish it at fixed
             motion, lin = prob.fit_motion(model, motion, lin=lin)  # parameters (else the rounds repeat to the cap)
         iterations += more
