@@ -253,9 +253,14 @@ class Problem:
                         cols: np.ndarray | None = None) -> np.ndarray:
         """(n, K, 6, dm) weighted d y / d z from the model's (n, K, 6, 9) d y / d x and, with reading rates, their
         columns ``cols`` (:meth:`rates`, the same IMUs as ``jac_motion``)."""
-        jx = jac_motion * w[..., None]
         zs = z[sel]
         d = self.mm.jacobian(zs[:, :self.mm.dim] if self.clock else zs, sel)
+        if d is None and self.clock:  # written into one array (no concatenated copy): the same values
+            jx = np.empty(jac_motion.shape[:3] + (self.dm,))
+            np.multiply(jac_motion, w[..., None], out=jx[..., :jac_motion.shape[3]])
+            np.multiply(cols, w[..., None], out=jx[..., jac_motion.shape[3]:])
+            return jx
+        jx = jac_motion * w[..., None]
         jx = jx if d is None else np.matmul(jx, d[:, None])
         if self.clock:
             jx = np.concatenate([jx, cols * w[..., None]], axis=3)
