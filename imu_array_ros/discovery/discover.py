@@ -58,6 +58,7 @@ from imu_array_ros.discovery.threads import on_one_blas_thread
 from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_motion, keep_schur
+from imu_array_ros.fitting.optimiser import backtracking
 from imu_array_ros.model.constants import STANDARD_GRAVITY
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY, candidate_names, term_names
@@ -284,6 +285,7 @@ def _sim_residuals(samples, sim, model: SensorModel):
 
 @on_one_blas_thread
 @keep_schur()  # its exact refits' motion steps read each linearisation's G_n (fitting.problem.keep_schur)
+@backtracking()  # its refits step along Gauss-Newton directions before they damp (fitting.optimiser.backtracking)
 def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = None, sim=None,
              validate=(), progress=None) -> Discovery:
     """The mismatch-discovery workflow (module docstring) on ``samples`` (ImuSamples) under ``model``.

@@ -4,6 +4,8 @@ does not lower the cost (theory: :mod:`imu_array_ros.fitting`)."""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,7 +16,28 @@ from imu_array_ros.fitting.gauge import Gauge
 from imu_array_ros.fitting.problem import Linearization, Problem
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["levenberg_marquardt", "inverse", "CostOnly"]
+__all__ = ["levenberg_marquardt", "inverse", "CostOnly", "backtracking", "BACKTRACK_HALVINGS"]
+
+#: with :func:`backtracking` on, an undamped step that raises the cost (its motion settled) is halved up to this
+#: many times, down to 1/16 of the Gauss-Newton step, before the damping grows (chosen a priori, not tuned)
+BACKTRACK_HALVINGS = 4
+_BACKTRACK = contextvars.ContextVar("backtracking", default=False)
+
+
+@contextlib.contextmanager
+def backtracking(on: bool = True):
+    """Inside (also as a decorator): :func:`levenberg_marquardt` backtracks along the Gauss-Newton direction
+    (halving the step, :data:`BACKTRACK_HALVINGS` times at most) before it damps.  Damping turns the step towards
+    the gradient and shrinks it most along the weakly determined directions, which are the ones a refit with
+    timing terms must travel (a common gyroscope scale traded with the axis and time offsets): on discovery's
+    gyroscope-gain refit of exp_1's moving phase every undamped step was rejected and the damped ones crept, 104
+    linearisations; backtracking 50, the same fixed point to its tolerance.  Off by default (the calibrations'
+    iterates unchanged); discovery turns it on."""
+    token = _BACKTRACK.set(bool(on))
+    try:
+        yield
+    finally:
+        _BACKTRACK.reset(token)
 
 
 @dataclass
@@ -58,8 +81,9 @@ def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, l
         if np.max(np.abs(step_z) / np.sqrt(np.diag(cov_z)), initial=0.0) < tolerance and motion_rms < tolerance:
             converged = True
             break
+        t, halvings = 1.0, BACKTRACK_HALVINGS if _BACKTRACK.get() else 0
         while True:
-            dz = step_z if lam == 0 else _solve_damped(s_z, g_z, lam)
+            dz = t * step_z if lam == 0 else _solve_damped(s_z, g_z, lam)
             dtheta = gauge.expand(dz)
             new_model = prob.with_values(model, prob.values(model).reshape(-1) + dtheta)
             new_motion = motion + prob.motion_step(model, motion, lin, dtheta)
@@ -70,6 +94,9 @@ def levenberg_marquardt(prob: Problem, model: SensorModel, motion: np.ndarray, l
             if cost <= lin.cost:
                 lam = lam / 10 if lam > 1e-6 else 0.0
                 break
+            if lam == 0 and halvings:  # backtracking(): along the Gauss-Newton direction first
+                t, halvings = 0.5 * t, halvings - 1
+                continue
             lam = max(1e-4, 10 * lam)
             if lam > 1e8:  # no step lowers the cost: stalled short of the tolerance
                 return model, motion, lin, iterations, False
