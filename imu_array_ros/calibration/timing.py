@@ -8,12 +8,13 @@ without timing):
    free-running chip clocks of period ``clock_period`` (:func:`~imu_array_ros.timing.clocks.find_sample_clocks`):
    a chip whose reading delays show a sawtooth clearly above their noise gets a clock (rate, this
    session's phase); the others are named.  ``clock_period=None`` skips the search.
-2. The moving stage is then fitted again with ``time_offset`` (each sensor's constant delay) added.
+2. ``time_offset`` (each sensor's constant delay) is then fitted with the gyroscope gains, the moving stage's
+   positions, gyroscope misalignment and non-orthogonality held (``calibration.array._timing_stage``).
    The clocks' rates stay those of the search (the spectral peak places them to a fraction of a ppm;
    the engine's Gauss-Newton cannot refine them, as a rate moves the sawtooth's wraps, which its
    first-order Jacobian does not see, and it stalls); the phase is a session state, never written.
-   A common delay of every sensor is not observable: the reference IMU's accelerometer offset is held
-   (the engine's gauge).
+   A common delay of every sensor is not observable: the reference IMU's gyroscope offset is held
+   (the gauge of time).
 
 What the recording cannot identify (too little motion) is skipped with the reason, as every stage.
 """
