@@ -99,6 +99,34 @@ def icosahedron_recording(nominal, model, seed: int, *, twist_s: float, still_s:
     return simulate_measurements(model, truth, np.random.default_rng(seed + 1))
 
 
+def clocked_twist_case(seed: int, stamps):
+    """(clocked model, samples, ML motion with reading rates): sample clocks on the 8 corner IMUs
+    (``mimu_like_clocks``, accelerometer lag 0.8 ms, gyroscope 2.9 ms), hand-like twisting plus motion faster than
+    the reads follow, read at ``stamps`` (ns), all drawn from ``seed``."""
+    from imu_array_ros.fitting.engine import fit_motion
+    from imu_array_ros.fitting.reading_rates import reading_rates
+    from imu_array_ros.model.description import load_description
+    from imu_array_ros.model.sensor_model import SensorModel
+    from imu_array_ros.simulation.clocks import mimu_like_clocks
+    from imu_array_ros.simulation.motion import TwistTrajectory
+    from imu_array_ros.simulation.simulator import simulate_trajectory
+
+    root = Path(__file__).resolve().parents[1]
+    corners = SensorModel.from_description(load_description(root / "config/mimu4444bt_corners.yaml"))
+    rng = np.random.default_rng(seed)
+    clocked = mimu_like_clocks(corners, rng, acc_lag=0.8e-3, gyro_lag=2.9e-3)
+    a = np.array([[8.0, 1.4], [6.0, 1.2], [7.0, 1.3]])
+    f = np.array([[1.1, 34.0], [1.7, 38.0], [0.9, 41.0]])
+    sa = np.array([[2.0, 8.0], [2.0, 7.0], [2.0, 9.0]])
+    sf = np.array([[0.7, 36.0], [1.2, 43.0], [0.5, 39.0]])
+    twist = TwistTrajectory(a, f, rng.uniform(0, 2 * np.pi, (3, 2)), sa, sf, rng.uniform(0, 2 * np.pi, (3, 2)),
+                            np.array([1.0, 0.0, 0.0, 0.0]))
+    samples = simulate_trajectory(clocked, twist, stamps, rng)[0]
+    with reading_rates():
+        motion = fit_motion(samples, clocked)[0]
+    return clocked, samples, motion
+
+
 # --------------------------------------------------------------------------- node processes over real DDS
 
 

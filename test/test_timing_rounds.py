@@ -16,9 +16,8 @@ from imu_array_ros.fitting.problem import Problem
 from imu_array_ros.fitting.reading_rates import reading_rates
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
-from imu_array_ros.simulation.clocks import mimu_like_clocks
-from imu_array_ros.simulation.motion import TwistTrajectory
-from imu_array_ros.simulation.simulator import simulate_trajectory
+
+from conftest import clocked_twist_case
 
 ROOT = Path(__file__).resolve().parents[1]
 #: 120 reads at 62.5 Hz (the MIMU4444BT's)
@@ -29,19 +28,7 @@ STAMPS = (np.arange(120) * 16_000_000).astype(np.int64)
 def case():
     """Sample clocks on 8 corner IMUs, hand-like twisting plus motion faster than the reads follow (the
     recording of test_reading_rates.py, shorter): the time offsets' fit with reading rates, from the truth."""
-    corners = SensorModel.from_description(load_description(ROOT / "config/mimu4444bt_corners.yaml"))
-    rng = np.random.default_rng(11)
-    clocked = mimu_like_clocks(corners, rng, acc_lag=0.8e-3, gyro_lag=2.9e-3)
-    a = np.array([[8.0, 1.4], [6.0, 1.2], [7.0, 1.3]])
-    f = np.array([[1.1, 34.0], [1.7, 38.0], [0.9, 41.0]])
-    sa = np.array([[2.0, 8.0], [2.0, 7.0], [2.0, 9.0]])
-    sf = np.array([[0.7, 36.0], [1.2, 43.0], [0.5, 39.0]])
-    twist = TwistTrajectory(a, f, rng.uniform(0, 2 * np.pi, (3, 2)), sa, sf, rng.uniform(0, 2 * np.pi, (3, 2)),
-                            np.array([1.0, 0.0, 0.0, 0.0]))
-    samples = simulate_trajectory(clocked, twist, STAMPS, rng)[0]
-    with reading_rates():
-        motion = fit_motion(samples, clocked)[0]
-    return clocked, samples, motion
+    return clocked_twist_case(11, STAMPS)
 
 
 def fit(case):
