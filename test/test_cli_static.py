@@ -157,5 +157,6 @@ def test_the_method_names_the_timing_stage_only_when_it_ran():
     assert "timing" not in skipped.method() and skipped.record()["skipped"] == {"timing": "the refit did not converge"}
     assert run(moving_terms=moving, timing=object()).method().endswith(  # a timing result kept: the stage ran
         "-> moving (positions, gyroscope gain, misalignment and non-orthogonality) -> timing (sample clocks, time "
-        "offsets; the moving stage's positions and gyroscope terms kept)")
+        "offsets with the gyroscope gains; the moving stage's positions, gyroscope misalignment and "
+        "non-orthogonality kept)")
     assert run().method() == "calibrate static: still poses -> static (accelerometer intrinsics, gyroscope biases)"
