@@ -420,7 +420,9 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         heldout = complement_gain(sb.residuals, start_r, data.index, data.label)
     elif opts.heldout and findings:
         say("held-out blocks: refitting the findings on half of the blocks, scoring on the other half")
-        heldout = heldout_gain(samples, model, findings, blocks, base_motion, base_r)
+        # under the model the search started from (with the timing stage's clocks), as the findings were found
+        ref = (base_motion, base_r) if start_model is model else fit_motion(samples, start_model, start_motion)[::2]
+        heldout = heldout_gain(samples, start_model, findings, blocks, *ref)
     validation = []
     for label, other in validate:
         say(f"validating on {label}")
