@@ -99,6 +99,13 @@ def icosahedron_recording(nominal, model, seed: int, *, twist_s: float, still_s:
     return simulate_measurements(model, truth, np.random.default_rng(seed + 1))
 
 
+def gyro_chip_clocks(k: int, rng) -> np.ndarray:
+    """(k, 3) MIMU-like gyroscope chip clocks drawn from ``rng``: period 1 ms, rate +-3000 ppm, random phase."""
+    clock = np.column_stack([np.full(k, 1e-3), rng.uniform(-3000, 3000, k), np.zeros(k)])
+    clock[:, 2] = rng.uniform(0, 1, k) * clock[:, 0] / (1 + clock[:, 1] * 1e-6)
+    return clock
+
+
 def clocked_twist_case(seed: int, stamps):
     """(clocked model, samples, ML motion with reading rates): sample clocks on the 8 corner IMUs
     (``mimu_like_clocks``, accelerometer lag 0.8 ms, gyroscope 2.9 ms), hand-like twisting plus motion faster than

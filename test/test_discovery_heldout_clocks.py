@@ -13,6 +13,8 @@ from imu_array_ros.model.description import load_description
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.simulation.simulator import simulate_twist
 
+from conftest import gyro_chip_clocks
+
 CORNERS = Path(__file__).resolve().parents[1] / "config" / "mimu4444bt_corners.yaml"
 
 
@@ -23,8 +25,7 @@ def test_the_held_out_check_refits_the_findings_with_the_clocks_found(monkeypatc
     nominal = SensorModel.from_description(load_description(CORNERS))
     rng = np.random.default_rng(11)
     k = nominal.n_imus
-    clock = np.column_stack([np.full(k, 1e-3), rng.uniform(-3000, 3000, k), np.zeros(k)])
-    clock[:, 2] = rng.uniform(0, 1, k) * clock[:, 0] / (1 + clock[:, 1] * 1e-6)
+    clock = gyro_chip_clocks(k, rng)
     bias = nominal.terms["gyroscope_bias"].values.copy()
     bias[3] += [0.004, -0.003, 0.002]
     true = nominal.with_terms(gyroscope_sample_clock=clock, gyroscope_bias=bias)

@@ -22,6 +22,8 @@ from imu_array_ros.simulation.simulator import simulate_twist
 from imu_array_ros.timing.delays import reading_delays
 from imu_array_ros.timing.session import active_clocks, session_weights
 
+from conftest import gyro_chip_clocks
+
 CORNERS = str(Path(__file__).resolve().parents[1] / "config" / "mimu4444bt_corners.yaml")
 #: 20 s at 62.5 Hz x 8 IMUs = 10,000 readings: every 4th block (10 of 40), every 2nd, the whole recording
 BUDGET = 3_000
@@ -32,8 +34,7 @@ def recording():
     nominal = SensorModel.from_description(load_description(CORNERS))
     rng = np.random.default_rng(11)
     k = nominal.n_imus
-    clock = np.column_stack([np.full(k, 1e-3), rng.uniform(-3000, 3000, k), np.zeros(k)])
-    clock[:, 2] = rng.uniform(0, 1, k) * clock[:, 0] / (1 + clock[:, 1] * 1e-6)
+    clock = gyro_chip_clocks(k, rng)
     bias = nominal.terms["gyroscope_bias"].values.copy()
     bias[2] = (0.01, -0.01, 0.005)  # a strong effect, found on the first subsample
     true = nominal.with_terms(gyroscope_sample_clock=clock, gyroscope_bias=bias,
