@@ -157,8 +157,10 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     return fit, float(delta)
 
 
-def _free(fit) -> int:
-    return int(np.sum(np.diag(fit.covariance) > 0))
+def _free(fit, term: str | None = None, imus=()) -> int:
+    """Free (identified) parameters of ``fit``: all, or ``term``'s on ``imus``."""
+    var = np.diag(fit.covariance)
+    return int(np.sum((var if term is None else var[term_indexes(fit, term, imus)]) > 0))
 
 
 def _widen(samples, current, pairs, c: Candidate, tie, motion, level, model, alpha, say=None):
@@ -181,8 +183,7 @@ def _widen(samples, current, pairs, c: Candidate, tie, motion, level, model, alp
                          _ticker(say, f"exact fit of {term} on every IMU"))
     except CalibrationError:
         return None
-    idx = term_indexes(fit_all, term, every)
-    free = int(np.sum(np.diag(fit_all.covariance)[idx] > 0))
+    free = _free(fit_all, term, every)
     delta = fit_all.loglik_after - fit_all.loglik_before
     if not np.isfinite(delta) or delta < 0.5 * scipy.stats.chi2.isf(level, max(free, 1)):
         return None  # too weak on every IMU's own values: the scope as tested stands
@@ -223,7 +224,7 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
     tie_c = tie_test(fit_c, term, list(sub), model.names, base) if len(sub) > 1 else None
     shared_c = tie_c is not None and tie_c["p"] >= alpha
     gain_c = delta_c - (0.5 * tie_c["statistic"] if shared_c else 0.0)
-    n_c = int(np.sum(np.diag(fit_c.covariance)[term_indexes(fit_c, term, sub)] > 0))
+    n_c = _free(fit_c, term, sub)
     dof_c = (n_c - tie_c["dof"]) if shared_c else n_c
     if tie is None:  # an own scope: whether one shared value on all of it would do as well
         tie = tie_test(fit, term, list(imus), model.names, model.terms[term].values[list(imus)])
