@@ -20,11 +20,13 @@ model it is analysed with, then :func:`imu_array_ros.discovery.modes.detect_mode
 
 Each scenario's residuals are searched twice, with the mode search's array-wide test being
 :mod:`~imu_array_ros.discovery.coherent` ("welch") and :mod:`~imu_array_ros.discovery.bank` ("bank"): columns side
-by side.  Baseline, same residuals, same run: the per-cell line test discovery used before (:func:`old_line_test`:
+by side (``--tests``: others, e.g. ``welch+matched``, the test ``discover`` uses: modes.COHERENT_TEST; the first
+is the one the unsuffixed keys hold).
+Baseline, same residuals, same run: the per-cell line test discovery used before (:func:`old_line_test`:
 Welch of 256 samples, each bin against the cell's *white* floor, chi-square, Bonferroni over bins x cells at
 0.01); it has no band, so it is credited with a detection when any cell of the strongest IMU is flagged.
 
-    python -m benchmarks.discovery_modes [--nulls 90] [--modes 200] [--seed 5150]
+    python -m benchmarks.discovery_modes [--nulls 90] [--modes 200] [--seed 5150] [--tests welch+matched bank]
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import time
 import numpy as np
 
 from imu_array_ros.discovery.excess import regime_masks
-from imu_array_ros.discovery.modes import MODE_ALPHA, detect_modes
+from imu_array_ros.discovery.modes import COHERENT_TEST, MODE_ALPHA, detect_modes
 from imu_array_ros.fitting.engine import fit_motion
 from imu_array_ros.model.description import load_description
 from imu_array_ros.model.layouts import grid_array32, planar_square4
@@ -119,6 +121,9 @@ def old_line_test(r: np.ndarray, fs: float, nperseg: int = 256, alpha: float = 0
 #: the array-wide test of the mode search, each run on the same residuals ("welch": coherent.py, "bank": bank.py);
 #: the first is the one the columns without a suffix show
 COHERENT_TESTS = ("welch", "bank")
+#: the array-wide tests ``--tests`` may name ("default": discover's, modes.COHERENT_TEST) and their names in the tables
+TEST_NAMES = {"welch": "coherent.py", "bank": "bank.py", "matched": "matched.py",
+              "welch+matched": "coherent.py + matched.py", "welch+matched+bank": "coherent.py + matched.py + bank.py"}
 
 
 def _analyse(samples, model):
@@ -132,7 +137,7 @@ def _analyse(samples, model):
 
 
 def _suffix(test: str) -> str:
-    return "" if test == COHERENT_TESTS[0] else f"_{test}"
+    return "" if test == COHERENT_TESTS[0] else "_" + test.replace("+", "_")
 
 
 def null_case(seed: int, kind: str) -> dict:
@@ -231,7 +236,7 @@ def render(res: dict, path: str, seconds: float) -> None:
     nulls, modes = res["nulls"], res["modes"]
     kinds = ("white", "broadband", "library")
     tests = [t for t in COHERENT_TESTS if ("modes" + _suffix(t)) in (nulls[0] if nulls else {})] or [COHERENT_TESTS[0]]
-    names = {"welch": "coherent.py", "bank": "bank.py"}
+    names = {t: TEST_NAMES[t] + (" (discover's default)" if t == COHERENT_TEST else "") for t in TEST_NAMES}
     head = " | ".join(f"with a mode ({names[t]} test)" for t in tests)
     text = machine_header("Narrowband-mode search: false modes on nulls, power on fresh seeds",
                           extra=[f"load average: {load_average()}", f"run time: {seconds:.0f} s",
@@ -289,13 +294,18 @@ def render(res: dict, path: str, seconds: float) -> None:
 
 
 def main() -> None:
+    global COHERENT_TESTS
     ap = argparse.ArgumentParser()
     ap.add_argument("--nulls", type=int, default=90)
     ap.add_argument("--modes", type=int, default=200)
     ap.add_argument("--seed", type=int, default=5150)
     ap.add_argument("--out", default="benchmarks/results/discovery_modes.json")
     ap.add_argument("--md", default="benchmarks/results/discovery_modes.md")
+    ap.add_argument("--tests", nargs="+", choices=[*TEST_NAMES, "default"], default=list(COHERENT_TESTS),
+                    help="the mode search's array-wide tests, each run on the same residuals (default: welch bank; "
+                         f"'default': discover's, {COHERENT_TEST})")
     a = ap.parse_args()
+    COHERENT_TESTS = tuple(dict.fromkeys(COHERENT_TEST if t == "default" else t for t in a.tests))
     t0 = time.time()
     nulls, modes = [], []
     kinds = ("white", "broadband", "library")
@@ -308,7 +318,7 @@ def main() -> None:
     ev = np.array([r["evidence"] for r in modes])
     summary = {"alpha": MODE_ALPHA, "nulls": len(nulls), "mode_scenarios": len(modes), "seconds": time.time() - t0,
                "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-               "load_average": os.getloadavg(), "tests": {}}
+               "load_average": os.getloadavg(), "coherent_tests": list(COHERENT_TESTS), "tests": {}}
     for t in COHERENT_TESTS:
         x = _suffix(t)
         det = np.array([r["detected" + x] for r in modes])

@@ -30,8 +30,11 @@ motion fit, :func:`imu_array_ros.fitting.engine.fit_motion`):
   Run twice on the same residuals (``COHERENT_TESTS``): with the array-wide test of
   :mod:`imu_array_ros.discovery.coherent` ("discovery ... coherent.py") and of :mod:`imu_array_ros.discovery.bank`
   ("... bank.py"); and each array-wide test's own smallest p at the mode's band (``p coherent.py / bank.py``).
+  ``--tests``: other array-wide tests, e.g. ``welch+matched`` (the one ``discover`` uses, modes.COHERENT_TEST:
+  ``default``); the first is the one the unsuffixed "discovery" keys hold.
 
     python -m benchmarks.discovery_vibration_bound [--seed S] [--scenarios 48] [--evidence 30 1000]
+        [--tests default welch bank]
 """
 
 from __future__ import annotations
@@ -60,6 +63,14 @@ EDGES = (0.0, 30.0, 100.0, 300.0, 1000.0, np.inf)
 #: the array-wide test of the mode search run on every scenario (the first is "discovery"; the others' columns
 #: carry their name)
 COHERENT_TESTS = ("welch", "bank")
+#: the array-wide tests ``--tests`` may name and their names in the tables
+TEST_NAMES = {"welch": "coherent.py", "bank": "bank.py", "matched": "matched.py",
+              "welch+matched": "coherent.py + matched.py", "welch+matched+bank": "coherent.py + matched.py + bank.py"}
+
+
+def _key(key: str, test: str, tests=None) -> str:
+    """A row's key of ``test``'s result: unsuffixed for the first of ``tests`` (default COHERENT_TESTS)."""
+    return key if test == (tests or COHERENT_TESTS)[0] else f"{key}_{test}"
 
 
 def _tail_p(s: float, law: np.ndarray) -> float:
@@ -171,8 +182,8 @@ def analyse(seed: int, index: int, evidence: tuple[float, float]) -> dict:
             "p_shape": p_shape, "p_band": p_band, "p_shape_null": p_shape_null, "p_band_null": p_band_null, "looks": looks, "p_band_searched": min(1.0, p_band * looks),
             "shape_genie": p_shape < ALPHA, "band_genie": p_band < ALPHA,
             "band_genie_searched": p_band * looks < ALPHA,
-            **{(key if test == COHERENT_TESTS[0] else f"{key}_{test}"): val for test in COHERENT_TESTS
-               for key, val in per[test].items()}, **per_p, "seconds": time.perf_counter() - t0}
+            **{_key(key, test): val for test in COHERENT_TESTS for key, val in per[test].items()}, **per_p,
+            "seconds": time.perf_counter() - t0}
 
 
 def _coherent_p_at(r, fs, m, vib) -> dict:
@@ -215,27 +226,33 @@ def _rate(rows, key) -> str:
     return f"{k}/{n} ({100 * lo:.0f}–{100 * hi:.0f} %)"
 
 
-DETECTORS = (("shape_genie", "shape genie (knows shape + spectrum; no search)"),
-             ("band_genie", "band genie (knows spectrum; no search)"),
-             ("band_genie_searched", "band genie, searched (Bonferroni over bands x widths)"),
-             ("discovery", "discovery's mode search, coherent.py test (suite rule)"),
-             ("discovery_at_f", "the same: a mode at the frequency, any IMUs"),
-             ("discovery_bank", "discovery's mode search, bank.py test (suite rule)"),
-             ("discovery_at_f_bank", "the same: a mode at the frequency, any IMUs"))
+GENIES = (("shape_genie", "shape genie (knows shape + spectrum; no search)"),
+          ("band_genie", "band genie (knows spectrum; no search)"),
+          ("band_genie_searched", "band genie, searched (Bonferroni over bands x widths)"))
+
+
+def _name(test: str) -> str:
+    from imu_array_ros.discovery.modes import COHERENT_TEST
+
+    return TEST_NAMES[test] + (" (discover's default)" if test == COHERENT_TEST else "")
 
 
 def render(res: dict, out: Path) -> None:
     rows = [r for r in res["rows"] if "error" not in r]
     errors = [r for r in res["rows"] if "error" in r]
+    tests = tuple(res["settings"].get("tests", ("welch", "bank")))  # runs before --tests: welch and bank
+    detectors = GENIES + tuple(d for t in tests for d in (
+        (_key("discovery", t, tests), f"discovery's mode search, {_name(t)} test (suite rule)"),
+        (_key("discovery_at_f", t, tests), "the same: a mode at the frequency, any IMUs")))
     lines = [res["header"], "## Detection against the oracle evidence\n",
-             "| oracle evidence | scenarios | " + " | ".join(label for _, label in DETECTORS) + " |",
-             "|---|---|" + "---|" * len(DETECTORS)]
+             "| oracle evidence | scenarios | " + " | ".join(label for _, label in detectors) + " |",
+             "|---|---|" + "---|" * len(detectors)]
     for lo, hi in zip(EDGES[:-1], EDGES[1:]):
         sel = [r for r in rows if lo <= r["evidence"] < hi]
         if sel:
-            lines.append(f"| {lo:g}–{hi:g} | {len(sel)} | " + " | ".join(_rate(sel, k) for k, _ in DETECTORS) + " |")
+            lines.append(f"| {lo:g}–{hi:g} | {len(sel)} | " + " | ".join(_rate(sel, k) for k, _ in detectors) + " |")
     big = [r for r in rows if r["evidence"] >= 100]
-    lines.append(f"| >= 100 | {len(big)} | " + " | ".join(_rate(big, k) for k, _ in DETECTORS) + " |")
+    lines.append(f"| >= 100 | {len(big)} | " + " | ".join(_rate(big, k) for k, _ in detectors) + " |")
     for name, key in (("coherent.py", "p_coherent_welch"), ("bank.py", "p_coherent_bank")):
         hits = sum(r[key] < ALPHA / 3 for r in big)
         lines.append(f"\nThe {name} test alone at the mode's band, at its share of alpha (0.01 / 3), evidence >= 100: "
@@ -244,22 +261,23 @@ def render(res: dict, out: Path) -> None:
               f"(the suite's generator gave up): {len(errors)}.", "",
               "## Discovery against the band genie (searched)\n",
               "| | discovery found | discovery missed |", "|---|---|---|"]
-    for test, key_d in (("coherent.py", "discovery"), ("bank.py", "discovery_bank")):
+    for test, key_d in ((_name(t), _key("discovery", t, tests)) for t in tests):
         for key, label in ((True, "band genie (searched) detects"), (False, "band genie (searched) does not")):
             sel = [r for r in rows if r["band_genie_searched"] == key]
             lines.append(f"| {label}; {test} | {sum(r[key_d] for r in sel)} | {sum(not r[key_d] for r in sel)} |")
     lines += ["", "## Scenarios\n",
               "p coherent.py / bank.py: the smallest p of the array-wide test over its windows / templates that overlap "
               "the mode's band (centre +- max(width, 0.25 Hz)), corrected as the test corrects it (its share of "
-              "alpha, 1/3 of 0.01 in discover, not applied).", "",
+              "alpha, not applied: 1/3 of 0.01 as the only array-wide test, 1/4 beside matched.py in discover's "
+              "welch+matched).", "",
               "| scenario | width (Hz) | s | field ch. | oracle evidence | p shape genie | p band genie | "
-              "x looks | p coherent.py | p bank.py | discovery, coherent.py | discovery, bank.py |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "x looks | p coherent.py | p bank.py | " + " | ".join(f"discovery, {_name(t)}" for t in tests) + " |",
+              "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(tests)]
     for r in sorted(rows, key=lambda r: r["evidence"]):
         lines.append(f"| {r['scenario']} | {r['bandwidth_hz']:.2f} | {r['duration_s']:.0f} | "
                      f"{r['field_channels']} | {r['evidence']:.0f} | {r['p_shape']:.2g} | {r['p_band']:.2g} | "
                      f"{r['looks']:.0f} | {r['p_coherent_welch']:.2g} | {r['p_coherent_bank']:.2g} | "
-                     f"{'found' if r['discovery'] else '—'} | {'found' if r['discovery_bank'] else '—'} |")
+                     + " | ".join('found' if r[_key("discovery", t, tests)] else '—' for t in tests) + " |")
     ps = np.array([r["p_shape_null"] for r in rows])
     pb = np.array([r["p_band_null"] for r in rows])
     lines += ["", "## The genies' null laws, checked\n",
@@ -274,13 +292,20 @@ def render(res: dict, out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    global COHERENT_TESTS
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, default=SEED)
     ap.add_argument("--scenarios", type=int, default=48)
     ap.add_argument("--evidence", type=float, nargs=2, default=(30.0, 1000.0), metavar=("LO", "HI"))
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--render", action="store_true", help="only re-write the .md from the saved .json")
+    ap.add_argument("--tests", nargs="+", choices=[*TEST_NAMES, "default"], default=list(COHERENT_TESTS),
+                    help="the mode search's array-wide tests, each run on the same residuals (default: welch bank; "
+                         "'default': discover's, modes.COHERENT_TEST)")
     args = ap.parse_args(argv)
+    from imu_array_ros.discovery.modes import COHERENT_TEST
+
+    COHERENT_TESTS = tuple(dict.fromkeys(COHERENT_TEST if t == "default" else t for t in args.tests))
     if args.render:
         render(json.loads(args.out.with_suffix(".json").read_text()), args.out)
         return 0
@@ -293,10 +318,11 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(r)
         say(f"{r.get('seconds', 0):5.1f} s  {r['scenario']}  " + (r["error"] if "error" in r else
             f"evidence {r['evidence']:.0f}  p shape {r['p_shape']:.2g}  p band {r['p_band']:.2g} x {r['looks']:.0f}"
-            f"  discovery {'found' if r['discovery'] else '—'} / bank {'found' if r['discovery_bank'] else '—'}"
+            "  discovery " + " / ".join(f"{t} {'found' if r[_key('discovery', t)] else '—'}"
+                                        for t in COHERENT_TESTS) +
             f"  p coh {r['p_coherent_welch']:.2g} bank {r['p_coherent_bank']:.2g}"))
         res = {"header": header, "settings": {"seed": args.seed, "scenarios": args.scenarios,
-                                              "evidence": list(args.evidence)},
+                                              "evidence": list(args.evidence), "tests": list(COHERENT_TESTS)},
                "rows": rows, "total_wall_seconds": time.perf_counter() - t0, "load_average_end": load_average()}
         args.out.parent.mkdir(parents=True, exist_ok=True)
         from imu_array_ros.util.files import atomic_write_text
