@@ -358,9 +358,7 @@ class Problem:
             if m:
                 jt = self.parameter_jacobian(jac, w)
                 accumulate_c(cblocks, gt, jt, r[:, self.cols])
-                gmat = stacked_g(jx[:, self.cols], linv[lo:hi], jt)  # (9 n, M)
-                if keep:
-                    g_all[lo:hi] = gmat.reshape(hi - lo, self.dm, m)
+                gmat = stacked_g(jx[:, self.cols], linv[lo:hi], jt, out=g_all[lo:hi] if keep else None)  # (dm n, M)
                 S -= gmat.T @ gmat
                 g -= gmat.T @ h[lo:hi].reshape(-1)
         if m:

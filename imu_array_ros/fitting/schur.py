@@ -98,9 +98,16 @@ def g_per_imu(jx: np.ndarray, linv: np.ndarray, jt: np.ndarray) -> tuple[np.ndar
     return mk, gk
 
 
-def stacked_g(jx: np.ndarray, linv: np.ndarray, jt: np.ndarray) -> np.ndarray:
-    """G_n = L_n^-1 B_n stacked over the chunk: (9 n, K_fit P) (:func:`g_per_imu`)."""
+def stacked_g(jx: np.ndarray, linv: np.ndarray, jt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """G_n = L_n^-1 B_n stacked over the chunk: (d n, K_fit P), B_n's IMU blocks B_n,k = J_x,k^T J_t,k written side
+    by side (n, d, K_fit P), then one (d, d) @ (d, K_fit P) product per sample, already in the stacked layout (the
+    :func:`g_per_imu` blocks to rounding, without their transposed copy).  ``out``: a C-contiguous (n, d, K_fit P)
+    array to write G into (e.g. the part of :attr:`~imu_array_ros.fitting.problem.Linearization.G` it fills)."""
     n, kf, _, p = jt.shape
     d = jx.shape[-1]
-    gk = g_per_imu(jx, linv, jt)[1]
-    return gk.transpose(0, 2, 1, 3).reshape(d * n, kf * p)
+    b = np.empty((n, d, kf, p))
+    np.matmul(jx.transpose(0, 1, 3, 2), jt, out=b.transpose(0, 2, 1, 3))
+    if out is None:
+        out = np.empty((n, d, kf * p))
+    np.matmul(linv, b.reshape(n, d, kf * p), out=out)
+    return out.reshape(d * n, kf * p)

@@ -20,6 +20,7 @@ __all__ = [
     "quadratic_monomials_jacobian",
     "centripetal_matrix",
     "euler_matrix",
+    "lever_rows_jacobian",
 ]
 
 
@@ -100,3 +101,24 @@ def centripetal_matrix(r: np.ndarray) -> np.ndarray:
 def euler_matrix(r: np.ndarray) -> np.ndarray:
     """G(r) = -Omega_r with ``omega_dot x r = G(r) omega_dot`` (skog2016 eq. 3); (..., 3) -> (..., 3, 3)."""
     return -skew(r)
+
+
+def lever_rows_jacobian(omega: np.ndarray, u: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """d (u . C r) / d [omega, omega_dot, s] with C = [omega]x^2 + [omega_dot]x (the lever-arm part of skog2016
+    eq. 1, no s part: zeros), for rows u and points r (K, A, 3) of every sample's omega (N, 3): (N, K, A, 9).
+
+    Closed form, no 3x3 products: omega x (omega x r) = omega (omega . r) - r |omega|^2 gives
+    u^T d/d omega = (omega . r) u^T + (omega . u) r^T - 2 (u . r) omega^T, and u . (omega_dot x r) gives
+    d/d omega_dot = (r x u)^T, the same for every sample.  Equal to u^T of
+    :meth:`~imu_array_ros.model.terms.base.MotionContext.force_jacobian` to rounding."""
+    omega = np.asarray(omega, dtype=float)
+    k, a = u.shape[:2]
+    n = len(omega)
+    wr = (omega @ r.reshape(-1, 3).T).reshape(n, k, a, 1)
+    wu = (omega @ u.reshape(-1, 3).T).reshape(n, k, a, 1)
+    out = np.zeros((n, k, a, 9))
+    np.multiply(wr, u, out=out[..., 0:3])
+    out[..., 0:3] += wu * r
+    out[..., 0:3] -= (2.0 * np.sum(u * r, axis=-1))[..., None] * omega[:, None, None, :]
+    out[..., 3:6] = np.cross(r, u)
+    return out

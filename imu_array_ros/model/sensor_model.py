@@ -360,15 +360,19 @@ class SensorModel:
         params = {name: np.zeros((n, k, 6, self.terms[name].dim())) for name in free}
         for s, sensor in enumerate(SENSORS):
             rows = slice(3 * s, 3 * s + 3)
-            chain = self.chain(sensor, keep=free, ctx=ctx)
+            chain = [t.memoised() if isinstance(t, TimingStage) else t for t in self.chain(sensor, keep=free, ctx=ctx)]
             x = self._base(ctx, sensor)
             inputs = []
             for term in chain:
                 inputs.append(x)
                 x = term.apply(x, ctx, sensor)
             predicted[:, :, rows] = x
-            d = None  # d y / d (signal after the current term); None: the identity (no product needed)
-            times = lambda a: a if d is None else d @ a  # noqa: E731
+            # d y / d (signal after the current term); None: the identity (no product needed); (K, 3, 3) while it
+            # is the same for every sample (the linear maps' d_input: broadcast), one map per IMU; else (n, K, 3, 3)
+            d = None
+            times = lambda a: a if d is None else np.matmul(d, a)  # noqa: E731
+            # the terms' direct motion rows since d last changed, summed before their one product with it
+            pending, owned = None, False
             for term, x_in in zip(reversed(chain), reversed(inputs)):
                 if isinstance(term, TimingStage):
                     for member in term.terms:
@@ -378,17 +382,26 @@ class SensorModel:
                     params[term.name][:, :, rows] += times(term.d_params(x_in, ctx, sensor))
                 dm = term.d_motion(x_in, ctx, sensor) if with_motion else None
                 if dm is not None:
-                    motion[:, :, rows] += times(dm)
+                    pending, owned = (dm, False) if pending is None else (pending + dm, True)
                 if "position" in params:
                     dp = term.d_positions(x_in, ctx, sensor)  # terms that read the positions
                     if dp is not None:
                         params["position"][:, :, rows] += times(dp)
                 di = term.d_input(x_in, ctx, sensor)
                 if di is not None:
+                    if pending is not None:
+                        motion[:, :, rows] += times(pending)
+                        pending = None
+                    di = di[0] if di.ndim == 4 and di.strides[0] == 0 else di  # one map per IMU
                     d = times(di)
             base = 6 if sensor == "accelerometer" else 0  # R^T s or R^T omega
             if with_motion:
-                motion[:, :, rows, base:base + 3] += times(ctx.rot_t[None])
+                if pending is None:
+                    motion[:, :, rows, base:base + 3] += times(ctx.rot_t[None])
+                else:
+                    pending = pending if owned else pending.copy()
+                    pending[..., base:base + 3] += ctx.rot_t[None]
+                    motion[:, :, rows] += times(pending)
         return ModelJacobians(predicted=predicted, motion=motion, params=params)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from imu_array_ros.model.kinematics import lever_rows_jacobian
 from imu_array_ros.model.terms.base import Field, MotionContext, Term, register
 
 
@@ -38,9 +39,5 @@ class AxisOffsets(Term):
     def d_motion(self, x, ctx, sensor):
         o = self.values.reshape(-1, 3, 3)
         r = np.einsum("kij,kaj->kai", ctx.rotations, o)  # (K, 3 axes, 3) array-frame offsets R o_a
-        out = np.zeros(x.shape + (9,))
-        for a in range(3):
-            j = ctx.force_jacobian(r[:, a])  # (N, K, 3, 9)
-            j[..., 6:] = 0.0
-            out[..., a, :] = np.einsum("kj,nkjl->nkl", ctx.rotations[:, :, a], j)
-        return out
+        # axis a reads u_a . C r_a, u_a = R e_a (the lever part of f(r_a); s is the chain's base)
+        return lever_rows_jacobian(ctx.omega, ctx.rot_t, r)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from imu_array_ros.model.kinematics import lever_rows_jacobian
 from imu_array_ros.model.terms.base import Field, MotionContext, Term, register
 
 
@@ -29,6 +30,6 @@ class Position(Term):
         return np.matmul(ctx.rot_t[None], ctx.lever[:, None])  # R^T C
 
     def d_motion(self, x, ctx, sensor):
-        j = ctx.force_jacobian(self.values)  # (N, K, 3, 9) of s + C p; minus the s part (the chain's base)
-        j[..., 6:] = 0.0
-        return np.matmul(ctx.rot_t[None], j)
+        # row i of R^T (s + C p) minus the s part (the chain's base): u_i . C p with u_i = R e_i
+        p = np.broadcast_to(self.values[:, None, :], ctx.rot_t.shape)
+        return lever_rows_jacobian(ctx.omega, ctx.rot_t, p)

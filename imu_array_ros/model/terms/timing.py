@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from imu_array_ros.model.kinematics import skew
 from imu_array_ros.model.terms.base import MotionContext, Term
 
 __all__ = ["TimingTerm", "TimingStage", "signal_rate", "exact_shift", "shift_features"]
@@ -114,6 +113,17 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _lag_rows(a: np.ndarray, rt: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N, K, 3, 3) R_k^T ((a_n . p_k) I + a_n p_k^T - 2 p_k a_n^T) for a (N, 3), rt (K, 3, 3) R_k^T, p (K, 3)."""
+    ap = a @ p.T  # (N, K)
+    ra = np.matmul(a, rt.transpose(0, 2, 1)).transpose(1, 0, 2)  # (N, K, 3): R_k^T a_n
+    rp = np.matmul(rt, p[..., None])[..., 0]  # (K, 3): R_k^T p_k
+    out = ap[..., None, None] * rt[None]
+    out += ra[..., :, None] * p[None, :, None, :]
+    out -= 2.0 * rp[None, :, :, None] * a[:, None, None, :]
+    return out
 
 
 def _to_sensor(ctx: MotionContext, v: np.ndarray) -> np.ndarray:
@@ -264,14 +274,43 @@ class TimingStage:
     name = "timing"
     order = TimingTerm.order
 
-    def __init__(self, terms: list[TimingTerm]) -> None:
+    def __init__(self, terms: list[TimingTerm], *, memo: bool = False) -> None:
         self.terms = list(terms)
+        self._memo = {} if memo else None
+
+    def memoised(self) -> "TimingStage":
+        """The same stage keeping, for the last context it saw (the same object, the same positions), its
+        delays and signal rates, which :meth:`apply`, :meth:`d_params_of`, :meth:`d_motion` and
+        :meth:`d_positions` of one linearisation each read (the model's Jacobians): the same values, once."""
+        return TimingStage(self.terms, memo=True)
+
+    def _kept(self, ctx: MotionContext, key: tuple, make):
+        """``make()``, kept under ``key`` for ``ctx`` in a memoised stage (never modified by its readers)."""
+        memo = self._memo
+        if memo is None:
+            return make()
+        if memo.get("ctx") is not ctx or memo.get("positions") is not ctx.positions:
+            memo.clear()
+            memo.update(ctx=ctx, positions=ctx.positions)  # held: their ids cannot be reused meanwhile
+        if key not in memo:
+            memo[key] = make()
+        return memo[key]
 
     def delay(self, ctx: MotionContext, sensor: str) -> np.ndarray:
+        return self._kept(ctx, ("delay", sensor), lambda: self._delay(ctx, sensor))
+
+    def _delay(self, ctx: MotionContext, sensor: str) -> np.ndarray:
         out = np.zeros((ctx.n, ctx.k)) if ctx.stamp_delays is None else np.array(ctx.stamp_delays, dtype=float)
         for t in self.terms:
             out = out + t.delay(ctx, sensor)
         return out
+
+    def _rate(self, ctx: MotionContext, sensor: str) -> np.ndarray:
+        return self._kept(ctx, ("rate", sensor), lambda: signal_rate(ctx, sensor))
+
+    def _rate0(self, ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
+        """The trajectory's own rate at the stamps (:func:`_rate_along` at zero delays)."""
+        return self._kept(ctx, ("rate0", sensor), lambda: _rate_along(ctx, sensor, np.zeros_like(delta)))
 
     def delays(self, ctx: MotionContext, sensors=("accelerometer", "gyroscope")) -> dict[str, np.ndarray]:
         """:meth:`delay` of several sensors (each term counted for the sensors it acts on), the delays that are
@@ -341,9 +380,11 @@ class TimingStage:
 
     def apply(self, x, ctx, sensor):
         delta = self.delay(ctx, sensor)
-        first = delta[..., None] * signal_rate(ctx, sensor)
+        first = delta[..., None] * self._rate(ctx, sensor)
         if ctx.trajectory is None:
             return x + first
+        if hasattr(ctx.trajectory, "slope_at"):  # remainder(), its rate at the stamps kept for d_params_of
+            return x + first + (exact_shift(ctx, sensor, delta) - delta[..., None] * self._rate0(ctx, sensor, delta))
         return x + first + self.remainder(ctx, sensor, delta)
 
     @staticmethod
@@ -362,10 +403,11 @@ class TimingStage:
     def d_params_of(self, term: TimingTerm, x, ctx, sensor):
         """(N, K, 3, P) d apply / d theta_k of one member term: the first-order rate, plus, along a trajectory
         that gives slopes, the change of its rate between the stamp and the reading's own time."""
-        rate = signal_rate(ctx, sensor)
+        rate = self._rate(ctx, sensor)
         if ctx.trajectory is not None and hasattr(ctx.trajectory, "slope_at"):
             delta = self.delay(ctx, sensor)
-            rate = rate + _rate_along(ctx, sensor, delta) - _rate_along(ctx, sensor, np.zeros_like(delta))
+            rate = rate + self._kept(ctx, ("rate_along", sensor), lambda: _rate_along(ctx, sensor, delta)) \
+                - self._rate0(ctx, sensor, delta)
         return rate[..., None] * term.d_delay(ctx, sensor)[:, :, None, :]
 
     def d_motion(self, x, ctx, sensor):
@@ -376,13 +418,10 @@ class TimingStage:
             if ctx.omega_rate is None:  # the rate is the sample's own omega_dot
                 out[..., 3:6] = d[..., None, None] * rt[None]
             return out
-        p = ctx.positions
-        sw, swd, sp = skew(ctx.omega)[:, None], skew(ctx.omega_dot)[:, None], skew(p)[None]
-        # d(C_dot p)/d omega = -[w_dot]x[p]x - [w_dot x p]x ; d/d omega_dot = -[w x p]x - [w]x[p]x
-        d_w = -swd @ sp - skew(np.cross(ctx.omega_dot[:, None], p[None]))
-        d_wd = -skew(np.cross(ctx.omega[:, None], p[None])) - sw @ sp
-        out[..., 0:3] = d[..., None, None] * (rt[None] @ d_w)
-        out[..., 3:6] = d[..., None, None] * (rt[None] @ d_wd)
+        # d(C_dot p)/d omega = -[w_dot]x[p]x - [w_dot x p]x = (w_dot . p) I + w_dot p^T - 2 p w_dot^T, and
+        # d/d omega_dot = -[w x p]x - [w]x[p]x the same with w: R^T of it, (a . p) R^T + (R^T a) p^T - 2 (R^T p) a^T
+        out[..., 0:3] = d[..., None, None] * _lag_rows(ctx.omega_dot, rt, ctx.positions)
+        out[..., 3:6] = d[..., None, None] * _lag_rows(ctx.omega, rt, ctx.positions)
         return out
 
     def d_positions(self, x, ctx, sensor):
