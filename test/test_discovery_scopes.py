@@ -80,6 +80,25 @@ def test_score_blocks_cross_imu_information_is_consistent(nominal):
     assert np.abs(sb.S_cross["gyroscope_gain"][:, 0, 1]).sum() > 1e-3 * np.abs(sb.S[:, 0][:, c, c]).sum()
 
 
+def test_score_blocks_information_along_a_direction_is_the_cross_blocks_along_it(nominal):
+    """The information of c_k v on every IMU k (directions, :mod:`~imu_array_ros.discovery.extend`'s pooled
+    extension) is v^T S_kl v of the cross blocks, before and after the given parameters are profiled out."""
+    from imu_array_ros.discovery.scopes import profile_given
+
+    s = _recording(nominal, nominal, 12, twist_s=4.0)
+    motion, _, _ = fit_motion(s, nominal)
+    blocks = ((s.stamps - s.stamps[0]) // int(0.5e9)).astype(np.int64)
+    v = np.array([0.4, -1.0, 0.7])
+    sb = score_blocks(s, nominal, TERMS, motion, blocks, cross_terms=("gyroscope_gain",),
+                      directions=[("gyroscope_gain", v)], given=[(1, 2), (5, 4), (2, 3)])
+    along = np.einsum("bklpq,p,q->bkl", sb.S_cross["gyroscope_gain"], v, v)
+    np.testing.assert_allclose(sb.S_dir[:, 0], along, atol=1e-9 * np.abs(along).max())
+    pr = profile_given(sb)
+    along = np.einsum("bklpq,p,q->bkl", pr.S_cross["gyroscope_gain"], v, v)
+    np.testing.assert_allclose(pr.S_dir[:, 0], along, atol=1e-9 * np.abs(along).max())
+    assert np.abs(pr.S_dir - sb.S_dir).max() > 1e-6 * np.abs(along).max()  # the profiling changed it
+
+
 def test_shared_effect_is_found_once_at_the_shared_scope(nominal):
     """The same non-linearity on every IMU, sized so that no IMU's own test passes its Bonferroni level
     while the pooled one is strong: one finding, scope 'all shared', its value within 3 std."""

@@ -31,6 +31,7 @@ from imu_array_ros.discovery.trading import trading
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.model.terms import REGISTRY
 
 #: how confirm's reason starts when the exact fit is physically implausible (discovery then stops adding terms)
 IMPLAUSIBLE = "implausible"
@@ -106,14 +107,17 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     them.  say(text): progress lines of the long exact fits.  A reason starting with IMPLAUSIBLE: the values are
     beyond the calibrations' bounds; with TRADES: its evidence is mostly a change of the earlier findings' values
     (:mod:`.trading`)."""
-    pairs = [(f.effect, f.imus) for f in accepted.values()]
+    pooled = bool(c.extends) and is_own(c.scope)  # a finding's value on every other IMU (.extend): it replaces it
+    pairs = [(f.effect, f.imus) for key, f in accepted.items() if not (pooled and key == c.extends)]
     try:
         fit = _refit(samples, current, pairs + [(c.effect, c.imus)], motion,
                      _ticker(say, f"exact fit of {c.effect} on {c.sensor}"))
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
     delta = fit.loglik_after - fit.loglik_before
-    gain, dof, tie, widened = delta, c.dof, None, ""
+    gain, dof, tie, widened = delta, c.dof, None, c.note if pooled else ""
+    if pooled:  # the grown finding's IMUs each their own value too: every freed parameter but its one value
+        dof = max(c.dof, _free(fit, c.effect, c.imus) - REGISTRY[c.effect].dim())
     if c.scope != "imu" and not is_own(c.scope):
         tie = tie_test(fit, c.effect, list(c.imus), model.names, model.terms[c.effect].values[list(c.imus)])
         if tie["p"] >= alpha and c.extends:  # against the grown finding's one value (the refit frees its IMUs')
@@ -137,7 +141,7 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
         return (f"not confirmed by the exact fit: log-likelihood gain {gain:.3g} < {need:.3g} "
                 f"(the score test's first-order gain was {c.delta_loglik:.3g})")
     c.exact_gain = float(gain)  # ties are ranked by it (settle_ties); the narrowing replaces it
-    if c.extends:
+    if c.extends and not pooled:
         c.note = (f"{c.note}: score test {c.statistic:.4g} on 1 dof; one value shared by all {len(c.imus)} (tie test "
                   f"p = {tie['p']:.3g} >= alpha = {alpha:g}); exact gain {gain:.4g} >= {need:.3g}")
     elif c.scope != "imu":

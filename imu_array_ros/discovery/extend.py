@@ -25,7 +25,7 @@ from imu_array_ros.discovery.drift import GIVEN, candidate_blocks
 from imu_array_ros.discovery.explain import Candidate, block_tests
 from imu_array_ros.discovery.subset import scope_label
 
-__all__ = ["extension_candidates", "shared_change"]
+__all__ = ["extension_candidates", "extension_directions", "shared_change"]
 
 
 def shared_change(f, current, start) -> np.ndarray | None:
@@ -35,6 +35,43 @@ def shared_change(f, current, start) -> np.ndarray | None:
         return (np.asarray(current.terms[f.effect].values[f.k], float)
                 - np.asarray(start.terms[f.effect].values[f.k], float))
     return np.asarray(f.values, float) if f.shared else None
+
+
+def extension_directions(accepted: dict, current, start, terms) -> list[tuple]:
+    """[(finding key, term, v)] of the accepted findings holding one value v of a scored term (``terms``): the
+    directions whose cross-IMU information the score pass makes for the pooled extension (module docstring)."""
+    out = []
+    for key, f in accepted.items():
+        if f.effect in GIVEN or f.effect not in terms:
+            continue
+        v = shared_change(f, current, start)
+        if v is not None and np.all(np.isfinite(v)) and np.any(v):
+            out.append((key, f.effect, v))
+    return out
+
+
+def _pooled(sb, names, folds, fold_ids, have, n_obs, key, f, v, outside, step):
+    """The candidate "c_k v on every IMU k of ``outside``" (one number each) of finding ``f`` (key ``key``), or
+    None when ``sb`` has no information along v for it or the recording identifies none of the c_k."""
+    d = next((i for i, (t, u) in enumerate(sb.directions) if t == f.effect and np.array_equal(u, v)), None)
+    if d is None or sb.S_dir is None:
+        return None
+    out = list(outside)
+    gb = sb.g[:, out, sb.columns(f.effect)] @ v
+    Sb = sb.S_dir[:, d][:, out][:, :, out]
+    r = block_tests(gb[have], Sb[have], folds[have], fold_ids, dispersion=True)  # up to K - 1 dof
+    if r is None:
+        return None
+    stat, q, lrt_p, log_p, robust_p, heldout, theta = r
+    imus = tuple(sorted(set(f.imus) | set(out)))
+    left = [names[i] for i in range(len(names)) if i not in imus]
+    label = f"all but {','.join(left)} own" if left else "all own"
+    return Candidate(f.effect, imus[0], f"{label} ({len(imus)} IMUs, along {f.sensor}'s value)", stat, q, lrt_p,
+                     robust_p,
+                     0.5 * stat, q * np.log(n_obs) - stat, heldout, np.outer(theta, v).reshape(-1), log_p, step,
+                     scope=label, imus=imus, sensors=tuple(names[i] for i in imus), extends=key,
+                     note=(f"{f.effect}'s value on {f.sensor} as c_k times it on each of the {len(out)} other IMUs: "
+                           f"score test {stat:.4g} on {q} dof, p = {lrt_p:.3g}, dispersion-robust p = {robust_p:.3g}"))
 
 
 def extension_candidates(sb, names, folds: np.ndarray, accepted: dict, current, start, groups, *, exclude=(),
@@ -48,16 +85,14 @@ def extension_candidates(sb, names, folds: np.ndarray, accepted: dict, current, 
     have = sb.counts > 0
     n_obs = max(sb.valid_axes, 2)
     out = []
-    for key, f in accepted.items():
-        if f.effect in GIVEN or f.effect not in sb.offsets:
-            continue
-        v = shared_change(f, current, start)
-        if v is None or not np.all(np.isfinite(v)) or not np.any(v):
-            continue
+    for key, effect, v in extension_directions(accepted, current, start, sb.offsets):
+        f = accepted[key]
         members = set(f.imus)
-        for k in range(len(names)):
-            if k in members or (f.effect, k) in exclude:
-                continue
+        outside = [k for k in range(len(names)) if k not in members and (effect, k) not in exclude]
+        if len(outside) > 1:
+            pooled = _pooled(sb, names, folds, fold_ids, have, n_obs, key, f, v, outside, step)
+            out += [] if pooled is None else [pooled]
+        for k in outside:
             gb, Sb = candidate_blocks(sb, f.effect, k)
             r = block_tests((gb @ v)[have, None], np.einsum("bpq,p,q->b", Sb, v, v)[have, None, None], folds[have],
                             fold_ids)

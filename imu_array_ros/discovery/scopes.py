@@ -161,18 +161,24 @@ def profile_given(sb, groups=(), *, inplace: bool = False):
         _, s2 = _project(np.zeros((b, k * q)), full, X[:, :, :, cols].reshape(b, -1, k * q), gF, SFF, W)
         del full
         cross[t] = s2.reshape(b, k, q, k, q).transpose(0, 1, 3, 2, 4)
-    return replace(sb, g=g, S=S, S_groups=s_groups, S_cross=cross)
+    s_dir = None
+    if sb.S_dir is not None:
+        s_dir = sb.S_dir if inplace else np.empty_like(sb.S_dir)
+        for d, (t, v) in enumerate(sb.directions):  # along v: the cross information of c_k v with F
+            _, s_dir[:, d] = _project(np.zeros((b, k)), sb.S_dir[:, d], X[:, :, :, sb.columns(t)] @ v, gF, SFF, W)
+    return replace(sb, g=g, S=S, S_groups=s_groups, S_cross=cross, S_dir=s_dir)
 
 
-def score_given(samples, model, terms, motion, blocks, groups, found, *, own_terms=()):
-    """score_blocks of ``terms`` with the pooled ``groups``, the cross-IMU blocks of ``own_terms`` and the
-    parameters of ``found`` [(term, IMU indexes)] profiled out (:func:`profile_given`)."""
+def score_given(samples, model, terms, motion, blocks, groups, found, *, own_terms=(), directions=()):
+    """score_blocks of ``terms`` with the pooled ``groups``, the cross-IMU blocks of ``own_terms`` and along
+    ``directions`` [(term, v)], and the parameters of ``found`` [(term, IMU indexes)] profiled out
+    (:func:`profile_given`)."""
     terms = check_terms(terms)
     dims = {t: REGISTRY[t].dim() for t in terms}
     offsets = dict(zip(terms, np.cumsum([0] + [dims[t] for t in terms])[:-1].tolist()))
     # on one BLAS thread: discover (its only caller) runs whole inside one (.threads)
     sb = score_blocks(samples, model, terms, motion, blocks, groups=groups, cross_terms=own_terms,
-                      given=given_columns(offsets, dims, found))
+                      given=given_columns(offsets, dims, found), directions=directions)
     return profile_given(sb, groups, inplace=True)  # the unprofiled arrays are not kept
 
 

@@ -18,8 +18,9 @@ import numpy as np
 from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, rejection, settle_ties, update_finding
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import confounded, evaluate_candidates, evaluate_scopes
-from imu_array_ros.discovery.extend import extension_candidates
+from imu_array_ros.discovery.extend import extension_candidates, extension_directions
 from imu_array_ros.discovery.scopes import score_given
+from imu_array_ros.discovery.subset import is_own
 from imu_array_ros.fitting.engine import fit_motion, score_blocks
 from imu_array_ros.model.sensor_model import SensorModel
 
@@ -115,8 +116,9 @@ def fill(new: np.ndarray, old: np.ndarray) -> np.ndarray:
 
 def rescore(data: SearchData, state: SearchState, space: SearchSpace):
     """Every candidate's score blocks on ``data`` given the findings so far."""
+    dirs = [(t, v) for _, t, v in extension_directions(state.accepted, state.current, space.model, space.terms)]
     return score_given(data.samples, state.current, space.terms, data.motion, data.blocks, space.tied,
-                       state.found(), own_terms=space.own)
+                       state.found(), own_terms=space.own, directions=dirs)
 
 
 def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, say) -> tuple:
@@ -137,9 +139,10 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
             (t, sc.label, sc.imus) for t in terms for sc in scopes
             if any((t, k) in cover for k in sc.imus) and (sc.kind == "own" or all((t, k) in cover for k in sc.imus))}
         cands += evaluate_scopes(sb, names, data.fold_of_block, scopes, terms=terms, exclude=gone, step=step)
+        tried = state.retry | state.traded  # a pooled extension's key may name a scope the findings cover
         cands += [c for c in extension_candidates(sb, names, data.fold_of_block, state.accepted, state.current,
                                                   model, space.groups, exclude=cover | state.excluded, step=step)
-                  if c.key not in gone]
+                  if c.key not in (tried if is_own(c.scope) else gone)]
         if not cands:
             return sb, NONE_PASS
         level = alpha * data.share / len(cands)

@@ -39,7 +39,9 @@ class ScoreBlocks:
     S_groups (B, G, P, P): the information of one parameter vector shared by the IMUs of each of ``groups``
     (its score is the sum of their g); S_cross: term -> (B, K, K, p, p) every IMU pair's information of that
     term (``cross_terms``); given (F, 2) (IMU, column) of chosen parameters and S_given (B, F, K, P) their
-    information with every parameter (to profile them out of the tests).
+    information with every parameter (to profile them out of the tests); directions: ((term, v), ...) and
+    S_dir (B, D, K, K) every IMU pair's information of that term along the one value v (p,) on each IMU: the
+    term on IMU k as c_k v, one number per IMU (``directions``).
     """
 
     terms: tuple[str, ...]
@@ -56,13 +58,15 @@ class ScoreBlocks:
     S_cross: dict = field(default_factory=dict, repr=False)
     given: np.ndarray | None = None
     S_given: np.ndarray | None = field(default=None, repr=False)
+    directions: tuple = ()
+    S_dir: np.ndarray | None = field(default=None, repr=False)
 
     def columns(self, term: str) -> slice:
         return slice(self.offsets[term], self.offsets[term] + REGISTRY[term].dim())
 
 
 def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], motion, blocks, *,
-                 sigma=None, groups=(), cross_terms=(), given=()) -> ScoreBlocks:
+                 sigma=None, groups=(), cross_terms=(), given=(), directions=()) -> ScoreBlocks:
     """Score test ingredients of every term in ``terms`` on every IMU at (model, motion), by time block.
 
     ``motion`` (N, 9): the ML motion for ``model`` (:func:`~imu_array_ros.fitting.engine.fit_motion`);
@@ -75,8 +79,9 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
     g^T S^-1 g / 2 the log-likelihood it gains to first order.  Per block, so
     that held-out blocks and a block-robust (sandwich) variance can be formed.
 
-    groups: sequences of IMU indexes; cross_terms: terms of ``terms``; given: (IMU, column) pairs: the
-    cross-IMU informations of :class:`ScoreBlocks` (S_kl = delta_kl C_kk - sum_n G_n,k^T G_n,l).
+    groups: sequences of IMU indexes; cross_terms: terms of ``terms``; given: (IMU, column) pairs;
+    directions: (term, v) pairs: the cross-IMU informations of :class:`ScoreBlocks` (S_kl = delta_kl C_kk -
+    sum_n G_n,k^T G_n,l; along v: v^T S_kl v).
     """
     terms = check_terms(terms)
     k = model.n_imus
@@ -96,6 +101,8 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
     cross = {t: np.zeros((nb, k, k, REGISTRY[t].dim(), REGISTRY[t].dim())) for t in cross_terms}
     given = np.asarray(given, dtype=np.int64).reshape(-1, 2)
     s_given = np.zeros((nb, len(given), k, p))
+    directions = tuple((t, np.asarray(v, dtype=float).reshape(REGISTRY[t].dim())) for t, v in directions)
+    s_dir = np.zeros((nb, len(directions), k, k))
     mask = np.zeros(prob.y.shape, dtype=bool)
     for lo, hi, pieces in _chunks(blocks, prob.chunk):
         # per-sample quantities of the whole chunk at once (one Jacobian call), then per-block sums
@@ -122,6 +129,11 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
                 gc = gk[..., c].transpose(1, 0, 2, 3).reshape(k, -1, c.stop - c.start)  # (K, n 9, p)
                 out[b] -= np.matmul(gc.transpose(0, 2, 1)[:, None], gc[None])
                 out[b, np.arange(k), np.arange(k)] += ck[:, c, c]
+            for d, (t, v) in enumerate(directions):
+                c = slice(offs[t], offs[t] + REGISTRY[t].dim())
+                gv = (gk[..., c] @ v).transpose(1, 0, 2).reshape(k, -1)  # (K, n 9): G_n,k v
+                s_dir[b, d] -= gv @ gv.T
+                s_dir[b, d, np.arange(k), np.arange(k)] += np.einsum("kpq,p,q->k", ck[:, c, c], v, v)
             if len(given):
                 gf = gk[:, given[:, 0], :, given[:, 1]]  # (F, n, 9)
                 s_given[b] -= np.matmul(gf.reshape(len(given), -1)[None], gs).transpose(1, 0, 2)
@@ -135,7 +147,8 @@ def score_blocks(samples: ImuSamples, model: SensorModel, terms: Sequence[str], 
         cost += 0.5 * float(np.sum(r * r))
     return ScoreBlocks(terms, prob.offsets, g, S, np.bincount(blocks, minlength=nb), res, expected, cost,
                        prob.loglik(cost, mask), int(mask.sum()), s_groups if groups else None, cross,
-                       given if len(given) else None, s_given if len(given) else None)
+                       given if len(given) else None, s_given if len(given) else None, directions,
+                       s_dir if directions else None)
 
 
 def _chunks(blocks: np.ndarray, chunk: int):
