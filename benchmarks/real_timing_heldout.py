@@ -63,7 +63,8 @@ def calibrations(fit: str, work: Path | None) -> dict:
         t0 = time.monotonic()
         cal = workflows.calibrate("all", samples, desc, timing=timing)
         out[name] = {"model": cal.model, "seconds": time.monotonic() - t0, "summary": cal.summary(),
-                     "skipped": dict(cal.details.skipped), "timed": bool(cal.details.timed)}
+                     "skipped": dict(cal.details.skipped), "timed": bool(cal.details.timed),
+                     "gain_std": cal.std.get("gyroscope_gain")}
         say(f"{fit}: calibrate all {name}: {out[name]['seconds']:.0f} s; timed {out[name]['timed']}")
         if cache is not None:
             cache.write_bytes(pickle.dumps(out))
@@ -87,7 +88,8 @@ samples, _ = workflows.import_openshoe(sys.argv[2], desc, start_ns=0)
 t0 = time.monotonic()
 cal = workflows.calibrate("all", samples, desc, timing=True)
 out = {"model": cal.model, "seconds": time.monotonic() - t0, "summary": cal.summary(),
-       "skipped": dict(cal.details.skipped), "timed": bool(cal.details.timed)}
+       "skipped": dict(cal.details.skipped), "timed": bool(cal.details.timed),
+       "gain_std": cal.std.get("gyroscope_gain")}
 tmp = sys.argv[3] + ".tmp"
 with open(tmp, "wb") as fh:
     fh.write(pickle.dumps(out))
@@ -111,7 +113,7 @@ def baseline_calibration(fit: str, tree: Path, work: Path | None) -> dict:
         subprocess.run([sys.executable, "-c", _BASELINE_CODE, str(ARRAY), str(DATA / f"{fit}.bin"), str(cache)],
                        cwd=tree, env=env, check=True)
     out = pickle.loads(cache.read_bytes())
-    say(f"{fit}: calibrate all --timing at {label}: {out['seconds']:.0f} s; timed {out['timed']}")
+    say(f"{fit}: calibrate all {label}: {out['seconds']:.0f} s; timed {out['timed']}")
     return out
 
 
@@ -152,11 +154,17 @@ def score(samples, model) -> dict:
             "converged": fit.converged, "rounds": fit.rounds, "seconds": time.monotonic() - t0}
 
 
-def gains(model) -> str:
-    """The reference IMU's gyroscope gains and the other IMUs' mean per axis."""
+def gains(model, untimed, std) -> str:
+    """The reference IMU's gyroscope gains, the other IMUs' mean per axis, and the change from calibrate all's
+    (``untimed``) in its written std ``std`` (K, 3; NaN: held): mean per axis over the IMUs and the largest."""
     gg = model.terms["gyroscope_gain"].values
-    return (f"{model.names[0]} gyroscope gain {', '.join(f'{v:.4f}' for v in gg[0])}; the others' mean "
+    text = (f"{model.names[0]} gyroscope gain {', '.join(f'{v:.4f}' for v in gg[0])}; the others' mean "
             f"{', '.join(f'{v:.4f}' for v in gg[1:].mean(axis=0))}")
+    if std is None or model is untimed:
+        return text
+    z = (gg - untimed.terms["gyroscope_gain"].values) / np.asarray(std, dtype=float)
+    return (text + f"; change from without timing in its written std: mean over the IMUs "
+            f"{', '.join(f'{v:+.1f}' for v in np.nanmean(z, axis=0))} (x, y, z), largest {np.nanmax(np.abs(z)):.1f}")
 
 
 def run_fit(fit: str, args) -> dict:
@@ -188,8 +196,10 @@ def run_fit(fit: str, args) -> dict:
             if cache is not None:
                 cache.write_text(json.dumps(row[name], default=float))
         rows.append(row)
-    return {"fit": fit, "calibrations": {k: {**{kk: vv for kk, vv in v.items() if kk != "model"},
-                                             "gains": gains(v["model"])} for k, v in cals.items()}, "rows": rows}
+    untimed, std = cals["without timing"]["model"], cals["without timing"].get("gain_std")
+    return {"fit": fit, "calibrations": {k: {**{kk: vv for kk, vv in v.items() if kk not in ("model", "gain_std")},
+                                             "gains": gains(v["model"], untimed, std)} for k, v in cals.items()},
+            "rows": rows}
 
 
 def render(result: dict, args) -> str:
