@@ -22,7 +22,9 @@ from imu_array_ros.model.kinematics import skew
 from imu_array_ros.model.sensor_model import motion_context
 from imu_array_ros.model.terms.axis_offsets import AxisOffsets
 from imu_array_ros.model.terms.position import Position
-from imu_array_ros.model.terms.timing import TimingStage
+from imu_array_ros.model.terms import REGISTRY
+from imu_array_ros.model.terms.timing import TimingStage, signal_rate
+from imu_array_ros.model.terms.triad import nonorthogonality_matrix
 
 from conftest import clocked_twist_case
 
@@ -166,3 +168,33 @@ def test_the_linearisation_equals_the_long_way(case, monkeypatch):
         _close(getattr(new, name), getattr(old, name), name)
     assert abs(new.cost - old.cost) <= RTOL * old.cost
     assert np.array_equal(new.ok, old.ok) and np.array_equal(new.exact, old.exact)
+
+
+def test_the_weighted_parameter_jacobian_is_the_concatenated_one_bit_for_bit(case):
+    model, samples, motion = case
+    fit = np.array([0, 2, 5])
+    prob = Problem(samples, model, ("time_offset", "axis_offsets", "gyroscope_gain"), fit)
+    ctx = prob.context(model, motion[:, :9], prob.derivatives(motion[:, :9]), 0, prob.n)
+    jac = model.jacobians(ctx, prob.free)
+    long = np.concatenate([jac.params[t] for t in prob.free], axis=3)[:, fit] * prob.w[:, fit, :, None]
+    short = prob.parameter_jacobian(jac, prob.w)
+    assert short.shape == long.shape and np.array_equal(short, long)
+
+
+def test_the_written_out_products_equal_the_einsums(case):
+    """Non-orthogonality's L x and the accelerometers' signal rate ds/dt + dC/dt p_k as the einsums they replaced."""
+    model, samples, motion = case
+    rng = np.random.default_rng(SEED + 3)
+    k = model.n_imus
+    for name in ("accelerometer_nonorthogonality", "gyroscope_nonorthogonality"):
+        values = rng.normal(0.0, 0.02, (k, 3))
+        x = rng.normal(0.0, 10.0, (len(samples.stamps), k, 3))
+        new = REGISTRY[name](values).apply(x, None, REGISTRY[name].sensors[0])
+        _close(new, np.einsum("kij,nkj->nki", nonorthogonality_matrix(values), x), name)
+        assert np.array_equal(new[..., 0], x[..., 0])
+    ctx = motion_context(samples.stamps, motion[:, 0:3], motion[:, 3:6], motion[:, 6:9], model.rotations,
+                         derivatives=True)
+    ctx.positions = model.positions
+    sd = ctx.specific_force_dot[:, None, :] + np.einsum("nij,kj->nki", ctx.lever_dot, ctx.positions)
+    old = np.matmul(sd.transpose(1, 0, 2), ctx.rotations).transpose(1, 0, 2)
+    _close(signal_rate(ctx, "accelerometer"), old, "accelerometer signal rate")

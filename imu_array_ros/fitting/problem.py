@@ -370,9 +370,14 @@ class Problem:
 
     def parameter_jacobian(self, jac, w: np.ndarray) -> np.ndarray:
         """(n, K_fit, 6, P) weighted d y / d theta of the fitted IMUs, free terms concatenated."""
-        jt = [jac.params[t] for t in self.free]
-        jt = jt[0] if len(jt) == 1 else np.concatenate(jt, axis=3)
-        return jt[:, self.cols] * w[:, self.cols, :, None]
+        wc = w[:, self.cols, :, None]
+        if len(self.free) == 1:
+            return jac.params[self.free[0]][:, self.cols] * wc
+        first = jac.params[self.free[0]][:, self.cols]
+        out = np.empty(first.shape[:3] + (self.p,))  # each term's weighted columns in place: no concatenated copy
+        for t, o, size in zip(self.free, np.cumsum([0] + self.sizes[:-1]), self.sizes):
+            np.multiply(jac.params[t][:, self.cols], wc, out=out[..., o:o + size])
+        return out
 
     def motion_step(self, model: SensorModel, motion: np.ndarray, lin: Linearization,
                     dtheta: np.ndarray | None) -> np.ndarray:

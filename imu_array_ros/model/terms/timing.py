@@ -81,7 +81,7 @@ def signal_rate(ctx: MotionContext, sensor: str) -> np.ndarray:
         v = np.broadcast_to(rate[:, None, :], (ctx.n, ctx.k, 3))
     else:
         sd = ctx.specific_force_dot if ctx.specific_force_dot is not None else np.zeros_like(ctx.specific_force)
-        v = sd[:, None, :] + np.einsum("nij,kj->nki", ctx.lever_dot, ctx.positions)
+        v = sd[:, None, :] + np.matmul(ctx.lever_dot, ctx.positions.T).transpose(0, 2, 1)  # dC/dt p_k
     return _to_sensor(ctx, v)
 
 

@@ -111,7 +111,16 @@ class Nonorthogonality(Term):
     order = 20
 
     def apply(self, x, ctx, sensor):
-        return np.einsum("kij,nkj->nki", nonorthogonality_matrix(self.values), x)
+        # L x written out (L's zeros and ones skipped): the sums of einsum("kij,nkj->nki", L, x) in their order
+        l = self.values
+        out = np.empty(np.broadcast_shapes(x.shape, (1, len(l), 3)))
+        out[..., 0] = x[..., 0]
+        np.multiply(l[:, 0], x[..., 0], out=out[..., 1])
+        out[..., 1] += x[..., 1]
+        np.multiply(l[:, 1], x[..., 0], out=out[..., 2])
+        out[..., 2] += l[:, 2] * x[..., 1]
+        out[..., 2] += x[..., 2]
+        return out
 
     def d_input(self, x, ctx, sensor):
         return np.broadcast_to(nonorthogonality_matrix(self.values), x.shape[:2] + (3, 3))
