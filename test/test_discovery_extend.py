@@ -87,6 +87,9 @@ def test_weak_carriers_of_a_found_value_are_found_together(grid):
     assert any("grown to" in n and "c_k times" in n for n in d.notes), d.notes
     for f in d.findings:
         assert abs(f.values[1] - OFFSET[1]) < 3 * f.std[1], (f.sensor, f.values, f.std)
+    # step 1 could not tell imu_09 from imu_00; both were found, so the report does not call them alternatives
+    assert not any(set(e["sensors"]) == {"imu_09", "imu_00"} for e in d.indistinguishable), d.indistinguishable
+    assert any("both were found" in n for n in d.notes), d.notes
 
 
 def test_one_carrier_is_not_grown(grid):

@@ -38,7 +38,7 @@ IMPLAUSIBLE = "implausible"
 #: how confirm's reason starts when the candidate trades with earlier findings (:mod:`.trading`)
 TRADES = "indistinguishable from"
 
-__all__ = ["confirm", "settle_ties", "tied", "rejection", "only_imus", "update_finding", "COST_TOLERANCE",
+__all__ = ["confirm", "settle_ties", "tied", "both_found", "rejection", "only_imus", "update_finding", "COST_TOLERANCE",
            "IMPLAUSIBLE", "TRADES", "TIE_MAX"]
 
 #: at most this many candidates of one tie are confirmed exactly (the first-ranked included)
@@ -372,6 +372,22 @@ def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say
                        "alternatives": [{"effect": best.effect, "sensors": list(best.sensors)},
                                         {"effect": best.effect, "sensors": list(e["names"])}]})
     return best, result
+
+
+def both_found(indist: list, findings, notes: list) -> list:
+    """``indist`` without the ties (entries with ``alternatives``) every alternative of which ``findings`` cover (the same term on each of its IMUs): "this or that" is untrue once both were found (a later
+    step found the alternative too).  Each dropped tie is said in ``notes``."""
+    covered = {(f.effect, s) for f in findings for s in f.candidate.sensors}
+    keep = []
+    for e in indist:
+        alts = e.get("alternatives") or []
+        if len(alts) > 1 and all((a["effect"], s) in covered for a in alts for s in a["sensors"]):
+            notes.append(f"step {e.get('step', '?')}: {e['effects'][0]} on {e['sensors'][0]} and {e['effects'][1]} "
+                         f"on {e['sensors'][1]} could not be told apart then; both were found, so no longer "
+                         f"reported as indistinguishable")
+            continue
+        keep.append(e)
+    return keep
 
 
 def _rank(c: Candidate, result) -> float:

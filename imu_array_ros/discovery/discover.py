@@ -48,6 +48,7 @@ import numpy as np
 
 from imu_array_ros.discovery.blocks import (LADDER_FROM, SEARCH_READINGS, search_rungs, short_recording_options,
                                             time_blocks)
+from imu_array_ros.discovery.confirm import both_found
 from imu_array_ros.discovery.explain import Candidate
 from imu_array_ros.discovery.eliminate import backward_eliminate
 from imu_array_ros.discovery.heldout import between_gain, complement_gain, heldout_gain
@@ -394,7 +395,8 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             say("fitting the whole recording's motion with the findings")
             motion, _, _ = fit_motion(samples, current, fill(whole.motion, start_motion))
             sb = residuals_only(samples, current, motion, blocks)
-    all_candidates, indist, rejected, levels = state.candidates, state.indist, state.rejected, state.levels
+    all_candidates, rejected, levels = state.candidates, state.rejected, state.levels
+    indist = both_found(state.indist, findings, notes)
     timings["explain"] = time.perf_counter() - t1
 
     # 5-6. after, unexplained, held out
