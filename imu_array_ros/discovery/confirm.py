@@ -115,7 +115,8 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
     delta = fit.loglik_after - fit.loglik_before
-    gain, dof, tie, widened = delta, c.dof, None, c.note if pooled else ""
+    # how the candidate was tested before its narrowing (a pooled extension's score, a widening): kept in its note
+    gain, dof, tie, tested = delta, c.dof, None, c.note if pooled else ""
     if pooled:  # the grown finding's IMUs each their own value too: every freed parameter but its one value
         dof = max(c.dof, _free(fit, c.effect, c.imus) - REGISTRY[c.effect].dim())
     if c.scope != "imu" and not is_own(c.scope):
@@ -135,7 +136,7 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
             wide = _widen(samples, current, pairs, c, tie, motion, level, model, alpha, say)
             if wide is not None:
                 fit, delta, dof = wide
-                gain, tie, widened = delta, None, c.note
+                gain, tie, tested = delta, None, c.note
     need = 0.5 * scipy.stats.chi2.isf(level, dof)
     if not np.isfinite(gain) or gain < need:
         return (f"not confirmed by the exact fit: log-likelihood gain {gain:.3g} < {need:.3g} "
@@ -148,8 +149,8 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
         narrowed = _narrow(samples, current, pairs, c, fit, float(delta), tie, motion, level, model, alpha, say)
         if narrowed is not None:
             fit, delta = narrowed
-        if widened and c.note != widened:
-            c.note = f"{widened}; then {c.note}"
+        if tested and c.note != tested:
+            c.note = f"{tested}; then {c.note}"
     problem = implausible(fit.model, model)
     if problem is not None:  # never report what no real sensor has: the term stands in for something else
         return f"{IMPLAUSIBLE}: the exact fit takes {problem}"
@@ -375,8 +376,9 @@ def settle_ties(c: Candidate, result, passing: list, confirm_one, step: int, say
 
 
 def both_found(indist: list, findings, notes: list) -> list:
-    """``indist`` without the ties (entries with ``alternatives``) every alternative of which ``findings`` cover (the same term on each of its IMUs): "this or that" is untrue once both were found (a later
-    step found the alternative too).  Each dropped tie is said in ``notes``."""
+    """``indist`` without the ties (entries with ``alternatives``) every alternative of which ``findings`` cover
+    (the same term on each of its IMUs): "this or that" is untrue once both were found (a later step found the
+    alternative too).  Each dropped tie is said in ``notes``."""
     covered = {(f.effect, s) for f in findings for s in f.candidate.sensors}
     keep = []
     for e in indist:

@@ -15,6 +15,15 @@ candidates like every other, so the step's family-wise false-finding rate stays 
 confirmed by the exact refit of the finding on its IMUs plus k (:func:`~.confirm.confirm`): one value on all of
 them must be adequate (tie test p >= alpha) and gain at the step's level on one degree of freedom; it then
 replaces the finding it grows.
+
+When every other carrier is too weak for its own one-dof test, their pooled evidence may not be: each such finding
+also gets one **pooled** candidate, "c_k v on every IMU k outside it" (one number per IMU, up to K - 1 dof), scored
+from the cross-IMU information along v that the score pass makes (``score_blocks(..., directions=...)``,
+:func:`extension_directions`), with the dispersion form of the block-robust test (:func:`~.explain.block_tests`:
+Hotelling's has no power at a dof near the number of blocks).  Its exact confirmation refits the term with every
+IMU of it its own value (the grown finding's included), which must gain at the step's level on all the freed
+parameters but the one value; it is then narrowed to the carriers like any pooled finding (:mod:`.subset`) and
+replaces the finding it grows.
 """
 
 from __future__ import annotations
@@ -67,9 +76,8 @@ def _pooled(sb, names, folds, fold_ids, have, n_obs, key, f, v, outside, step):
     left = [names[i] for i in range(len(names)) if i not in imus]
     label = f"all but {','.join(left)} own" if left else "all own"
     return Candidate(f.effect, imus[0], f"{label} ({len(imus)} IMUs, along {f.sensor}'s value)", stat, q, lrt_p,
-                     robust_p,
-                     0.5 * stat, q * np.log(n_obs) - stat, heldout, np.outer(theta, v).reshape(-1), log_p, step,
-                     scope=label, imus=imus, sensors=tuple(names[i] for i in imus), extends=key,
+                     robust_p, 0.5 * stat, q * np.log(n_obs) - stat, heldout, np.outer(theta, v).reshape(-1), log_p,
+                     step, scope=label, imus=imus, sensors=tuple(names[i] for i in imus), extends=key,
                      note=(f"{f.effect}'s value on {f.sensor} as c_k times it on each of the {len(out)} other IMUs: "
                            f"score test {stat:.4g} on {q} dof, p = {lrt_p:.3g}, dispersion-robust p = {robust_p:.3g}"))
 
