@@ -383,18 +383,16 @@ class TimingStage:
         first = delta[..., None] * self._rate(ctx, sensor)
         if ctx.trajectory is None:
             return x + first
-        if hasattr(ctx.trajectory, "slope_at"):  # remainder(), its rate at the stamps kept for d_params_of
-            return x + first + (exact_shift(ctx, sensor, delta) - delta[..., None] * self._rate0(ctx, sensor, delta))
         return x + first + self.remainder(ctx, sensor, delta)
 
-    @staticmethod
-    def remainder(ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
+    def remainder(self, ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
         """(N, K, 3) what the trajectory says the first-order shift leaves out: the exact shift along it minus
-        its own first-order shift (second and higher order in the delay; independent of the sample's motion)."""
+        its own first-order shift (second and higher order in the delay; independent of the sample's motion).
+        The rates come from :meth:`_rate0` / :meth:`_rate`: kept for d_params_of by a memoised stage."""
         if hasattr(ctx.trajectory, "slope_at"):
-            rate0 = _rate_along(ctx, sensor, np.zeros_like(delta))
+            rate0 = self._rate0(ctx, sensor, delta)
         else:  # a trajectory without slopes (the simulator's truth): the context's own rates
-            rate0 = signal_rate(ctx, sensor)
+            rate0 = self._rate(ctx, sensor)
         return exact_shift(ctx, sensor, delta) - delta[..., None] * rate0
 
     def d_input(self, x, ctx, sensor):
