@@ -25,6 +25,7 @@ import scipy.stats
 
 from imu_array_ros.calibration.guards import implausible
 from imu_array_ros.discovery.explain import BIC_GAP, Candidate
+from imu_array_ros.discovery.nested import carried, upgrade_of
 from imu_array_ros.discovery.scopes import geometry_groups, tie_test
 from imu_array_ros.discovery.subset import is_own, propose, scope_label, term_indexes
 from imu_array_ros.discovery.trading import trading
@@ -108,9 +109,12 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     beyond the calibrations' bounds; with TRADES: its evidence is mostly a change of the earlier findings' values
     (:mod:`.trading`)."""
     pooled = bool(c.extends) and is_own(c.scope)  # a finding's value on every other IMU (.extend): it replaces it
-    pairs = [(f.effect, f.imus) for key, f in accepted.items() if not (pooled and key == c.extends)]
+    up = upgrade_of(c, accepted, model)  # c's term holds a finding's on its IMU (.nested): it replaces it
+    gone = c.extends if pooled else (up[0] if up else None)
+    pairs = [(f.effect, f.imus) for key, f in accepted.items() if key != gone]
+    start = carried(current, model, accepted[up[0]].effect, c.effect, c.k, up[1]) if up else current
     try:
-        fit = _refit(samples, current, pairs + [(c.effect, c.imus)], motion,
+        fit = _refit(samples, start, pairs + [(c.effect, c.imus)], motion,
                      _ticker(say, f"exact fit of {c.effect} on {c.sensor}"))
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
@@ -154,11 +158,16 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     problem = implausible(fit.model, model)
     if problem is not None:  # never report what no real sensor has: the term stands in for something else
         return f"{IMPLAUSIBLE}: the exact fit takes {problem}"
-    grown = accepted.get(c.extends) if c.extends else None  # its values move with the grown finding's by design
+    grown = accepted.get(gone) if gone else None  # its values move with the grown finding's by design
     new = tuple(k for k in c.imus if grown is None or k not in grown.imus)
     trade = trading(fit, current, [f for f in accepted.values() if f is not grown], c.effect, new)
     if trade is not None and trade.traded:  # its values trade with the earlier findings' (.trading)
         return trade.reason()
+    if up:
+        c.extends = up[0]
+        c.note = (f"replaces {grown.effect} on {grown.sensor} (step {grown.step}), which {c.effect} holds: score test "
+                  f"{c.statistic:.4g} on {c.dof} dof given it, exact gain {gain:.4g} >= {need:.3g} (refit from its "
+                  f"change carried by {c.effect})")
     return fit, float(delta)
 
 

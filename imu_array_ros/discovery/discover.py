@@ -50,7 +50,7 @@ from imu_array_ros.discovery.blocks import (LADDER_FROM, SEARCH_READINGS, search
                                             time_blocks)
 from imu_array_ros.discovery.confirm import both_found
 from imu_array_ros.discovery.explain import Candidate
-from imu_array_ros.discovery.eliminate import backward_eliminate
+from imu_array_ros.discovery.eliminate import backward_eliminate, dropped_notes, simplest_adequate
 from imu_array_ros.discovery.heldout import between_gain, complement_gain, heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, scopes_for
 from imu_array_ros.discovery.search import (SearchData, SearchSpace, SearchState, fill, ladder_search,
@@ -372,17 +372,20 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
     data, sb, sb_whole = ladder_search(ladder, state, space, say)
     findings = sorted(state.accepted.values(), key=lambda f: f.step)
     current, motion, fit = state.current, data.motion, state.fit
+    dropped = []
     if len(findings) > 1:  # every finding re-tested given all the others (.eliminate)
         say(f"backward: re-testing each of the {len(findings)} findings given the others")
-        findings, dropped, _, current, motion = backward_eliminate(data.samples, model, findings, fit, motion,
-                                                                   state.levels, opts.alpha, say)
-        if dropped:
-            state.rejected += dropped
-            gone = "; ".join(f"{r['effect']} on {', '.join(r['sensors'])}" for r in dropped)
-            notes.append(f"backward elimination dropped {gone}: no longer significant given the other findings "
-                         f"(see rejected)")
-            motion, _, _ = fit_motion(data.samples, current, motion)
-            sb, sb_whole = residuals_only(data.samples, current, motion, data.blocks), None
+        findings, dropped, fit, current, motion = backward_eliminate(data.samples, model, findings, fit, motion,
+                                                                     state.levels, opts.alpha, say)
+        notes += dropped_notes(dropped)
+    # each IMU of a finding re-tested for a simpler hypothesis given all the others (.eliminate, .nested)
+    findings, simpler, _, current, motion = simplest_adequate(data.samples, model, findings, fit, motion, terms,
+                                                              opts.alpha, state.make_finding, groups, current, say)
+    notes += [f"simplest adequate: {r['reason']} (see rejected)" for r in simpler]
+    state.rejected += dropped + simpler
+    if dropped or simpler:
+        motion, _, _ = fit_motion(data.samples, current, motion)
+        sb, sb_whole = residuals_only(data.samples, current, motion, data.blocks), None
     if data is not whole:  # the findings were fitted on a subsample: the whole recording under them
         if findings:
             notes.append(f"the findings were fitted on a subsample, {data.label} ({len(data.index)} of {len(stamps)} "

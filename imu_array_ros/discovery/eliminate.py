@@ -16,17 +16,21 @@ repeated until every finding left passes.  Each drop is reported (``rejected``, 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
+import scipy.stats
 
 from imu_array_ros.discovery.confirm import only_imus, update_finding
+from imu_array_ros.discovery.nested import holds
 from imu_array_ros.discovery.scopes import tie_test
-from imu_array_ros.discovery.subset import is_own, term_indexes, wald
+from imu_array_ros.discovery.subset import gauge_basis, is_own, restricted, scope_label, term_indexes, wald
 from imu_array_ros.errors import CalibrationError
 from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
-__all__ = ["wald_given_others", "backward_eliminate"]
+__all__ = ["wald_given_others", "backward_eliminate", "dropped_notes", "simplest_adequate"]
 
 
 def wald_given_others(fit, f, base: SensorModel, alpha: float) -> tuple[float, int, float]:
@@ -106,3 +110,131 @@ def backward_eliminate(samples, start: SensorModel, findings: list, fit, motion,
         for g in kept:
             update_finding(g, fit, start, alpha)
     return kept, dropped, fit, current, motion
+
+
+def _restriction(fit, start: SensorModel, f, k: int, t: np.ndarray):
+    """(W, dof, phi) of the restriction "``f``'s term on IMU ``k`` = T phi" (T (P, r); r = 0: nothing on it), its
+    other IMUs free, up to the fit's gauge freedoms: the Wald test of the joint fit's changes of the term on
+    ``f``'s IMUs, and the GLS phi."""
+    imus = list(f.imus)
+    p_dim, j = REGISTRY[f.effect].dim(), imus.index(k)
+    idx = term_indexes(fit, f.effect, imus)
+    d = fit.theta[idx] - np.asarray(start.terms[f.effect].values[imus], dtype=float).reshape(-1)
+    cov = fit.covariance[np.ix_(idx, idx)]
+    others = [i for i in range(len(imus)) if i != j]
+    x = np.zeros((len(idx), len(others) * p_dim + t.shape[1]))
+    for n, i in enumerate(others):
+        x[i * p_dim:(i + 1) * p_dim, n * p_dim:(n + 1) * p_dim] = np.eye(p_dim)
+    x[j * p_dim:(j + 1) * p_dim, len(others) * p_dim:] = t
+    x = np.hstack([x, gauge_basis(fit, idx)])  # a gauge freedom's move is no change
+    stat, dof = restricted(d, cov, x)
+    keep = np.diag(cov) > 0
+    w = np.linalg.pinv(cov[np.ix_(keep, keep)], hermitian=True)
+    xk = x[keep]
+    sol = np.linalg.pinv(xk.T @ w @ xk, hermitian=True) @ xk.T @ w @ d[keep]
+    return stat, dof, sol[len(others) * p_dim:len(others) * p_dim + t.shape[1]]
+
+
+def _simplest_change(fit, start: SensorModel, findings: list, terms, alpha: float):
+    """The (p, finding, IMU, inner term or None, phi, W, dof) of the simplest adequate hypothesis with the largest
+    p over every IMU of every one-IMU or own-scope finding (:func:`simplest_adequate`), else None."""
+    covered = {(f.effect, k) for f in findings for k in f.imus}
+    best = None
+    for f in findings:
+        if f.scope != "imu" and not is_own(f.scope):
+            continue
+        p_dim = REGISTRY[f.effect].dim()
+        inner = holds(start, f.effect, terms)
+        for k in f.imus:
+            options = ([(None, np.zeros((p_dim, 0)))] if len(f.imus) > 1 else []) + [
+                (i, t[k]) for i, t in inner if (i, k) not in covered]
+            for name, t in options:  # fewest parameters first: the simplest the Wald test accepts
+                stat, dof, phi = _restriction(fit, start, f, k, t)
+                p = float(scipy.stats.chi2.sf(stat, dof)) if dof > 0 else 1.0
+                if p >= alpha:
+                    if best is None or p > best[0]:
+                        best = (p, f, k, name, phi, stat, dof)
+                    break
+    return best
+
+
+def simplest_adequate(samples, start: SensorModel, findings: list, fit, motion, terms, alpha: float, make,
+                      groups, current: SensorModel, say=lambda text: None):
+    """Each IMU of a one-IMU or own-scope finding re-tested, at the joint exact fit, for the simpler hypotheses:
+    nothing on it (a finding with other IMUs) or a term its term holds (:mod:`.nested`), by the Wald test of
+    the linear restriction with the fit's CRB; the simplest the test accepts at ``alpha`` replaces it, the one
+    with the largest p first, then all refitted exactly and the test repeated.  make(candidate, delta, step): a
+    new finding (discover.Finding); fit: the last joint exact fit of ``findings`` (None: nothing is tested),
+    ``current`` its model.  Returns (findings, changes [dict, as ``rejected``], fit, model, motion)."""
+    changes = []
+    while fit is not None:
+        change = _simplest_change(fit, start, findings, terms, alpha)
+        if change is None:
+            break
+        p, f, k, inner, phi, stat, dof = change
+        name = start.names[k]
+        what = f"{inner} on {name}" if inner else f"nothing on {name}"
+        reason = (f"{f.effect} on {name} (step {f.step}, {f.sensor}) replaced by {what}: given the other findings "
+                  f"the Wald test of that restriction (joint exact fit, CRB) gives {stat:.3g} on {dof} dof, "
+                  f"p = {p:.3g} >= alpha = {alpha:g}: the simpler hypothesis is adequate")
+        v = np.array(fit.model.terms[f.effect].values, dtype=float)
+        v[k] = start.terms[f.effect].values[k]
+        base = fit.model.with_terms(**{f.effect: v})
+        kept = [g for g in findings if g is not f]
+        rest = tuple(j for j in f.imus if j != k)
+        if inner is not None:  # its change carried by the inner term (the restriction's GLS value)
+            vi = np.array(base.terms[inner].values, dtype=float)
+            vi[k] = vi[k] + phi.reshape(vi[k].shape)
+            base = base.with_terms(**{inner: vi})
+        pairs = [(g.effect, g.imus) for g in kept] + ([(f.effect, rest)] if rest else []) + (
+            [(inner, (k,))] if inner else [])
+        only = only_imus(pairs)
+        try:
+            new_fit = fit_terms(samples, base, list(only), imus=sorted({j for ks in only.values() for j in ks}),
+                                only=only, motion0=motion, max_iterations=30, sandwich=False)
+        except CalibrationError as err:  # keep what the search found rather than fail the whole discovery
+            say(f"simplest adequate: could not refit with {what} in place of {f.effect}: {err}")
+            break
+        say(f"simplest adequate: {f.effect} on {name} replaced by {what} (p {p:.2g})")
+        changes.append({"effect": f.effect, "sensors": [name], "scope": f.scope, "step": f.step,
+                        "reason": reason, "statistic": stat, "dof": dof, "p": p})
+        if rest:
+            _narrowed(f, rest, start, groups, reason)
+            kept.append(f)
+        if inner is not None:
+            c = replace(f.candidate, effect=inner, k=k, sensor=name, scope="imu", imus=(k,), sensors=(name,),
+                        equivalents=[], extends=(), note=reason)
+            kept.append(make(c, 0.0, f.step))
+        fit, current, findings = new_fit, new_fit.model, sorted(kept, key=lambda g: g.step)
+        motion = np.where(np.isfinite(fit.motion), fit.motion, motion)
+        for g in findings:
+            update_finding(g, fit, start, alpha)
+            if inner is not None and g.effect == inner and g.imus == (k,):
+                w_stat, w_dof, w_p = wald_given_others(fit, g, start, alpha)
+                g.exact_delta_loglik = g.candidate.exact_gain = g.candidate.delta_loglik = 0.5 * w_stat
+                g.candidate.statistic, g.candidate.dof, g.candidate.lrt_p = w_stat, w_dof, w_p
+                g.candidate.log_p = float(scipy.stats.chi2.logsf(w_stat, max(w_dof, 1)))
+                g.candidate.robust_p = g.candidate.heldout = float("nan")
+    return findings, changes, fit, current, motion
+
+
+def _narrowed(f, rest: tuple, start: SensorModel, groups, reason: str) -> None:
+    """Finding ``f`` (and its candidate) on the IMUs ``rest`` of its own scope only."""
+    names = tuple(start.names[j] for j in rest)
+    c = f.candidate
+    if len(rest) == 1:
+        f.scope, f.sensor, f.imu_values, f.imu_std, f.tie, f.shared = "imu", names[0], None, None, None, False
+    else:
+        label = scope_label(rest, start.names, groups, False)
+        f.scope, f.sensor = label, f"{label} ({', '.join(names)})"
+    f.imus, f.k = rest, rest[0]
+    c.scope, c.sensor, c.imus, c.sensors, c.k = f.scope, f.sensor, rest, names, rest[0]
+    c.note = f"{c.note}; then {reason}" if c.note else reason
+
+
+def dropped_notes(dropped: list) -> list[str]:
+    """The report's note on the findings :func:`backward_eliminate` dropped ([] when none)."""
+    if not dropped:
+        return []
+    gone = "; ".join(f"{r['effect']} on {', '.join(r['sensors'])}" for r in dropped)
+    return [f"backward elimination dropped {gone}: no longer significant given the other findings (see rejected)"]

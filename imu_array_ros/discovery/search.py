@@ -197,7 +197,10 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
         state.current = fit.model
         grown = state.accepted.pop(best.extends, None) if best.extends else None  # replaced by its extension
         state.accepted[best.key] = state.make_finding(best, delta, step)
-        if grown is not None:
+        if grown is not None and grown.effect != best.effect:  # a richer term holding it (.nested)
+            state.notes.append(f"step {step}: {grown.effect} on {grown.sensor} (step {grown.step}) replaced by "
+                               f"{best.effect}: {best.note}")
+        elif grown is not None:
             state.notes.append(f"step {step}: {best.effect} on {grown.sensor} (step {grown.step}) grown to "
                                f"{best.sensor}: {best.note}")
         for f in state.accepted.values():  # every finding's values and std from the latest joint fit
