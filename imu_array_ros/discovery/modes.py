@@ -66,13 +66,18 @@ empirical model with its held-out gain
 (:func:`~imu_array_ros.discovery.modeshape.heldout_model`).
 
 A line that follows the motion (hand twisting is a sum of sinusoids; a misfit
-of a library term then leaves lines in the residual at the motion's
+of a library term then leaves lines or a band in the residual at the motion's
 frequencies) is not a mode: when the residual's linear relation to the motion
-features, fitted outside the band, predicts more than ``MOTION_SHARE`` of the
-in-band power, the line is kept in ``motion_lines`` (a misfit for the library
-terms) and not reported as a mode.  When the motion has no content outside the
-band (a single sinusoid) the relation cannot be learnt and the line is reported
-as a mode, its ``motion.explained_share`` low.
+features, learnt with each fold of the band (``FOLD_HZ``, 0.25 Hz) left out,
+predicts more than ``MOTION_SHARE`` (half) of the in-band power
+(:func:`~imu_array_ros.discovery.motioncheck.motion_check`), the line is kept in
+``motion_lines`` (a misfit for the library terms) and not reported as a mode.
+When the motion has no content outside a fold the relation cannot be learnt and
+the line is reported as a mode, its ``motion.explained_share`` low.
+
+Before the library search (discover's ``localization``) a mode is only a
+narrowband excess the fitted model leaves (``MODE_KIND``): it may still be the
+misfit of a library term the search then finds.
 """
 
 from __future__ import annotations
@@ -86,11 +91,12 @@ from imu_array_ros.discovery.bank import bank_scan
 from imu_array_ros.discovery.coherent import coherent_scan, field_basis, field_channels, mode_channels
 from imu_array_ros.discovery.matched import matched_scan
 from imu_array_ros.discovery.modeshape import bandpass, describe_shape, heldout_model, presence
+from imu_array_ros.discovery.motioncheck import motion_check
 from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor, relative_psd
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.jsontools import json_safe
 
-__all__ = ["MODE_ALPHA", "MIN_FREQ_HZ", "RESOLUTIONS_HZ", "Mode", "ModeSearch", "detect_modes", "mode_segment"]
+__all__ = ["MODE_ALPHA", "MODE_KIND", "MIN_FREQ_HZ", "RESOLUTIONS_HZ", "Mode", "ModeSearch", "detect_modes", "mode_segment"]
 
 #: family-wise false-alarm rate of the mode detector per recording
 MODE_ALPHA = 0.01
@@ -107,10 +113,10 @@ FLOOR_EFFICIENCY = 0.5 * 0.64
 COHERENT_TEST = "welch+matched"
 #: field basis: the quadratic directions of at least this share of the largest (coherent.field_basis min_scale)
 SMOOTH_SCALE = 0.25
+#: what a mode is known to be when found (before the library search too: not yet "outside the library")
+MODE_KIND = "narrowband excess (not explained by the fitted model)"
 #: at most this many modes per recording (the strongest)
 MAX_MODES = 8
-#: the line follows the motion when the out-of-band relation to the motion predicts this share of its power
-MOTION_SHARE = 0.5
 
 
 def mode_segment(n: int, fs: float, resolution_hz: float = 0.25) -> int:
@@ -172,7 +178,7 @@ class Mode:
 
     def to_dict(self, names) -> dict:
         return json_safe({
-            "kind": "narrowband mode (outside the library)", "frequency_hz": self.frequency_hz,
+            "kind": MODE_KIND, "frequency_hz": self.frequency_hz,
             "band_hz": list(self.band_hz), "p_value": self.p_value, "test": self.test,
             "channels": [[str(names[k]), AXES[a]] for k, a in self.channels],
             "amplitude_noise_std": self.amplitude, "amplitude_si": self.amplitude_si, "phase_rad": self.phase,
@@ -401,14 +407,6 @@ def _coherent_channels(mode: Mode, x, basis, fs, nper, lo, hi, alpha) -> None:
     mode.channels = [(int(i) // 6, int(i) % 6) for i in np.argsort(-np.where(sig, ch["gain"], -1.0)) if sig[i]]
 
 
-def _motion_features(motion: np.ndarray) -> np.ndarray:
-    """(N, 15) [omega, omega_dot, s, omega_i omega_j] of the fitted motion, 0 on NaN rows."""
-    m = np.asarray(motion, dtype=float)
-    mz = np.where(np.isfinite(m).all(axis=1)[:, None], np.nan_to_num(m), 0.0)
-    w = mz[:, 0:3]
-    return np.concatenate([mz, w[:, [0, 1, 2, 0, 0, 1]] * w[:, [0, 1, 2, 1, 2, 2]]], axis=1)
-
-
 def _finish(mode: Mode, x, valid, floor_pk, fs, positions, rotations, std, still, motion, heldout: bool) -> None:
     """SI amplitudes, the motion-line check, shape, presence and held-out model of ``mode``."""
     n = len(x)
@@ -418,33 +416,8 @@ def _finish(mode: Mode, x, valid, floor_pk, fs, positions, rotations, std, still
     cols = [kk * 6 + a for kk, a in mode.channels]
     y = bandpass(np.where(valid[:, cols], np.nan_to_num(x[:, cols]), 0.0), fs, mode.band_hz)
     if motion is not None:
-        mode.motion = _motion_check(mode, x, valid[:, cols], cols, y, motion, fs)
+        mode.motion = motion_check(x[:, cols], valid[:, cols], motion, fs, mode.band_hz)
     mode.shape = describe_shape(mode, positions, rotations)
     mode.presence = presence(y, valid[:, cols], floor_pk[cols], fs, mode.band_hz, still)
     if heldout:
         mode.model = heldout_model(np.nan_to_num(x[:, cols]), y, valid[:, cols], fs, n)
-
-
-def _motion_check(mode: Mode, x, valid, cols, y, motion, fs) -> dict:
-    """Does a misfit that follows the motion make the line?  Per channel of the mode, the residual is regressed
-    on the motion features (omega, omega_dot, s, omega_i omega_j and a constant) *outside* the band (the
-    relation a library-term misfit has at every frequency), and that regression predicts the in-band residual
-    y.  The line follows the motion when the prediction holds more than MOTION_SHARE of the in-band power
-    (a board mode has no such relation: the motion it leaks into does not carry it outside its band)."""
-    m = np.asarray(motion, dtype=float)
-    ok = np.isfinite(m).all(axis=1) & valid.all(axis=1)
-    if ok.sum() < 64:
-        return {"checked": False, "follows_motion": False, "reason": "too few samples with a motion"}
-    feats = _motion_features(m)
-    feats = np.concatenate([feats, np.ones((len(feats), 1))], axis=1)
-    fb = bandpass(feats, fs, mode.band_hz)
-    xo = (np.nan_to_num(x[:, cols]) - y)[ok]
-    fo = (feats - fb)[ok]
-    scale = np.maximum(np.sqrt(np.mean(fo ** 2, axis=0)), 1e-12)
-    beta = np.linalg.lstsq(fo / scale, xo, rcond=None)[0]
-    pred = (fb[ok] / scale) @ beta
-    power = float(np.sum(y[ok] ** 2))
-    share = 1.0 - float(np.sum((y[ok] - pred) ** 2)) / power if power > 0 else 0.0
-    return {"checked": True, "follows_motion": bool(share > MOTION_SHARE), "explained_share": share,
-            "rule": f"the line follows the motion when the residual's relation to the motion features outside the "
-                    f"band predicts more than {MOTION_SHARE:.0%} of its in-band power"}
