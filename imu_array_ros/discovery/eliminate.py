@@ -112,58 +112,75 @@ def backward_eliminate(samples, start: SensorModel, findings: list, fit, motion,
     return kept, dropped, fit, current, motion
 
 
-def _restriction(fit, start: SensorModel, f, k: int, t: np.ndarray):
-    """(W, dof, phi) of the restriction "``f``'s term on IMU ``k`` = T phi" (T (P, r); r = 0: nothing on it), its
-    other IMUs free, up to the fit's gauge freedoms: the Wald test of the joint fit's changes of the term on
-    ``f``'s IMUs, and the GLS phi."""
+def _restriction(fit, start: SensorModel, f, ks, t: np.ndarray):
+    """(W, dof, phi) of the restriction "``f``'s term on each IMU of ``ks`` = T phi_k" (T (P, r); r = 0: nothing
+    on them), its other IMUs free, up to the fit's gauge freedoms: the Wald test of the joint fit's changes of
+    the term on ``f``'s IMUs, and the GLS phi (of ``ks``'s first IMU)."""
     imus = list(f.imus)
-    p_dim, j = REGISTRY[f.effect].dim(), imus.index(k)
+    p_dim, r = REGISTRY[f.effect].dim(), t.shape[1]
     idx = term_indexes(fit, f.effect, imus)
     d = fit.theta[idx] - np.asarray(start.terms[f.effect].values[imus], dtype=float).reshape(-1)
     cov = fit.covariance[np.ix_(idx, idx)]
-    others = [i for i in range(len(imus)) if i != j]
-    x = np.zeros((len(idx), len(others) * p_dim + t.shape[1]))
-    for n, i in enumerate(others):
-        x[i * p_dim:(i + 1) * p_dim, n * p_dim:(n + 1) * p_dim] = np.eye(p_dim)
-    x[j * p_dim:(j + 1) * p_dim, len(others) * p_dim:] = t
+    x = np.zeros((len(idx), 0))
+    for i, k in enumerate(imus):
+        block = np.zeros((len(idx), r if k in ks else p_dim))
+        block[i * p_dim:(i + 1) * p_dim] = t if k in ks else np.eye(p_dim)
+        x = np.hstack([x, block])
     x = np.hstack([x, gauge_basis(fit, idx)])  # a gauge freedom's move is no change
     stat, dof = restricted(d, cov, x)
     keep = np.diag(cov) > 0
     w = np.linalg.pinv(cov[np.ix_(keep, keep)], hermitian=True)
-    xk = x[keep]
-    sol = np.linalg.pinv(xk.T @ w @ xk, hermitian=True) @ xk.T @ w @ d[keep]
-    return stat, dof, sol[len(others) * p_dim:len(others) * p_dim + t.shape[1]]
+    sol = np.linalg.pinv(x[keep].T @ w @ x[keep], hermitian=True) @ x[keep].T @ w @ d[keep]
+    first = sum(r if k in ks else p_dim for k in imus[:imus.index(ks[0])])
+    return stat, dof, sol[first:first + r]
+
+
+def _p(stat: float, dof: int) -> float:
+    return float(scipy.stats.chi2.sf(stat, dof)) if dof > 0 else 1.0
 
 
 def _simplest_change(fit, start: SensorModel, findings: list, terms, alpha: float):
-    """The (p, finding, IMU, inner term or None, phi, W, dof) of the simplest adequate hypothesis with the largest
-    p over every IMU of every one-IMU or own-scope finding (:func:`simplest_adequate`), else None."""
+    """(p, finding, IMUs, inner term or None, phi, W, dof) of the simplest adequate hypothesis
+    (:func:`simplest_adequate`), else None: first the largest set of an own-scope finding's IMUs that carry
+    nothing (added by each one's p, largest first, while the joint test accepts; at least one IMU kept), else
+    the one IMU whose held term is adequate with the largest p."""
     covered = {(f.effect, k) for f in findings for k in f.imus}
     best = None
     for f in findings:
+        if (f.scope != "imu" and not is_own(f.scope)) or len(f.imus) < 2:
+            continue
+        none = np.zeros((REGISTRY[f.effect].dim(), 0))
+        alone = sorted(((_p(*_restriction(fit, start, f, [k], none)[:2]), k) for k in f.imus), reverse=True)
+        drop, test = [], None
+        for p, k in alone[:-1]:
+            stat, dof, _ = _restriction(fit, start, f, drop + [k], none)
+            if p < alpha or _p(stat, dof) < alpha:
+                break
+            drop, test = drop + [k], (_p(stat, dof), f, tuple(sorted(drop + [k])), None, None, stat, dof)
+        if test is not None and (best is None or len(test[2]) > len(best[2])):
+            best = test
+    if best is not None:
+        return best
+    for f in findings:
         if f.scope != "imu" and not is_own(f.scope):
             continue
-        p_dim = REGISTRY[f.effect].dim()
-        inner = holds(start, f.effect, terms)
-        for k in f.imus:
-            options = ([(None, np.zeros((p_dim, 0)))] if len(f.imus) > 1 else []) + [
-                (i, t[k]) for i, t in inner if (i, k) not in covered]
-            for name, t in options:  # fewest parameters first: the simplest the Wald test accepts
-                stat, dof, phi = _restriction(fit, start, f, k, t)
-                p = float(scipy.stats.chi2.sf(stat, dof)) if dof > 0 else 1.0
-                if p >= alpha:
-                    if best is None or p > best[0]:
-                        best = (p, f, k, name, phi, stat, dof)
-                    break
+        for inner, t in holds(start, f.effect, terms):
+            for k in f.imus:
+                if (inner, k) in covered:
+                    continue
+                stat, dof, phi = _restriction(fit, start, f, [k], t[k])
+                if _p(stat, dof) >= alpha and (best is None or _p(stat, dof) > best[0]):
+                    best = (_p(stat, dof), f, (k,), inner, phi, stat, dof)
     return best
 
 
 def simplest_adequate(samples, start: SensorModel, findings: list, fit, motion, terms, alpha: float, make,
                       groups, current: SensorModel, say=lambda text: None):
-    """Each IMU of a one-IMU or own-scope finding re-tested, at the joint exact fit, for the simpler hypotheses:
-    nothing on it (a finding with other IMUs) or a term its term holds (:mod:`.nested`), by the Wald test of
-    the linear restriction with the fit's CRB; the simplest the test accepts at ``alpha`` replaces it, the one
-    with the largest p first, then all refitted exactly and the test repeated.  make(candidate, delta, step): a
+    """Each IMU of a one-IMU or own-scope finding re-tested, at the joint exact fit, for the simpler hypotheses
+    by the Wald test of the linear restriction with the fit's CRB (up to the gauge): nothing on a set of an
+    own-scope finding's IMUs (the largest set the joint test accepts at ``alpha``, as the narrowing chooses
+    carriers: several weak carriers are not dropped one by one), else a term its term holds (:mod:`.nested`) on
+    one IMU (the largest p); the change is refitted exactly and the test repeated.  make(candidate, delta, step): a
     new finding (discover.Finding); fit: the last joint exact fit of ``findings`` (None: nothing is tested),
     ``current`` its model.  Returns (findings, changes [dict, as ``rejected``], fit, model, motion)."""
     changes = []
@@ -171,17 +188,17 @@ def simplest_adequate(samples, start: SensorModel, findings: list, fit, motion, 
         change = _simplest_change(fit, start, findings, terms, alpha)
         if change is None:
             break
-        p, f, k, inner, phi, stat, dof = change
-        name = start.names[k]
+        p, f, ks, inner, phi, stat, dof = change
+        k, name = ks[0], ", ".join(start.names[j] for j in ks)
         what = f"{inner} on {name}" if inner else f"nothing on {name}"
         reason = (f"{f.effect} on {name} (step {f.step}, {f.sensor}) replaced by {what}: given the other findings "
                   f"the Wald test of that restriction (joint exact fit, CRB) gives {stat:.3g} on {dof} dof, "
                   f"p = {p:.3g} >= alpha = {alpha:g}: the simpler hypothesis is adequate")
         v = np.array(fit.model.terms[f.effect].values, dtype=float)
-        v[k] = start.terms[f.effect].values[k]
+        v[list(ks)] = start.terms[f.effect].values[list(ks)]
         base = fit.model.with_terms(**{f.effect: v})
         kept = [g for g in findings if g is not f]
-        rest = tuple(j for j in f.imus if j != k)
+        rest = tuple(j for j in f.imus if j not in ks)
         if inner is not None:  # its change carried by the inner term (the restriction's GLS value)
             vi = np.array(base.terms[inner].values, dtype=float)
             vi[k] = vi[k] + phi.reshape(vi[k].shape)
@@ -196,8 +213,8 @@ def simplest_adequate(samples, start: SensorModel, findings: list, fit, motion, 
             say(f"simplest adequate: could not refit with {what} in place of {f.effect}: {err}")
             break
         say(f"simplest adequate: {f.effect} on {name} replaced by {what} (p {p:.2g})")
-        changes.append({"effect": f.effect, "sensors": [name], "scope": f.scope, "step": f.step,
-                        "reason": reason, "statistic": stat, "dof": dof, "p": p})
+        changes.append({"effect": f.effect, "sensors": [start.names[j] for j in ks], "scope": f.scope,
+                        "step": f.step, "reason": reason, "statistic": stat, "dof": dof, "p": p})
         if rest:
             _narrowed(f, rest, start, groups, reason)
             kept.append(f)

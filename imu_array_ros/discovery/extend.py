@@ -82,6 +82,40 @@ def _pooled(sb, names, folds, fold_ids, have, n_obs, key, f, v, outside, step):
                            f"score test {stat:.4g} on {q} dof, p = {lrt_p:.3g}, dispersion-robust p = {robust_p:.3g}"))
 
 
+def _own(sb, names, folds, fold_ids, have, n_obs, key, f, outside, step):
+    """The candidate "every IMU of ``outside`` its own value" of finding ``f``'s term (the own scope less the
+    finding's IMUs; same exact confirmation as :func:`_pooled`'s), or None when ``sb`` has no cross-IMU
+    information of the term (own scopes not scored) or the recording identifies none of it."""
+    if f.effect not in sb.S_cross:
+        return None
+    out, cols = list(outside), sb.columns(f.effect)
+    p = cols.stop - cols.start
+    b = sb.g.shape[0]
+    gb = sb.g[:, out, cols].reshape(b, len(out) * p)
+    Sb = sb.S_cross[f.effect][:, out][:, :, out].transpose(0, 1, 3, 2, 4).reshape(b, len(out) * p, len(out) * p)
+    r = block_tests(gb[have], Sb[have], folds[have], fold_ids, dispersion=None)  # (K - 1) p dof
+    if r is None:
+        return None
+    stat, q, lrt_p, log_p, robust_p, heldout, theta = r
+    imus = tuple(sorted(set(f.imus) | set(out)))
+    left = [names[i] for i in range(len(names)) if i not in imus]
+    label = f"all but {','.join(left)} own" if left else "all own"
+    return Candidate(f.effect, imus[0], f"{label} ({len(imus)} IMUs, each its own value)", stat, q, lrt_p, robust_p,
+                     0.5 * stat, q * np.log(n_obs) - stat, heldout, theta, log_p, step, scope=label, imus=imus,
+                     sensors=tuple(names[i] for i in imus), extends=key,
+                     note=(f"{f.effect} on {f.sensor}, then each of the {len(out)} other IMUs its own value: score "
+                           f"test {stat:.4g} on {q} dof, p = {lrt_p:.3g}, block-robust p = {robust_p:.3g}"))
+
+
+def _better(a, b):
+    """Of two candidates of one hypothesis (the same key and exact confirmation), the one whose larger p-value
+    (the one that decides whether it passes) is smaller; either when the other is None."""
+    if a is None or b is None:
+        return a if b is None else b
+    worst = lambda c: max(c.lrt_p, c.robust_p if np.isfinite(c.robust_p) else 1.0)  # noqa: E731
+    return a if worst(a) <= worst(b) else b
+
+
 def extension_candidates(sb, names, folds: np.ndarray, accepted: dict, current, start, groups, *, exclude=(),
                          step: int = 0) -> list[Candidate]:
     """The candidates that put an accepted finding's one value on one more IMU (module docstring), scored from
@@ -99,7 +133,8 @@ def extension_candidates(sb, names, folds: np.ndarray, accepted: dict, current, 
         outside = [k for k in range(len(names)) if k not in members and (effect, k) not in exclude]
         if len(outside) > 1:
             pooled = _pooled(sb, names, folds, fold_ids, have, n_obs, key, f, v, outside, step)
-            out += [] if pooled is None else [pooled]
+            own = _own(sb, names, folds, fold_ids, have, n_obs, key, f, outside, step)
+            out += [c for c in (_better(pooled, own),) if c is not None]
         for k in outside:
             gb, Sb = candidate_blocks(sb, f.effect, k)
             r = block_tests((gb @ v)[have, None], np.einsum("bpq,p,q->b", Sb, v, v)[have, None, None], folds[have],
