@@ -6,24 +6,24 @@ frequency of the motion, which a spectral test sees as lines or a band where the
 has no such relation: the motion it leaks into does not carry it at the frequencies around it.
 
 **Frequency folds.**  The relation is learnt where it is not scored: the band is split into ``m`` folds of at
-least ``FOLD_HZ`` and ``MIN_FOLD_BINS`` bins of the recording's DFT (m = 1 for a band narrower than two
-folds), and for each fold the residual of the mode's
-channels is regressed on the features with that fold removed (the whole spectrum else, the rest of the band
-included), then that regression predicts the residual in the fold from the features in the fold.  The
-predictions of the folds add up to the band's; the excess follows the motion when they hold more than
-``MOTION_SHARE`` of the in-band power.  With one fold this is the band left out as a whole, the check until
-b4592a6; learning the relation only outside a band 1-3 Hz wide at low frequency (the matched test's widest
-templates) leaves out most of a hand-twisting motion's spectrum, and a missing library term's residual there
-passed as a mode (benchmarks/results/discovery_modes_motion_folds.md).  Folds of 0.5 Hz were not narrow enough
-either: on a recording whose motion held 98 % of its power in 1.2-3.2 Hz, the relation learnt without
-1.2-1.9 Hz mispredicted that fold (share -0.24 in all; 0.94 with folds of 0.25 Hz; ad hoc, development seed
-960060 of benchmarks/discovery_modes.py, not the seed scored; its fine Welch bin, 0.49 Hz at 1 kHz, gave 0.53).
-Narrower folds only learn the relation from more of the spectrum; ``MIN_FOLD_BINS`` keeps a board mode's
-leakage into the bins next to a fold (the rectangular window correlates neighbouring DFT bins) a small part of
-it.  A board mode's in-fold residual is
-independent of the relation learnt outside the fold (different frequencies of a stationary process are
-uncorrelated), so its predicted share stays near 0 (or below: the prediction only adds power) whatever the
-band's width.
+least ``FOLD_HZ`` and ``MIN_FOLD_BINS`` bins of the recording's DFT (m = 1 for a band narrower than two folds),
+and for each fold the residual of the mode's channels is regressed on the features with that fold removed (the
+whole spectrum else, the rest of the band included); that regression predicts the residual in the fold from the
+features in the fold.  The predictions of the folds add up to the band's; the excess follows the motion when
+they hold more than ``MOTION_SHARE`` of the in-band power.  A board mode's in-fold residual is independent of a
+relation learnt at other frequencies (different frequencies of a stationary process are uncorrelated), so its
+predicted share stays near 0 (or below: the prediction only adds power) whatever the band's width.
+
+With one fold this is the band left out as a whole, the check until b4592a6: learning the relation only outside a
+band 1-3 Hz wide at low frequency (the matched test's widest templates) left out most of a hand-twisting
+motion's spectrum, and a missing library term's residual there passed as a mode (fresh seed 733850: on 1 of 40
+library nulls, 0 of 40 with the folds, the same 22 of 60 modes below 5 Hz found both ways;
+benchmarks/results/discovery_modes_motion_folds.md).  Folds of 0.5 Hz were not narrow enough either: on a
+recording whose motion held 98 % of its power in 1.2-3.2 Hz, the relation learnt without 1.2-1.9 Hz mispredicted
+that fold (share -0.24 in all, 0.94 with folds of 0.25 Hz; the fine Welch bin, 0.49 Hz at 1 kHz, gave 0.53; ad
+hoc, development seed 960060 of benchmarks/discovery_modes.py, not the seed scored).  Narrower folds learn the
+relation from more of the spectrum; ``MIN_FOLD_BINS`` keeps a board mode's leakage into the bins next to a fold
+(the rectangular window correlates neighbouring DFT bins) a small part of it.
 """
 
 from __future__ import annotations
