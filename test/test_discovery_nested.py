@@ -107,3 +107,14 @@ def test_nothing_is_simplified_when_every_carrier_is_needed(square):
     d = _discover(square, with_change(square, "axis_offsets", ao, [2, 3]), GEOMETRY)
     assert {(f.effect, k) for f in d.findings for k in f.imus} == {("axis_offsets", 2), ("axis_offsets", 3)}
     assert not any("simplest adequate" in n for n in d.notes)
+
+
+def test_an_imu_the_gauge_holds_is_not_dropped(square):
+    """Axis offsets on every IMU ('all own'; the fit holds one IMU's values by the gauge): that IMU's restriction
+    has 0 dof, which is the fit's choice, not evidence of nothing -- at 261a61f it was dropped ('0 on 0 dof, p = 1';
+    on the real exp_1 too, imu_8's axis offsets)."""
+    rng = np.random.default_rng(4)
+    ao = square.terms["axis_offsets"].values + rng.normal(0.0, 4e-4, square.terms["axis_offsets"].values.shape)
+    d = _discover(square, square.with_terms(axis_offsets=ao), GEOMETRY)
+    assert [(f.effect, f.imus, f.scope) for f in d.findings] == [("axis_offsets", (0, 1, 2, 3), "all own")]
+    assert not any("simplest adequate" in n for n in d.notes)

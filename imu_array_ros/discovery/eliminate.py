@@ -131,7 +131,7 @@ def _restriction(fit, start: SensorModel, f, ks, t: np.ndarray):
     keep = np.diag(cov) > 0
     w = np.linalg.pinv(cov[np.ix_(keep, keep)], hermitian=True)
     sol = np.linalg.pinv(x[keep].T @ w @ x[keep], hermitian=True) @ x[keep].T @ w @ d[keep]
-    first = sum(r if k in ks else p_dim for k in imus[:imus.index(ks[0])])
+    first = sum(r if k in ks else p_dim for k in imus[:imus.index(ks[0])]) if len(ks) else 0
     return stat, dof, sol[first:first + r]
 
 
@@ -156,6 +156,8 @@ def _simplest_change(fit, start: SensorModel, findings: list, terms, alpha: floa
             stat, dof, _ = _restriction(fit, start, f, drop + [k], none)
             if p < alpha or _p(stat, dof) < alpha:
                 break
+            if dof == _restriction(fit, start, f, drop, none)[1]:
+                continue  # the gauge holds its values: nothing to test (the fit's choice, not a finding)
             drop, test = drop + [k], (_p(stat, dof), f, tuple(sorted(drop + [k])), None, None, stat, dof)
         if test is not None and (best is None or len(test[2]) > len(best[2])):
             best = test
@@ -169,7 +171,7 @@ def _simplest_change(fit, start: SensorModel, findings: list, terms, alpha: floa
                 if (inner, k) in covered:
                     continue
                 stat, dof, phi = _restriction(fit, start, f, [k], t[k])
-                if _p(stat, dof) >= alpha and (best is None or _p(stat, dof) > best[0]):
+                if dof > 0 and _p(stat, dof) >= alpha and (best is None or _p(stat, dof) > best[0]):
                     best = (_p(stat, dof), f, (k,), inner, phi, stat, dof)
     return best
 
