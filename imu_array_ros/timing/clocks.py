@@ -30,6 +30,9 @@ __all__ = ["ClockSearch", "find_sample_clocks", "MIN_SNR", "SENSOR_CLOCKS"]
 
 #: a sawtooth's spectral amplitude must exceed this many times the spectrum's median to count as found
 MIN_SNR = 8.0
+#: a sawtooth of period T correlates with exp(-2 pi i t / T) by T / 2 pi at most (its fundamental); a peak above
+#: that by more than AMPLITUDE_Z noise stds (the spectrum's Rayleigh scale) is not a sample clock
+AMPLITUDE_Z = 4.0
 #: sensor -> the clock term that delays its readings alone
 SENSOR_CLOCKS = {"gyroscope": "gyroscope_sample_clock", "accelerometer": "accelerometer_sample_clock"}
 
@@ -71,6 +74,29 @@ def _unexplained(delays) -> float:
     return _rms(c - (np.sum(w * c, axis=1) / np.where(total > 0, total, 1.0))[:, None], w)
 
 
+def _not_a_sawtooth(sensor, names, t, w, period, rates, amp, probe, found, notes) -> np.ndarray:
+    """(K,) bool: peaks that cannot be a chip's own sample clock.  A sawtooth of period T has |S| = T / 2 pi
+    (:mod:`.sawtooth`; less in the relative delays, which remove the chips' weighted mean), so a peak above
+    T / 2 pi by more than AMPLITUDE_Z noise stds (sigma = the spectrum's median / sqrt(2 ln 2), Rayleigh) is
+    something else: a misfit that follows the motion (a missing gain or misalignment gives a "delay" that beats
+    with the twisting).  The relative delays hand one chip's excess to every other chip as its mirror, at the same
+    rate: a chip whose peak lies within one resolution width (1 / span of the moving samples, in ppm) of a chip
+    rejected so is rejected with it.  A real clock of the same rate is lost with it (device rates are spread
+    over thousands of ppm; noted)."""
+    sigma = np.median(probe, axis=0) / np.sqrt(2 * np.log(2))
+    big = found & (amp > period / (2 * np.pi) + AMPLITUDE_Z * sigma)
+    if not big.any():
+        return big
+    moving = t[w.sum(axis=1) > 0]
+    width = 1e6 * period / max(float(np.ptp(moving)) if len(moving) else 0.0, 1e-3)
+    echo = found & ~big & np.any(np.abs(rates[:, None] - rates[None, big]) <= width, axis=1)
+    notes.append(f"{sensor}s: peaks above a sawtooth's amplitude on {', '.join(n for n, b in zip(names, big) if b)} "
+                 f"({', '.join(f'{a / (period / (2 * np.pi)):.2f}' for a in amp[big])} x T / 2 pi)"
+                 + (f" and their mirror at the same rate on {int(echo.sum())} other IMUs" if echo.any() else "")
+                 + ": not sample clocks (a misfit that follows the motion?); rejected")
+    return big | echo
+
+
 def find_sample_clocks(samples: ImuSamples, model: SensorModel, *, period: float = 1e-3, span_ppm: float = 8000.0,
                        iterations: int = 2, t0_ns: int | None = None,
                        sensors: tuple[str, ...] = ("gyroscope", "accelerometer")) -> ClockSearch:
@@ -100,6 +126,7 @@ def find_sample_clocks(samples: ImuSamples, model: SensorModel, *, period: float
         probe = np.abs(spectrum(delays.t, d, w, clock[None, :, 0] / (1.0 + grid[:, None] * 1e-6)))
         snr = amp / np.maximum(np.median(probe, axis=0), 1e-300)
         found = snr >= MIN_SNR
+        found &= ~_not_a_sawtooth(sensor, model.names, delays.t, w, period, rates, amp, probe, found, out.notes)
         out.snr[sensor], out.found[sensor] = snr, found
         if not found.any():
             out.rates[sensor] = np.full(k, np.nan)

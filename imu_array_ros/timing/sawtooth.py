@@ -48,6 +48,8 @@ def spectrum(t: np.ndarray, d: np.ndarray, w: np.ndarray, periods: np.ndarray) -
     t, wd = t[use], (w * (d - mean))[use]  # of the read rate: removed
     step = max(1, BLOCK // max(len(t), 1))
     for j in range(k):
+        if not np.all(periods[:, j] > 0):  # no clock (period 0): nothing to correlate with
+            continue
         for lo in range(0, r, step):
             f = 1.0 / periods[lo:lo + step, j]
             out[lo:lo + step, j] = np.exp(-2j * np.pi * np.outer(f, t)) @ wd[:, j]
@@ -56,7 +58,8 @@ def spectrum(t: np.ndarray, d: np.ndarray, w: np.ndarray, periods: np.ndarray) -
 
 def _phase_of(s: np.ndarray, periods: np.ndarray) -> np.ndarray:
     """Phase in [0, T) from S = T e^{-2 pi i phase / T} / (2 pi i)."""
-    return np.mod(-np.angle(2j * s) / (2 * np.pi) * periods, periods)
+    safe = np.where(periods > 0, periods, 1.0)  # period 0: no clock, phase 0
+    return np.where(periods > 0, np.mod(-np.angle(2j * s) / (2 * np.pi) * safe, safe), 0.0)
 
 
 def _sse(t, d, w, period, rate, phase, with_constant: bool = False):

@@ -1,0 +1,60 @@
+"""Sample-clock search on recordings with exact stamps but a library term the model lacks: the misfit's "delays"
+beat with the twisting and peaked like a sawtooth (helper-58: seed 733850's whole-pipeline nulls 902, 909), at an
+amplitude no sawtooth of the searched period has (timing.clocks: AMPLITUDE_Z); and the search's divide by zero."""
+
+import warnings
+
+import numpy as np
+
+from imu_array_ros.model.layouts import grid_array32, planar_square4
+from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.simulation.perturb import TERM_TEST_SIZES
+from imu_array_ros.simulation.simulator import simulate_twist
+from imu_array_ros.timing.clocks import find_sample_clocks
+
+MISFIT_TERMS = ("accelerometer_gain", "gyroscope_gain", "accelerometer_misalignment", "gyroscope_misalignment",
+                "position", "gyroscope_g_sensitivity")
+
+
+def _misaligned(layout, k, scale, seed, rate, duration):
+    """A twisting recording (exact stamps, no clock) whose IMU k has a gyroscope misalignment ``scale`` x its
+    test size the model lacks: (model, samples)."""
+    model = SensorModel.from_description(layout())
+    rng = np.random.default_rng(seed)
+    v = model.terms["gyroscope_misalignment"].values.copy()
+    v[k] += rng.normal(size=v[k].shape) * TERM_TEST_SIZES["gyroscope_misalignment"] * scale
+    samples, _ = simulate_twist(model.with_terms(gyroscope_misalignment=v), duration, rate, rng)
+    return model, samples
+
+
+def _clocks(model, samples):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # the search's divide by zero (periods of 0) is gone
+        search = find_sample_clocks(samples, model)
+    return {s: int(f.sum()) for s, f in search.found.items()}, search
+
+
+def test_a_missing_misalignment_on_one_of_four_is_no_sample_clock():
+    # seed 733850909's recording as benchmarks/discovery_modes.py --pipeline draws it (planar4, 62.5 Hz, 21 s): all
+    # four IMUs had a gyroscope clock (12-59x the spectrum's median; amplitude 1.7-2.6 x T / 2 pi)
+    rng = np.random.default_rng([733850909, 3])
+    array, term = str(rng.choice(["planar4", "corners8", "grid32"])), str(rng.choice(MISFIT_TERMS))
+    assert (array, term) == ("planar4", "gyroscope_misalignment")
+    model = SensorModel.from_description(planar_square4())
+    v = model.terms[term].values.copy()
+    k = int(rng.integers(model.n_imus))
+    v[k] += rng.normal(size=v[k].shape) * TERM_TEST_SIZES[term] * rng.uniform(1.0, 5.0)
+    assert rng.random() >= 0.3  # twisting, not still poses
+    rate = float(rng.choice([62.5, 100.0, 200.0, 500.0, 1000.0]))
+    samples, _ = simulate_twist(model.with_terms(**{term: v}), float(min(rng.uniform(10.0, 30.0), 120_000 / (rate * 4))),
+                                rate, rng)
+    found, search = _clocks(model, samples)
+    assert found == {"gyroscope": 0, "accelerometer": 0}, search.notes
+    assert any("above a sawtooth's amplitude" in n for n in search.notes)
+
+
+def test_a_missing_misalignment_on_one_of_32_and_its_mirror_on_the_others():
+    # 32 IMUs, one misaligned: its excess, and its mirror on the other 31 through the relative delays
+    model, samples = _misaligned(grid_array32, 19, 4.0, 20261129, 100.0, 12.0)
+    found, search = _clocks(model, samples)
+    assert found == {"gyroscope": 0, "accelerometer": 0}, search.notes
