@@ -58,3 +58,58 @@ def test_a_missing_misalignment_on_one_of_32_and_its_mirror_on_the_others():
     model, samples = _misaligned(grid_array32, 19, 4.0, 20261129, 100.0, 12.0)
     found, search = _clocks(model, samples)
     assert found == {"gyroscope": 0, "accelerometer": 0}, search.notes
+
+
+def _drawn(seed):
+    """benchmarks/discovery_modes.py --pipeline's recording ``seed`` (a twisting one): (model, truth, samples)."""
+    from imu_array_ros.model.description import load_description
+    arrays = {"planar4": planar_square4, "corners8": lambda: load_description("config/mimu4444bt_corners.yaml"),
+              "grid32": grid_array32}
+    rng = np.random.default_rng([seed, 3])
+    array, term = str(rng.choice(list(arrays))), str(rng.choice(MISFIT_TERMS))
+    model = SensorModel.from_description(arrays[array]())
+    v = model.terms[term].values.copy()
+    k = int(rng.integers(model.n_imus))
+    v[k] += rng.normal(size=v[k].shape) * TERM_TEST_SIZES[term] * rng.uniform(1.0, 5.0)
+    assert rng.random() >= 0.3  # twisting, not still poses
+    rate = float(rng.choice([r for r in (62.5, 100.0, 200.0, 500.0, 1000.0) if 8.0 * r * model.n_imus <= 120_000]))
+    truth = model.with_terms(**{term: v})
+    samples, _ = simulate_twist(truth, float(min(rng.uniform(10.0, 30.0), 120_000 / (rate * model.n_imus))), rate, rng)
+    return model, truth, samples
+
+
+def test_clocks_standing_in_for_a_missing_gain_are_not_found_again_given_it():
+    # 733850900 (corners8, 1 kHz, an accelerometer gain missing on imu_5): accelerometer clocks on two IMUs at
+    # 8.0-8.1x (8 needed), amplitude ~1 x T / 2 pi (the amplitude rule cannot tell); given the gain, none
+    from imu_array_ros.discovery.timing import ClockFinding, TimingDiscovery, retest_clocks
+
+    model, truth, samples = _drawn(733850900)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no invalid remainder for chips without a clock (period 0)
+        search = find_sample_clocks(samples, model, sensors=("accelerometer",))
+    found = search.found["accelerometer"]
+    assert found.any()  # the stand-in, before the library term is known
+    timing = TimingDiscovery(model, findings=[ClockFinding("accelerometer", int(k), model.names[k], 1e-3,
+                                                           float(search.rates["accelerometer"][k]), 8.0)
+                                              for k in np.flatnonzero(found)])
+    assert retest_clocks(samples, truth, timing) == timing.findings
+
+
+def test_real_clocks_are_found_again_under_a_model_with_a_library_finding():
+    from conftest import gyro_chip_clocks
+    from imu_array_ros.discovery.timing import timing_stage, retest_clocks
+    from imu_array_ros.model.description import load_description
+
+    nominal = SensorModel.from_description(load_description("config/mimu4444bt_corners.yaml"))
+    rng = np.random.default_rng(5)
+    k = nominal.n_imus
+    bias = nominal.terms["gyroscope_bias"].values.copy()
+    bias[2] = (0.01, -0.01, 0.005)
+    with_bias = nominal.with_terms(gyroscope_bias=bias)
+    true = with_bias.with_terms(gyroscope_sample_clock=gyro_chip_clocks(k, rng),
+                                time_offset=np.column_stack([np.full(k, -1.6e-3), np.zeros(k)]))
+    samples, _ = simulate_twist(true, 20.0, 62.5, rng, start_ns=10**9)
+    timing = timing_stage(samples, nominal)
+    assert len(timing.findings) >= 6
+    assert retest_clocks(samples, with_bias, timing) == []
+    assert retest_clocks(samples, timing.model.with_terms(gyroscope_bias=bias), timing) == []

@@ -49,7 +49,7 @@ from imu_array_ros.timing.delays import reading_delays
 from imu_array_ros.timing.sawtooth import sawtooth_delay
 from imu_array_ros.timing.session import active_clocks, estimate_session, session_weights
 
-__all__ = ["TimingDiscovery", "ClockFinding", "timing_stage", "session_model", "false_alarm_bound", "NULL_MEASURED"]
+__all__ = ["TimingDiscovery", "ClockFinding", "timing_stage", "retest_clocks", "session_model", "false_alarm_bound", "NULL_MEASURED"]
 
 #: peak / median of the sawtooth spectrum on simulated null chips (``python -m benchmarks.discovery_timing_null
 #: --seeds 5``: 8 corner IMUs x gyroscope and accelerometer x 15 recordings of 30 s at 62.5, 100, 200 Hz):
@@ -274,6 +274,26 @@ def _evidence(samples, model, clocked, out: TimingDiscovery, motion, r0, r1, kno
                          for b in range(_BINS)])
     return {"imu": best.imu, "sensor": sensor, "t": delays.t[use], "delay": d[use], "sawtooth": saw[use] + shift,
             "omega_dot_bins": 0.5 * (edges[1:] + edges[:-1]), "rms_before": binned(r0), "rms_after": binned(r1)}
+
+
+def retest_clocks(samples, model, timing: TimingDiscovery) -> list:
+    """The clock findings of ``timing`` a search under ``model`` does not find again (same sensor and IMU, rate
+    within one resolution width, 1e6 period / span ppm): with ``model`` the description with the library findings
+    and without the clocks, a clock that stood in for a missing term (its "delays" beat with the motion) is gone,
+    while a chip's own clock is not explained by any library term.  The timing stage runs before the library
+    search, so its findings are re-tested given the others as the backward elimination re-tests the library's."""
+    if not timing.findings:
+        return []
+    k = model.n_imus
+    plain = model.with_terms(**{t: np.zeros((k, 3)) for t in SENSOR_CLOCKS.values() if t in model.terms})
+    try:
+        search = find_sample_clocks(samples, plain, period=timing.period,
+                                    sensors=tuple(dict.fromkeys(f.sensor for f in timing.findings)))
+    except ValueError:
+        return []
+    width = 1e6 * timing.period / max(float(np.ptp(samples.stamps)) * 1e-9, 1e-3)
+    return [f for f in timing.findings if not (search.found[f.sensor][f.k]
+                                               and abs(search.rates[f.sensor][f.k] - f.rate_ppm) <= width)]
 
 
 def session_model(samples, model):

@@ -81,7 +81,7 @@ def fit_phases(t: np.ndarray, d: np.ndarray, w: np.ndarray, period: np.ndarray, 
     phase = _phase_of(spectrum(t, d, w, big_t[None])[0], big_t)
     best, best_sse = phase.copy(), _sse(t, d, w, period, rate, phase)
     for off in np.linspace(-0.1, 0.1, grid):
-        trial = np.mod(phase + off * big_t, big_t)
+        trial = np.where(big_t > 0, np.mod(phase + off * big_t, np.where(big_t > 0, big_t, 1.0)), 0.0)
         sse = _sse(t, d, w, period, rate, trial)
         better = sse < best_sse
         best[better], best_sse[better] = trial[better], sse[better]
