@@ -80,8 +80,9 @@ def _not_a_sawtooth(sensor, names, t, w, period, rates, amp, probe, found, notes
     T / 2 pi by more than AMPLITUDE_Z noise stds (sigma = the spectrum's median / sqrt(2 ln 2), Rayleigh) is
     something else: a misfit that follows the motion (a missing gain or misalignment gives a "delay" that beats
     with the twisting).  The relative delays hand one chip's excess to every other chip as its mirror, at the same
-    rate: a chip whose peak lies within one resolution width (1 / span of the moving samples, in ppm) of a chip
-    rejected so is rejected with it.  A real clock of the same rate is lost with it (device rates are spread
+    rate (inverted: with reads at a multiple of the period, a falling sawtooth is the mirror rate's, -rate): a chip
+    whose peak lies within one resolution width (1 / span of the moving samples, in ppm) of a chip rejected so, or of
+    its mirror, is rejected with it.  A real clock of the same rate is lost with it (device rates are spread
     over thousands of ppm; noted)."""
     sigma = np.median(probe, axis=0) / np.sqrt(2 * np.log(2))
     big = found & (amp > period / (2 * np.pi) + AMPLITUDE_Z * sigma)
@@ -89,10 +90,11 @@ def _not_a_sawtooth(sensor, names, t, w, period, rates, amp, probe, found, notes
         return big
     moving = t[w.sum(axis=1) > 0]
     width = 1e6 * period / max(float(np.ptp(moving)) if len(moving) else 0.0, 1e-3)
-    echo = found & ~big & np.any(np.abs(rates[:, None] - rates[None, big]) <= width, axis=1)
+    near = np.minimum(np.abs(rates[:, None] - rates[None, big]), np.abs(rates[:, None] + rates[None, big]))
+    echo = found & ~big & np.any(near <= width, axis=1)
     notes.append(f"{sensor}s: peaks above a sawtooth's amplitude on {', '.join(n for n, b in zip(names, big) if b)} "
                  f"({', '.join(f'{a / (period / (2 * np.pi)):.2f}' for a in amp[big])} x T / 2 pi)"
-                 + (f" and their mirror at the same rate on {int(echo.sum())} other IMUs" if echo.any() else "")
+                 + (f" and their mirror at the same (or mirror) rate on {int(echo.sum())} other IMUs" if echo.any() else "")
                  + ": not sample clocks (a misfit that follows the motion?); rejected")
     return big | echo
 
@@ -131,7 +133,8 @@ def find_sample_clocks(samples: ImuSamples, model: SensorModel, *, period: float
         if not found.any():
             out.rates[sensor] = np.full(k, np.nan)
             out.notes.append(f"{sensor}s: no sample clock of period {period * 1e3:g} ms (largest sawtooth "
-                             f"{snr.max():.1f}x the noise, {MIN_SNR:g}x needed)")
+                             f"{snr.max():.1f}x the noise, {MIN_SNR:g}x needed"
+                             + (", the peaks above it rejected as above" if snr.max() >= MIN_SNR else "") + ")")
             continue
         clock[:, 1] = rates
         clock[~found, 0] = 0.0
