@@ -177,8 +177,7 @@ def evaluate_scopes(sb, names, folds: np.ndarray, scopes: list[Scope], *, terms=
             if (t, sc.label, sc.imus) in exclude or (sc.kind == "own" and t not in sb.S_cross):
                 continue
             gb, Sb = scoped_blocks(sb, t, sc)
-            c = block_tests(gb[have], Sb[have], folds[have], fold_ids,
-                            dispersion=None if sc.kind == "own" else False)  # own: K x p dof
+            c = block_tests(gb[have], Sb[have], folds[have], fold_ids)
             if c is None:
                 continue
             stat, q, lrt_p, log_p, robust_p, heldout, theta = c
@@ -207,9 +206,7 @@ def block_tests(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.
     (Hotelling's F(q, B - q) then has next to no power: 31 dof on 33 blocks passes at p < 0.07 with a score of
     112).  phi = sum_b u_b^T S^+ u_b / (q - sum_b tr((S^+ S_b)^2)) (expectation 1 under the model, blocks
     independent), F = T / (q phi) ~ F(q, q (B - 1)).  It stays calibrated when the residual is coloured
-    alike on the candidate's directions; unlike Hotelling's, not when only some directions are.  None: the
-    dispersion form only where Hotelling's has fewer denominator than numerator dof (B < 2q; an own scope's
-    K x p dof on a short recording)."""
+    alike on the candidate's directions; unlike Hotelling's, not when only some directions are."""
     S = Sb.sum(axis=0)
     Q = _reduced(S)
     if Q is None:
@@ -225,8 +222,6 @@ def block_tests(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.
     # block-robust (sandwich) test: Hotelling's T^2 of the block scores around the fit
     u = gr - Sr @ z
     b = len(gb)
-    if dispersion is None:
-        dispersion = b < 2 * q
     if dispersion and b > 1:
         m = np.linalg.solve(S_, Sr)  # (B, q, q): S^-1 S_b
         den = q - float(np.einsum("bij,bji->", m, m))

@@ -93,7 +93,7 @@ def _own(sb, names, folds, fold_ids, have, n_obs, key, f, outside, step):
     b = sb.g.shape[0]
     gb = sb.g[:, out, cols].reshape(b, len(out) * p)
     Sb = sb.S_cross[f.effect][:, out][:, :, out].transpose(0, 1, 3, 2, 4).reshape(b, len(out) * p, len(out) * p)
-    r = block_tests(gb[have], Sb[have], folds[have], fold_ids, dispersion=None)  # (K - 1) p dof
+    r = block_tests(gb[have], Sb[have], folds[have], fold_ids)  # (K - 1) p dof: Hotelling, as the own scope
     if r is None:
         return None
     stat, q, lrt_p, log_p, robust_p, heldout, theta = r

@@ -33,8 +33,8 @@ __all__ = ["Scope", "geometry_groups", "scopes_for", "scoped_blocks", "given_col
            "score_given", "tie_test", "OWN_MAX_IMUS", "GEOMETRY_TOL"]
 
 #: the "every IMU its own value" scope is tested on arrays of at most this many IMUs (its information is
-#: K x K blocks per time block: on the 32-grid ~1.5x the CPU of a discovery without it, ad hoc)
-OWN_MAX_IMUS = 32
+#: K x K blocks per time block)
+OWN_MAX_IMUS = 16
 #: spread (m) of z positions / centroid distances below which the geometry suggests no split
 GEOMETRY_TOL = 1e-4
 
