@@ -69,17 +69,9 @@ def _pooled(sb, names, folds, fold_ids, have, n_obs, key, f, v, outside, step):
     gb = sb.g[:, out, sb.columns(f.effect)] @ v
     Sb = sb.S_dir[:, d][:, out][:, :, out]
     r = block_tests(gb[have], Sb[have], folds[have], fold_ids, dispersion=True)  # up to K - 1 dof
-    if r is None:
-        return None
-    stat, q, lrt_p, log_p, robust_p, heldout, theta = r
-    imus = tuple(sorted(set(f.imus) | set(out)))
-    left = [names[i] for i in range(len(names)) if i not in imus]
-    label = f"all but {','.join(left)} own" if left else "all own"
-    return Candidate(f.effect, imus[0], f"{label} ({len(imus)} IMUs, along {f.sensor}'s value)", stat, q, lrt_p,
-                     robust_p, 0.5 * stat, q * np.log(n_obs) - stat, heldout, np.outer(theta, v).reshape(-1), log_p,
-                     step, scope=label, imus=imus, sensors=tuple(names[i] for i in imus), extends=key,
-                     note=(f"{f.effect}'s value on {f.sensor} as c_k times it on each of the {len(out)} other IMUs: "
-                           f"score test {stat:.4g} on {q} dof, p = {lrt_p:.3g}, dispersion-robust p = {robust_p:.3g}"))
+    return None if r is None else _every_other(
+        r, names, n_obs, key, f, out, step, f"along {f.sensor}'s value", lambda theta: np.outer(theta, v).reshape(-1),
+        f"{f.effect}'s value on {f.sensor} as c_k times it on each of the {len(out)} other IMUs", "dispersion-robust")
 
 
 def _own(sb, names, folds, fold_ids, have, n_obs, key, f, outside, step):
@@ -94,17 +86,22 @@ def _own(sb, names, folds, fold_ids, have, n_obs, key, f, outside, step):
     gb = sb.g[:, out, cols].reshape(b, len(out) * p)
     Sb = sb.S_cross[f.effect][:, out][:, :, out].transpose(0, 1, 3, 2, 4).reshape(b, len(out) * p, len(out) * p)
     r = block_tests(gb[have], Sb[have], folds[have], fold_ids)  # (K - 1) p dof: Hotelling, as the own scope
-    if r is None:
-        return None
+    return None if r is None else _every_other(
+        r, names, n_obs, key, f, out, step, "each its own value", lambda theta: theta,
+        f"{f.effect} on {f.sensor}, then each of the {len(out)} other IMUs its own value", "block-robust")
+
+
+def _every_other(r, names, n_obs, key, f, out, step, how, theta_of, what, robust):
+    """The Candidate of a finding ``f`` (key ``key``) put on every IMU of ``out`` from its block tests ``r``
+    (:func:`_pooled`, :func:`_own`): scope "all own" or "all but X own"; theta_of(theta): its parameter step."""
     stat, q, lrt_p, log_p, robust_p, heldout, theta = r
     imus = tuple(sorted(set(f.imus) | set(out)))
     left = [names[i] for i in range(len(names)) if i not in imus]
     label = f"all but {','.join(left)} own" if left else "all own"
-    return Candidate(f.effect, imus[0], f"{label} ({len(imus)} IMUs, each its own value)", stat, q, lrt_p, robust_p,
-                     0.5 * stat, q * np.log(n_obs) - stat, heldout, theta, log_p, step, scope=label, imus=imus,
+    return Candidate(f.effect, imus[0], f"{label} ({len(imus)} IMUs, {how})", stat, q, lrt_p, robust_p, 0.5 * stat,
+                     q * np.log(n_obs) - stat, heldout, theta_of(theta), log_p, step, scope=label, imus=imus,
                      sensors=tuple(names[i] for i in imus), extends=key,
-                     note=(f"{f.effect} on {f.sensor}, then each of the {len(out)} other IMUs its own value: score "
-                           f"test {stat:.4g} on {q} dof, p = {lrt_p:.3g}, block-robust p = {robust_p:.3g}"))
+                     note=f"{what}: score test {stat:.4g} on {q} dof, p = {lrt_p:.3g}, {robust} p = {robust_p:.3g}")
 
 
 def _better(a, b):
