@@ -14,6 +14,8 @@ planar square (fixed seeds), each of which discovery got wrong before the change
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -21,6 +23,7 @@ from imu_array_ros.discovery.discover import DiscoveryOptions, discover
 from imu_array_ros.discovery.nested import carried, holds, nesting
 from imu_array_ros.model.layouts import grid_array32, planar_square4, tetrahedron4
 from imu_array_ros.model.sensor_model import SensorModel, motion_context
+from imu_array_ros.util.jsontools import json_safe
 
 from conftest import icosahedron_recording, with_change
 
@@ -86,6 +89,11 @@ def test_each_imu_of_a_finding_gets_its_simplest_adequate_term(square):
                for n in d.notes)
     pos = next(f for f in d.findings if f.effect == "position")
     assert np.all(np.abs(pos.values - (square.positions[3] + dp)) < 3 * pos.std)
+    # its evidence is the Wald test given the others (finite, as the report prints it); robust/held-out not tested
+    c = pos.candidate
+    assert c.dof == 3 and c.statistic > 100 and np.isfinite(c.log_p) and np.isfinite(c.delta_bic)
+    assert np.isnan(c.robust_p) and np.isnan(c.heldout)
+    json.dumps(json_safe(d.to_dict()), allow_nan=False)
 
 
 def test_a_carrier_another_finding_explains_is_dropped(square):

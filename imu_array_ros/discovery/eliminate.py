@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import scipy.special
 import scipy.stats
 
 from imu_array_ros.discovery.confirm import only_imus, update_finding
@@ -228,12 +229,16 @@ def simplest_adequate(samples, start: SensorModel, findings: list, fit, motion, 
         motion = np.where(np.isfinite(fit.motion), fit.motion, motion)
         for g in findings:
             update_finding(g, fit, start, alpha)
-            if inner is not None and g.effect == inner and g.imus == (k,):
-                w_stat, w_dof, w_p = wald_given_others(fit, g, start, alpha)
-                g.exact_delta_loglik = g.candidate.exact_gain = g.candidate.delta_loglik = 0.5 * w_stat
-                g.candidate.statistic, g.candidate.dof, g.candidate.lrt_p = w_stat, w_dof, w_p
-                g.candidate.log_p = float(scipy.stats.chi2.logsf(w_stat, max(w_dof, 1)))
-                g.candidate.robust_p = g.candidate.heldout = float("nan")
+            if inner is not None and g.effect == inner and g.imus == (k,):  # its evidence: the Wald test given
+                c, (w_stat, w_dof, w_p) = g.candidate, wald_given_others(fit, g, start, alpha)  # all the others
+                ln_n = (c.delta_bic + c.statistic) / max(c.dof, 1)  # BIC's ln n, as the step's candidates had it
+                g.exact_delta_loglik = c.exact_gain = c.delta_loglik = 0.5 * w_stat
+                c.statistic, c.dof, c.lrt_p, c.delta_bic = w_stat, w_dof, w_p, w_dof * ln_n - w_stat
+                c.log_p = float(scipy.stats.chi2.logsf(w_stat, max(w_dof, 1)))
+                if not np.isfinite(c.log_p):  # underflow: the leading term of the asymptotic series
+                    q = max(w_dof, 1)
+                    c.log_p = float((q / 2 - 1) * np.log(w_stat / 2) - w_stat / 2 - scipy.special.gammaln(q / 2))
+                c.robust_p = c.heldout = float("nan")  # not tested (null in report.json)
     return findings, changes, fit, current, motion
 
 
