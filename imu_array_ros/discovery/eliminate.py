@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import scipy.linalg
 import scipy.special
 import scipy.stats
 
@@ -121,17 +122,9 @@ def _restriction(fit, start: SensorModel, f, ks, t: np.ndarray):
     p_dim, r = REGISTRY[f.effect].dim(), t.shape[1]
     idx = term_indexes(fit, f.effect, imus)
     d = fit.theta[idx] - np.asarray(start.terms[f.effect].values[imus], dtype=float).reshape(-1)
-    cov = fit.covariance[np.ix_(idx, idx)]
-    x = np.zeros((len(idx), 0))
-    for i, k in enumerate(imus):
-        block = np.zeros((len(idx), r if k in ks else p_dim))
-        block[i * p_dim:(i + 1) * p_dim] = t if k in ks else np.eye(p_dim)
-        x = np.hstack([x, block])
-    x = np.hstack([x, gauge_basis(fit, idx)])  # a gauge freedom's move is no change
-    stat, dof = restricted(d, cov, x)
-    keep = np.diag(cov) > 0
-    w = np.linalg.pinv(cov[np.ix_(keep, keep)], hermitian=True)
-    sol = np.linalg.pinv(x[keep].T @ w @ x[keep], hermitian=True) @ x[keep].T @ w @ d[keep]
+    x = np.hstack([scipy.linalg.block_diag(*[t if k in ks else np.eye(p_dim) for k in imus]),
+                   gauge_basis(fit, idx)])  # a gauge freedom's move is no change
+    stat, dof, sol = restricted(d, fit.covariance[np.ix_(idx, idx)], x, solution=True)
     first = sum(r if k in ks else p_dim for k in imus[:imus.index(ks[0])]) if len(ks) else 0
     return stat, dof, sol[first:first + r]
 
@@ -152,14 +145,14 @@ def _simplest_change(fit, start: SensorModel, findings: list, terms, alpha: floa
             continue
         none = np.zeros((REGISTRY[f.effect].dim(), 0))
         alone = sorted(((_p(*_restriction(fit, start, f, [k], none)[:2]), k) for k in f.imus), reverse=True)
-        drop, test = [], None
+        drop, test, held = [], None, 0  # held: the dof of the joint test of ``drop``
         for p, k in alone[:-1]:
             stat, dof, _ = _restriction(fit, start, f, drop + [k], none)
             if p < alpha or _p(stat, dof) < alpha:
                 break
-            if dof == _restriction(fit, start, f, drop, none)[1]:
+            if dof == held:
                 continue  # the gauge holds its values: nothing to test (the fit's choice, not a finding)
-            drop, test = drop + [k], (_p(stat, dof), f, tuple(sorted(drop + [k])), None, None, stat, dof)
+            drop, test, held = drop + [k], (_p(stat, dof), f, tuple(sorted(drop + [k])), None, None, stat, dof), dof
         if test is not None and (best is None or len(test[2]) > len(best[2])):
             best = test
     if best is not None:

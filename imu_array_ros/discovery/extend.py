@@ -32,6 +32,7 @@ import numpy as np
 
 from imu_array_ros.discovery.drift import GIVEN, candidate_blocks
 from imu_array_ros.discovery.explain import Candidate, block_tests
+from imu_array_ros.discovery.scopes import Scope, scoped_blocks
 from imu_array_ros.discovery.subset import scope_label
 
 __all__ = ["extension_candidates", "extension_directions", "shared_change"]
@@ -80,11 +81,8 @@ def _own(sb, names, folds, fold_ids, have, n_obs, key, f, outside, step):
     information of the term (own scopes not scored) or the recording identifies none of it."""
     if f.effect not in sb.S_cross:
         return None
-    out, cols = list(outside), sb.columns(f.effect)
-    p = cols.stop - cols.start
-    b = sb.g.shape[0]
-    gb = sb.g[:, out, cols].reshape(b, len(out) * p)
-    Sb = sb.S_cross[f.effect][:, out][:, :, out].transpose(0, 1, 3, 2, 4).reshape(b, len(out) * p, len(out) * p)
+    out = list(outside)
+    gb, Sb = scoped_blocks(sb, f.effect, Scope("outside", "own", tuple(out)))
     r = block_tests(gb[have], Sb[have], folds[have], fold_ids)  # (K - 1) p dof: Hotelling, as the own scope
     return None if r is None else _every_other(
         r, names, n_obs, key, f, out, step, "each its own value", lambda theta: theta,

@@ -95,14 +95,16 @@ def scopes_for(n_imus: int, groups) -> tuple[list[Scope], list[tuple[int, ...]]]
 
 def scoped_blocks(sb, term: str, scope: Scope):
     """(g (B, d), S (B, d, d)) of ``term`` at a pooled ``scope`` from ``sb`` (ScoreBlocks scored with the
-    scope's groups / cross terms, given findings already profiled out by :func:`profile_given`)."""
+    scope's groups / cross terms, given findings already profiled out by :func:`profile_given`); an own scope:
+    every IMU of it its own value (d = its IMUs x p, their cross-IMU blocks)."""
     cols = sb.columns(term)
     p = cols.stop - cols.start
     if scope.kind == "shared":
         return sb.g[:, list(scope.imus), cols].sum(axis=1), sb.S_groups[:, scope.group, cols, cols]
-    b, k = sb.g.shape[:2]
-    S = sb.S_cross[term].transpose(0, 1, 3, 2, 4).reshape(b, k * p, k * p)
-    return sb.g[:, :, cols].reshape(b, k * p), S
+    imus = list(scope.imus)
+    b, k = sb.g.shape[0], len(imus)
+    S = sb.S_cross[term][:, imus][:, :, imus].transpose(0, 1, 3, 2, 4).reshape(b, k * p, k * p)
+    return sb.g[:, imus, cols].reshape(b, k * p), S
 
 
 def given_columns(offsets: dict, dims: dict, found) -> np.ndarray:

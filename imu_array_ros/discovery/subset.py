@@ -96,21 +96,25 @@ def _information(cov: np.ndarray):
     return q @ np.diag(1.0 / lam[ok]) @ q.T, keep, int(ok.sum())
 
 
-def restricted(d: np.ndarray, cov: np.ndarray, t: np.ndarray) -> tuple[float, int]:
+def restricted(d: np.ndarray, cov: np.ndarray, t: np.ndarray, *, solution: bool = False):
     """Wald statistic of the linear restriction d = T phi (phi free) with the covariance of d, and its dof:
     min_phi (d - T phi)^T C^+ (d - T phi) on the identified directions of C; asymptotically twice the
-    log-likelihood the restriction loses.  T (n, r); r = 0: d = 0."""
+    log-likelihood the restriction loses.  T (n, r); r = 0: d = 0.  solution: also the minimising phi (r,)
+    (the GLS value; minimum-norm where T's columns are not identified), as a third element."""
     w, keep, rank = _information(cov)
+    phi = np.zeros(t.shape[1])
     if rank == 0:
-        return 0.0, 0
+        return (0.0, 0, phi) if solution else (0.0, 0)
     x, tk = d[keep], t[keep]
     stat = float(x @ w @ x)
     if tk.shape[1]:
         info = tk.T @ w @ tk
         b = tk.T @ w @ x
-        stat -= float(b @ np.linalg.pinv(info, hermitian=True) @ b)
+        phi = np.linalg.pinv(info, hermitian=True) @ b
+        stat -= float(b @ phi)
         rank -= int(np.linalg.matrix_rank(info)) if np.any(info) else 0
-    return max(stat, 0.0), max(rank, 0)
+    out = max(stat, 0.0), max(rank, 0)
+    return (*out, phi) if solution else out
 
 
 def wald(d: np.ndarray, cov: np.ndarray) -> tuple[float, int, float]:
