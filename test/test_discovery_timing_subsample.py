@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from imu_array_ros.discovery import discover as discover_module
+from imu_array_ros.discovery import finish as finish_module
 from imu_array_ros.discovery import heldout as heldout_module
 from imu_array_ros.discovery import timing as timing_module
 from imu_array_ros.discovery.blocks import search_rungs, time_blocks
@@ -52,7 +53,7 @@ def test_the_clocks_are_tested_on_the_first_subsample_and_held_out_on_the_blocks
     def counted(s, model, *args, **kwargs):  # every motion fit: how many samples, clocked or not, at which stage
         fits.append((len(s.stamps), bool(active_clocks(model)), len(lines)))
         return real(s, model, *args, **kwargs)
-    for module in (discover_module, timing_module, heldout_module):
+    for module in (discover_module, finish_module, timing_module, heldout_module):
         monkeypatch.setattr(module, "fit_motion", counted)
     opts = DiscoveryOptions(terms=("gyroscope_bias",), empirical=False, max_findings=1, search_readings=BUDGET,
                             ladder_from=0)

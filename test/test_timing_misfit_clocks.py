@@ -113,3 +113,25 @@ def test_real_clocks_are_found_again_under_a_model_with_a_library_finding():
     assert len(timing.findings) >= 6
     assert retest_clocks(samples, with_bias, timing) == []
     assert retest_clocks(samples, timing.model.with_terms(gyroscope_bias=bias), timing) == []
+
+
+def test_discover_drops_the_clocks_that_stood_in_for_its_findings():
+    # 733850900: the timing stage takes two accelerometer clocks (imu_3, imu_4) for the missing gain on imu_6; given
+    # the gain the search does not find them again, so discover drops them (and what they brought in) and keeps the gain
+    import json
+
+    from imu_array_ros.discovery.discover import DiscoveryOptions, discover
+    from imu_array_ros.timing.session import active_clocks
+
+    model, truth, samples = _drawn(733850900)
+    d = discover(samples, model, options=DiscoveryOptions(terms=("accelerometer_gain",), empirical=False))
+    assert [(f.effect, f.sensor) for f in d.findings] == [("accelerometer_gain", "imu_6")]
+    assert d.timing.findings == [] and not d.timing.used
+    assert sorted((f.imu, f.sensor) for f in d.timing.dropped) == [("imu_3", "accelerometer"), ("imu_4", "accelerometer")]
+    assert active_clocks(d.model) == []  # --apply writes no clock
+    assert any("not found again given the library findings" in n for n in d.notes)
+    report = json.loads(json.dumps(d.to_dict(), allow_nan=False, default=float))
+    assert [c["sensors"] for c in report["timing"]["dropped_given_findings"]] == [["imu_3"], ["imu_4"]]
+    # the gain the findings hold, within 3 sigma of the truth
+    f = d.findings[0]
+    assert np.all(np.abs(f.values - truth.terms["accelerometer_gain"].values[5]) < 3 * f.std)

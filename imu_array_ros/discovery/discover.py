@@ -25,7 +25,10 @@
    if a candidate passes, so an effect too weak for a subsample is still
    found; the subsamples share half of alpha, the whole recording the other
    half.  Findings fitted on a subsample are scored on the blocks it left out
-   (their held-out check).
+   (their held-out check).  At the end (:mod:`.finish`) every finding is
+   re-tested given the others (backward elimination, simplest adequate
+   scope) and so are the timing stage's sample clocks (a clock not found
+   again given the library findings stood in for them: dropped).
 5. **Model what the library lacks** (:mod:`.empirical`): cells still in excess
    after the findings get a sparse regression on motion features, scored on
    held-out blocks, reported apart from the physical findings.
@@ -50,11 +53,10 @@ from imu_array_ros.discovery.blocks import (LADDER_FROM, SEARCH_READINGS, search
                                             time_blocks)
 from imu_array_ros.discovery.confirm import both_found
 from imu_array_ros.discovery.explain import Candidate
-from imu_array_ros.discovery.eliminate import backward_eliminate, dropped_notes, simplest_adequate
+from imu_array_ros.discovery.finish import finish_search
 from imu_array_ros.discovery.heldout import between_gain, complement_gain, heldout_gain
 from imu_array_ros.discovery.scopes import OWN_MAX_IMUS, geometry_groups, scopes_for
-from imu_array_ros.discovery.search import (SearchData, SearchSpace, SearchState, fill, ladder_search,
-                                            residuals_only)
+from imu_array_ros.discovery.search import SearchData, SearchSpace, SearchState, ladder_search, residuals_only
 from imu_array_ros.discovery.threads import on_one_blas_thread
 from imu_array_ros.discovery.timing import session_model, timing_stage
 from imu_array_ros.errors import CalibrationError
@@ -370,34 +372,11 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
             f"the recording holds more than {opts.search_readings} readings")
     say(f"scoring {len(terms)} terms x {model.n_imus} IMUs at {len(scopes) + model.n_imus} scopes")
     data, sb, sb_whole = ladder_search(ladder, state, space, say)
-    findings = sorted(state.accepted.values(), key=lambda f: f.step)
-    current, motion, fit = state.current, data.motion, state.fit
-    dropped = []
-    if len(findings) > 1:  # every finding re-tested given all the others (.eliminate)
-        say(f"backward: re-testing each of the {len(findings)} findings given the others")
-        findings, dropped, fit, current, motion = backward_eliminate(data.samples, model, findings, fit, motion,
-                                                                     state.levels, opts.alpha, say)
-        notes += dropped_notes(dropped)
-    # each IMU of a finding re-tested for a simpler hypothesis given all the others (.eliminate, .nested)
-    findings, simpler, _, current, motion = simplest_adequate(data.samples, model, findings, fit, motion, terms,
-                                                              opts.alpha, state.make_finding, groups, current, say)
-    notes += [f"simplest adequate: {r['reason']} (see rejected)" for r in simpler]
-    state.rejected += dropped + simpler
-    if dropped or simpler:
-        motion, _, _ = fit_motion(data.samples, current, motion)
-        sb, sb_whole = residuals_only(data.samples, current, motion, data.blocks), None
-    if data is not whole:  # the findings were fitted on a subsample: the whole recording under them
-        if findings:
-            notes.append(f"the findings were fitted on a subsample, {data.label} ({len(data.index)} of {len(stamps)} "
-                         f"samples): their values, std and evidence are the subsample's (a fit of the whole recording "
-                         f"would narrow their std by about {np.sqrt(len(stamps) / len(data.index)):.2g}x); the other "
-                         f"blocks are their held-out check")
-        if sb_whole is not None:  # the last look scored the whole recording under the final model
-            motion, sb = whole.motion, sb_whole
-        else:
-            say("fitting the whole recording's motion with the findings")
-            motion, _, _ = fit_motion(samples, current, fill(whole.motion, start_motion))
-            sb = residuals_only(samples, current, motion, blocks)
+    done = finish_search(samples, model, data, whole, state, start_motion, sb, sb_whole, terms=terms,
+                         alpha=opts.alpha, groups=groups, timing=timing, notes=notes, say=say)
+    findings, current, motion, sb = done.findings, done.model, done.motion, done.scores
+    if timing is not None and timing.dropped:  # stand-ins for findings: held out against the start without them
+        start_model = timing.without(start_model)
     all_candidates, rejected, levels = state.candidates, state.rejected, state.levels
     indist = both_found(state.indist, findings, notes)
     timings["explain"] = time.perf_counter() - t1

@@ -151,6 +151,27 @@ class TimingDiscovery:
     #: the samples (indexes) the likelihood comparisons and ``motion`` are of (None: the whole recording); what they are
     on: object = field(default=None, repr=False)
     on_label: str = "the whole recording"
+    #: clocks found, then dropped when re-tested given the library findings (:func:`retest_clocks`)
+    dropped: list = field(default_factory=list)
+
+    def drop(self, clocks: list, reason: str) -> None:
+        """``clocks`` (of ``findings``) dropped for ``reason`` (said in the notes)."""
+        self.findings = [f for f in self.findings if f not in clocks]
+        self.dropped += clocks
+        if any(f.imu == self.evidence.get("imu") and f.sensor == self.evidence.get("sensor") for f in clocks):
+            self.evidence = {}  # its plot was of a dropped clock
+        self.notes.append(f"clocks of {', '.join(f'{f.imu} {f.sensor}' for f in clocks)} {reason}")
+
+    def without(self, model, clocks=None):
+        """``model`` without ``clocks`` (ClockFinding list; None: those :meth:`drop` dropped): their chips' clock
+        rows zero (no clock)."""
+        changes = {}
+        for f in self.dropped if clocks is None else clocks:
+            term = SENSOR_CLOCKS[f.sensor]
+            v = changes.get(term, model.terms[term].values).copy()
+            v[f.k] = 0.0
+            changes[term] = v
+        return model.with_terms(**changes) if changes else model
 
     @property
     def used(self) -> bool:
@@ -166,6 +187,7 @@ class TimingDiscovery:
     def to_dict(self) -> dict:
         return {"tested": self.tested, "used": self.used, "period_s": self.period,
                 "findings": [f.to_dict() for f in self.findings],
+                "dropped_given_findings": [f.to_dict() for f in self.dropped],
                 "snr": {s: [float(x) for x in v] for s, v in self.snr.items()},
                 "delta_loglik": self.delta_loglik, "loglik_before": self.loglik_before,
                 "loglik_after": self.loglik_after, "reading_rates": dict(self.rates),

@@ -1,0 +1,120 @@
+"""The end of the search: every finding re-tested given all the others, then the whole recording under them.
+
+After the forward search (:mod:`.search`) :func:`finish_search`
+
+1. re-tests the timing stage's sample clocks given the library findings (:func:`~.timing.retest_clocks`): the
+   timing stage runs before the library search, so a missing gain or misalignment, whose residual follows the
+   motion, can be taken for a clock (its "delays" beat with the twisting); a clock the search does not find again
+   under the findings is dropped and the findings refitted without it, reported in the timing notes.  First, so
+   that a finding the stand-in brought in (its misfit) faces the backward elimination without it;
+2. drops the findings no longer significant given the others (:func:`~.eliminate.backward_eliminate`);
+3. re-tests each IMU of a finding for a simpler hypothesis (:func:`~.eliminate.simplest_adequate`);
+4. fits the whole recording's motion under the final model when the search ended on a subsample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from imu_array_ros.discovery.confirm import only_imus, update_finding
+from imu_array_ros.discovery.eliminate import backward_eliminate, dropped_notes, simplest_adequate
+from imu_array_ros.discovery.search import fill, residuals_only
+from imu_array_ros.discovery.timing import retest_clocks
+from imu_array_ros.errors import CalibrationError
+from imu_array_ros.fitting.engine import fit_motion, fit_terms
+from imu_array_ros.model.sensor_model import SensorModel
+
+__all__ = ["Finished", "finish_search", "drop_stand_in_clocks"]
+
+
+@dataclass
+class Finished:
+    """What the search ends with: the findings kept, the model with them, the whole recording's ML motion under it
+    and its residuals (search.residuals_only of the samples the report is of)."""
+
+    findings: list
+    model: SensorModel
+    motion: np.ndarray
+    scores: object
+
+
+def drop_stand_in_clocks(samples, fit_on, start: SensorModel, findings: list, current: SensorModel, motion, timing,
+                         alpha: float, say=lambda text: None):
+    """The timing stage's clocks (``timing``, changed in place) a search of ``samples`` (the whole recording, as the
+    timing stage searched) does not find again under ``current`` (the model with the findings) dropped from it, the
+    findings (changes from ``start``) refitted on ``fit_on`` (the samples they were fitted on; ``motion`` theirs).
+    Returns (fit, current, motion): fit the refit without the clocks dropped (FitResult), None when none is (every
+    clock is found again, or the refit without the stand-ins fails: then kept, and said in the timing notes)."""
+    if timing is None or not timing.findings or not findings:
+        return None, current, motion
+    gone = retest_clocks(samples, current, timing)
+    if not gone:
+        timing.notes.append(f"re-tested given the library findings ({len(findings)}): every clock found again")
+        return None, current, motion
+    base = timing.without(current, gone)
+    only = only_imus([(g.effect, g.imus) for g in findings])
+    imus = sorted({k for ks in only.values() for k in ks})
+    try:
+        fit = fit_terms(fit_on, base, list(only), imus=imus, only=only, motion0=motion, max_iterations=30,
+                        sandwich=False)
+    except CalibrationError as err:
+        timing.notes.append(f"the clocks of {_named(gone)} were not found again given the library findings, but the "
+                            f"findings could not be refitted without them ({err}): kept")
+        return None, current, motion
+    for g in findings:
+        update_finding(g, fit, start, alpha)
+    timing.drop(gone, f"not found again given the library findings ({', '.join(f.effect for f in findings)}): a "
+                      "stand-in for them (a misfit that follows the motion beats with the twisting like a clock's "
+                      "delays), dropped; the findings refitted without it")
+    say(f"timing: {len(gone)} sample clock(s) not found again given the findings; dropped")
+    return fit, fit.model, np.where(np.isfinite(fit.motion), fit.motion, motion)
+
+
+def _named(clocks) -> str:
+    return ", ".join(f"{f.imu} {f.sensor}" for f in clocks)
+
+
+def finish_search(samples, model: SensorModel, data, whole, state, start_motion, scores, whole_scores, *, terms,
+                  alpha: float, groups, timing, notes: list, say=lambda text: None) -> Finished:
+    """Steps 1-4 of the module docstring.  samples: the whole recording; model: the input model (the findings are
+    changes from it); data: the SearchData the search ended on, whole: the whole recording's; state: the
+    SearchState (its rejected and notes extended here); start_motion: the motion the search started from (filled
+    in where a subsample left samples out); scores / whole_scores: residuals_only of ``data`` under the search's
+    model and of the whole recording (None: not computed); timing: the timing stage's TimingDiscovery or None."""
+    findings = sorted(state.accepted.values(), key=lambda f: f.step)
+    current, motion, fit = state.current, data.motion, state.fit
+    # the timing stage's clocks first: a stand-in the findings explain can have brought in findings of its own
+    clock_fit, current, motion = drop_stand_in_clocks(samples, data.samples, model, findings, current, motion, timing,
+                                                      alpha, say)
+    if clock_fit is not None:
+        fit = clock_fit
+        notes.append("timing: " + timing.notes[-1])
+    dropped = []
+    if len(findings) > 1:  # every finding re-tested given all the others (.eliminate)
+        say(f"backward: re-testing each of the {len(findings)} findings given the others")
+        findings, dropped, fit, current, motion = backward_eliminate(data.samples, model, findings, fit, motion,
+                                                                     state.levels, alpha, say)
+        notes += dropped_notes(dropped)
+    # each IMU of a finding re-tested for a simpler hypothesis given all the others (.eliminate, .nested)
+    findings, simpler, _, current, motion = simplest_adequate(data.samples, model, findings, fit, motion, terms,
+                                                              alpha, state.make_finding, groups, current, say)
+    notes += [f"simplest adequate: {r['reason']} (see rejected)" for r in simpler]
+    state.rejected += dropped + simpler
+    if dropped or simpler or clock_fit is not None:
+        motion, _, _ = fit_motion(data.samples, current, motion)
+        scores, whole_scores = residuals_only(data.samples, current, motion, data.blocks), None
+    if data is not whole:  # the findings were fitted on a subsample: the whole recording under them
+        n, m = len(samples.stamps), len(data.index)
+        if findings:
+            notes.append(f"the findings were fitted on a subsample, {data.label} ({m} of {n} samples): their values, "
+                         f"std and evidence are the subsample's (a fit of the whole recording would narrow their std "
+                         f"by about {np.sqrt(n / m):.2g}x); the other blocks are their held-out check")
+        if whole_scores is not None:  # the last look scored the whole recording under the final model
+            motion, scores = whole.motion, whole_scores
+        else:
+            say("fitting the whole recording's motion with the findings")
+            motion, _, _ = fit_motion(samples, current, fill(whole.motion, start_motion))
+            scores = residuals_only(samples, current, motion, whole.blocks)
+    return Finished(findings, current, motion, scores)
