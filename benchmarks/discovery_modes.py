@@ -65,11 +65,12 @@ EDGES = (0, 30, 100, 300, 1000, 3000, 10_000, np.inf)
 
 
 def _session(rng, misfit: bool = False):
-    """(array, rate, still poses, the model analysed with, the recording, the term left out or "")."""
+    """(array, rate, still poses, the model analysed with, the recording, the term left out or "", the IMU it is
+    left out on (None: no term))."""
     array = str(rng.choice(list(ARRAYS)))
     model = SensorModel.from_description(ARRAYS[array]())
     k = model.n_imus
-    sim, term = model, ""
+    sim, term, kk = model, "", None
     if misfit:
         term = str(rng.choice(MISFIT_TERMS))
         v = model.terms[term].values.copy()
@@ -86,7 +87,7 @@ def _session(rng, misfit: bool = False):
     else:
         dur = float(min(rng.uniform(10.0, 30.0), CAP / (rate * k)))
         samples, truth = simulate_twist(sim, dur, rate, rng)
-    return array, rate, still, model, samples, term
+    return array, rate, still, model, samples, term, kk
 
 
 def _process(rng, n, fs, f, bw):
@@ -147,7 +148,7 @@ def _suffix(test: str) -> str:
 
 def null_case(seed: int, kind: str) -> dict:
     rng = np.random.default_rng([seed, 1])
-    array, rate, still, model, samples, term = _session(rng, misfit=kind == "library")
+    array, rate, still, model, samples, term, _ = _session(rng, misfit=kind == "library")
     n, k = samples.accel.shape[:2]
     if kind == "broadband":
         from scipy.signal import lfilter
@@ -173,7 +174,7 @@ def null_case(seed: int, kind: str) -> dict:
 def mode_case(seed: int, fmax: float | None = None) -> dict:
     """A mode scenario (module docstring); fmax: its frequency drawn up to min(fmax, 0.95 Nyquist) Hz."""
     rng = np.random.default_rng([seed, 2])
-    array, rate, still, model, samples, _ = _session(rng)
+    array, rate, still, model, samples, _, _ = _session(rng)
     n, k = samples.accel.shape[:2]
     nyq = rate / 2
     f = float(np.exp(rng.uniform(np.log(0.5), np.log(min(0.95 * nyq, fmax or np.inf)))))
@@ -229,22 +230,48 @@ def mode_case(seed: int, fmax: float | None = None) -> dict:
 def pipeline_case(seed: int) -> dict:
     """A library null through ``discover`` itself (the user's view): a recording with a library term the model
     analysed with lacks (as the ``library`` nulls), the whole search; a mode reported after the findings (the
-    unexplained entries with a mode) is a false finding.  Also the modes of the localisation before the search."""
+    unexplained entries with a mode) is a false finding.  Also the modes of the localisation before the search,
+    the term left out and its IMU (missing_term, missing_imu), each finding's IMUs (finding_imus), and the timing
+    stage's sample clocks: those in the final model (clocks; the recordings are simulated with exact stamps and no
+    clock, so any is false) and those dropped when re-tested given the library findings (clocks_dropped; None: the
+    tree's report has no timing.dropped_given_findings)."""
     from imu_array_ros.discovery.discover import DiscoveryOptions, discover
 
     rng = np.random.default_rng([seed, 3])
-    array, rate, still, model, samples, term = _session(rng, misfit=True)
+    array, rate, still, model, samples, term, kk = _session(rng, misfit=True)
     t0 = time.time()
     d = discover(samples, model, options=DiscoveryOptions(heldout=False))
     after = d.localization_after.modes if d.localization_after is not None else None
     before = d.localization_before.modes if d.localization_before is not None else None
+    timing = d.timing.to_dict() if d.timing is not None else {}
+
+    def clocks(rows):
+        return None if rows is None else [[c["sensor"], c["sensors"][0], c["rate_ppm"], c["snr"]] for c in rows]
     return {"kind": f"library ({term})", "seed": seed, "array": array, "rate_hz": rate, "still_poses": still,
             "samples": int(samples.accel.shape[0]), "seconds": time.time() - t0,
             "findings": [[f.effect, f.sensor] for f in d.findings],
+            "finding_imus": [list(f.candidate.sensors) for f in d.findings],
+            "missing_term": term, "missing_imu": model.names[kk],
+            "clocks": clocks(timing.get("findings", [])), "clocks_dropped": clocks(timing.get("dropped_given_findings")),
             "modes_after": [] if after is None else [(round(m.frequency_hz, 3), m.p_value, m.test) for m in after.modes],
             "unexplained_with_mode": sum("mode" in u for u in d.unexplained),
             "modes_before": [] if before is None else [(round(m.frequency_hz, 3), m.p_value, m.test)
                                                        for m in before.modes]}
+
+
+def pipeline_verdict(r: dict) -> dict:
+    """One whole-pipeline null's answer (a :func:`pipeline_case` row): a false sample clock kept in the final model,
+    a false mode reported after the findings, a wrong library finding (any whose term is not the missing one or whose
+    IMUs are not exactly the missing term's IMU), the missing term found on its IMU alone, and correct (that finding
+    only: no other finding, clock or mode).  None where the row does not record it (runs before the clocks were)."""
+    right = [[r["missing_term"], [r["missing_imu"]]] == [e[0], imus] for e, imus in
+             zip(r["findings"], r["finding_imus"])] if "missing_imu" in r else None
+    out = {"false_clock": None if r.get("clocks") is None else bool(r["clocks"]), "false_mode": bool(r["modes_after"]),
+           "wrong_finding": None if right is None else not all(right),
+           "found": None if right is None else any(right)}
+    out["correct"] = (None if None in out.values() else
+                      out["found"] and not (out["false_clock"] or out["false_mode"] or out["wrong_finding"]))
+    return out
 
 
 def _cp(k: int, n: int) -> str:
@@ -330,7 +357,9 @@ def render(res: dict, path: str, seconds: float) -> None:
                  f"{_cp(sum(bool(r['findings']) for r in pipe), len(pipe))} |\n\n")
         for r in pipe:
             text += (f"- {r['seed']} {r['kind']} ({r['array']}, {r['rate_hz']:g} Hz, {r['samples']} samples): findings "
-                     + (", ".join(f"{e} on {s}" for e, s in r["findings"]) or "none") + "; modes before: "
+                     + (", ".join(f"{e} on {s}" for e, s in r["findings"]) or "none") + "; sample clocks kept: "
+                     + (", ".join(f"{c[1]} {c[0]} {c[2]:+.0f} ppm" for c in r.get("clocks") or []) or "none")
+                     + "; modes before: "
                      + (", ".join(f"{m[0]:g} Hz (p {m[1]:.2g})" for m in r["modes_before"]) or "none")
                      + "; after: " + (", ".join(f"{m[0]:g} Hz (p {m[1]:.2g}, {m[2]})" for m in r["modes_after"])
                                       or "none") + "\n")

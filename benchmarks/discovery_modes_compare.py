@@ -15,7 +15,16 @@ import json
 
 import numpy as np
 
-from benchmarks.discovery_modes import EDGES, _cp
+from benchmarks.discovery_modes import EDGES, _cp, pipeline_verdict
+
+#: the whole-pipeline answers counted per tree (:func:`benchmarks.discovery_modes.pipeline_verdict`)
+VERDICTS = (("false_clock", "a false sample clock kept in the final model"), ("false_mode", "a false mode reported"),
+            ("wrong_finding", "a wrong library finding (not the missing term on its IMU alone)"),
+            ("found", "the missing term found on its IMU alone"), ("correct", "correct (that finding only)"))
+
+
+def _clocks(rows) -> str:
+    return "n/a" if rows is None else (", ".join(f"{c[1]} {c[0]} {c[2]:+.0f} ppm" for c in rows) or "none")
 
 
 def _ratio(a: int, b: int) -> str:
@@ -51,13 +60,24 @@ def compare(base: dict, new: dict, labels: tuple[str, str]) -> str:
                  + " | ".join(_cp(sum(bool(r[key]) for r in rows), len(rows)) for key in ("modes_after", "modes_before",
                                                                                         "findings") for rows in (pb, pn))
                  + " |\n\n")
+        vb, vn = [pipeline_verdict(r) for r in pb], [pipeline_verdict(r) for r in pn]
+        if any(v["correct"] is not None for v in vb + vn):
+            text += f"| recordings with | {lb} | {ln} |\n|---|---|---|\n"
+            for key, name in VERDICTS:
+                text += f"| {name} | " + " | ".join(
+                    "n/a" if any(v[key] is None for v in vs) else _cp(sum(v[key] for v in vs), len(vs))
+                    for vs in (vb, vn)) + " |\n"
+            text += "\n"
         for a, b in zip(pb, pn):
             text += (f"- {a['seed']} {a['kind']} ({a['array']}, {a['rate_hz']:g} Hz, {a['samples']} samples): findings "
                      + (", ".join(f"{e} on {s}" for e, s in a["findings"]) or "none")
                      + ("" if a["findings"] == b["findings"] else " (" + ln + ": "
                         + (", ".join(f"{e} on {s}" for e, s in b["findings"]) or "none") + ")")
                      + f"; modes before {len(a['modes_before'])} / {len(b['modes_before'])}, after "
-                     f"{len(a['modes_after'])} / {len(b['modes_after'])} ({lb} / {ln})\n")
+                     f"{len(a['modes_after'])} / {len(b['modes_after'])} ({lb} / {ln})"
+                     + ("" if "missing_imu" not in a else f"; missing on {a['missing_imu']}; sample clocks kept "
+                        f"{_clocks(a.get('clocks'))} / {_clocks(b.get('clocks'))}, dropped given the findings "
+                        f"{_clocks(a.get('clocks_dropped'))} / {_clocks(b.get('clocks_dropped'))}") + "\n")
     mb, mn = base["modes"], new["modes"]
     if mb:
         text += (f"\n## Mode scenarios: detected (located in band with the strongest IMU)\n\n| evidence | scenarios | "
