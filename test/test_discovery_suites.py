@@ -123,6 +123,24 @@ def test_scorer_single_and_pair():
     assert not r["correct"] and r["detected"] == [True, False] and r["power_evidence"] == 120.0
 
 
+def test_scorer_counts_a_kept_sample_clock_as_a_false_finding():
+    # the suite's recordings have exact stamps: a clock the timing stage keeps (--apply writes it) is false
+    from imu_array_ros.discovery.timing import ClockFinding, TimingDiscovery
+
+    b = _built("single", [Effect("gyroscope_gain", (2,), (0.0,) * 3, 100.0)])
+    d = _discovery([_finding("gyroscope_gain", 2)])
+    d.timing = TimingDiscovery(None, findings=[ClockFinding("accelerometer", 1, NAMES[1], 1e-3, 800.0, 9.0)])
+    r = score(b, d)
+    assert not r["correct"] and r["clocks"] == ["accelerometer_sample_clock@imu_02"]
+    assert r["false_findings"] == ["accelerometer_sample_clock@imu_02"]
+    d.timing.findings = []  # dropped (or never found): correct again
+    assert score(b, d)["correct"]
+    n = _built("null")
+    d = _discovery()
+    d.timing = TimingDiscovery(None, findings=[ClockFinding("gyroscope", 0, NAMES[0], 1e-3, -900.0, 12.0)])
+    assert not score(n, d)["correct"]
+
+
 def test_scorer_shared_scope_per_imu_or_shared_finding():
     b = _built("shared", [Effect("accelerometer_gain", (0, 1, 2, 3), (0.0,) * 3, 100.0)])
     assert score(b, _discovery([_finding("accelerometer_gain", k) for k in range(4)]))["correct"]

@@ -10,6 +10,8 @@ that says "this or that" has not found which), reported apart.
 Vibration: *located* (an unexplained entry whose band holds the mode's frequency and whose IMUs include a
 largest-amplitude one: the quadratic mode shapes are symmetric, so several IMUs often share the largest
 amplitude exactly) and nothing forced (no finding at all).  Null: correct without a finding.
+The suite's recordings have exact stamps and no sample clock: a sample clock the discovery keeps (its timing stage's
+``timing.findings``, which ``--apply`` writes) is a false finding in every class.
 """
 
 from __future__ import annotations
@@ -99,8 +101,12 @@ def score(built: BuiltScenario, d) -> dict:
            "evidence": built.oracle, "max_abs_z": _magnitudes(d, built),
            "indistinguishable": [e.get("effects") for e in d.indistinguishable],
            "unexplained_entries": len(d.unexplained), "notes": built.notes}
-    out["correct"] = found == truth
-    out["named_alternative"] = not out["correct"] and _alternative_correct(d, found, truth, names)
+    timing = getattr(d, "timing", None)
+    clocks = [f"{c.to_dict()['effect']}@{c.imu}" for c in (timing.findings if timing is not None else [])]
+    out["clocks"] = clocks
+    out["false_findings"] += clocks
+    out["correct"] = found == truth and not clocks
+    out["named_alternative"] = not out["correct"] and not clocks and _alternative_correct(d, found, truth, names)
     if sc.vibration is not None:
         vib = sc.vibration
         amp = np.abs(np.asarray(vib.shape, dtype=float))
@@ -114,7 +120,7 @@ def score(built: BuiltScenario, d) -> dict:
         out["unexplained"] = [{"sensors": e["sensors"], "axes": e["axes"], "band_hz": e["band_hz"]}
                               for e in d.unexplained]
         out["detected"] = [out["located"]]
-        out["correct"] = out["located"] and not found
+        out["correct"] = out["located"] and not found and not clocks
     out["power_evidence"] = min(built.oracle) if built.oracle else None
     out["power_detected"] = bool(out["correct"])
     return out
