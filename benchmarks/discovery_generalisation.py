@@ -14,7 +14,8 @@ noisy recording (a pair: its weak partner's).  Every recording is analysed with 
 Scored (:func:`imu_array_ros.simulation.suites.score`): correct = exactly the injected terms, each on exactly
 its IMUs (per-IMU findings or one finding at the shared/group scope), nothing else; vibration: located (an
 unexplained entry holding its frequency and a largest-amplitude IMU, several when the shape ties) and no finding
-at all; null: no finding.
+at all; null: no finding.  In every class a sample clock the discovery keeps is a false finding (the recordings have
+exact stamps; counted since c945c07, before which the scorer ignored the timing stage).
 Detection probability per class and evidence bin with Clopper-Pearson 95 % intervals.
 
 Runs in a pool of ``--workers`` processes, one BLAS thread each.  Writes
