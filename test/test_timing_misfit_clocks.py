@@ -132,6 +132,9 @@ def test_discover_drops_the_clocks_that_stood_in_for_its_findings():
     assert any("not found again given the library findings" in n for n in d.notes)
     report = json.loads(json.dumps(d.to_dict(), allow_nan=False, default=float))
     assert [c["sensors"] for c in report["timing"]["dropped_given_findings"]] == [["imu_3"], ["imu_4"]]
+    from imu_array_ros.discovery.report import markdown
+    text = markdown(d)
+    assert "No sample clock kept." in text and "then dropped" in text and "on imu_3 (accelerometer)" in text
     # the gain the findings hold, within 3 sigma of the truth
     f = d.findings[0]
     assert np.all(np.abs(f.values - truth.terms["accelerometer_gain"].values[5]) < 3 * f.std)

@@ -65,7 +65,8 @@ def drop_stand_in_clocks(samples, fit_on, start: SensorModel, findings: list, cu
         return None, current, motion
     for g in findings:
         update_finding(g, fit, start, alpha)
-    timing.drop(gone, f"not found again given the library findings ({', '.join(f.effect for f in findings)}): a "
+    terms = ", ".join(dict.fromkeys(f.effect for f in findings))
+    timing.drop(gone, f"not found again given the library findings ({terms}): a "
                       "stand-in for them (a misfit that follows the motion beats with the twisting like a clock's "
                       "delays), dropped; the findings refitted without it")
     say(f"timing: {len(gone)} sample clock(s) not found again given the findings; dropped")

@@ -150,7 +150,11 @@ def _timing_lines(timing) -> list[str]:
                       f"recording as session states): {_g(timing.loglik_before)} → {_g(timing.loglik_after)} "
                       f"(+{_g(timing.delta_loglik)})."]
     else:
-        lines.append("No sample clock found." if timing.tested else "Not tested.")
+        lines.append("No sample clock found." if timing.tested and not timing.dropped else
+                     "No sample clock kept." if timing.tested else "Not tested.")
+    if timing.dropped:
+        lines += ["", "Found by the timing stage, then dropped: not found again given the library findings (a stand-in "
+                      "for them; notes below):"] + [f"- {f.text()}" for f in timing.dropped]
     ctl = timing.to_dict()["false_finding_control"]
     null = ctl["measured_on_simulated_nulls"]
     lines += ["", f"False-finding control: {ctl['test']}; false-alarm rate per chip <= "
