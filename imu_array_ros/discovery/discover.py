@@ -404,7 +404,7 @@ def discover(samples, model: SensorModel, *, options: DiscoveryOptions | None = 
         heldout = complement_gain(sb.residuals, start_r, data.index, data.label)
     elif opts.heldout and findings:
         say("held-out blocks: refitting the findings on half of the blocks, scoring on the other half")
-        # under the model the search started from (with the timing stage's clocks), as the findings were found
+        # under the model the search started from (the timing stage's clocks it kept), as the findings were found
         ref = (base_motion, base_r) if start_model is model else fit_motion(samples, start_model, start_motion)[::2]
         heldout = heldout_gain(samples, start_model, findings, blocks, *ref)
     validation = []
