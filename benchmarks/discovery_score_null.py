@@ -136,14 +136,9 @@ def compact(row: dict) -> dict:
 # ------------------------------------------------------------------------------------------------ analysis
 
 def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
-    import scipy.stats
+    from benchmarks.discovery_generalisation import clopper_pearson as exact
 
-    if n == 0:
-        return float("nan"), float("nan")
-    a = 1.0 - level
-    lo = 0.0 if k == 0 else float(scipy.stats.beta.ppf(a / 2, k, n - k + 1))
-    hi = 1.0 if k == n else float(scipy.stats.beta.ppf(1 - a / 2, k + 1, n - k))
-    return lo, hi
+    return exact(k, n, level)
 
 
 def _short(x):
