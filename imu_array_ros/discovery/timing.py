@@ -153,6 +153,8 @@ class TimingDiscovery:
     on_label: str = "the whole recording"
     #: clocks found, then dropped when re-tested given the library findings (:func:`retest_clocks`)
     dropped: list = field(default_factory=list)
+    #: the model the timing stage was given (without its clocks and the time offsets they moved)
+    given: object = field(default=None, repr=False)
 
     def drop(self, clocks: list, reason: str) -> None:
         """``clocks`` (of ``findings``) dropped for ``reason`` (said in the notes)."""
@@ -164,13 +166,19 @@ class TimingDiscovery:
 
     def without(self, model, clocks=None):
         """``model`` without ``clocks`` (ClockFinding list; None: those :meth:`drop` dropped): their chips' clock
-        rows zero (no clock)."""
+        rows zero (no clock), and their sensors' time offsets back at ``given``'s (the search moved the constant
+        part of each sawtooth into them)."""
         changes = {}
         for f in self.dropped if clocks is None else clocks:
             term = SENSOR_CLOCKS[f.sensor]
             v = changes.get(term, model.terms[term].values).copy()
             v[f.k] = 0.0
             changes[term] = v
+            if self.given is not None:
+                off = changes.get("time_offset", model.terms["time_offset"].values).copy()
+                col = 0 if f.sensor == "accelerometer" else 1
+                off[f.k, col] = self.given.terms["time_offset"].values[f.k, col]
+                changes["time_offset"] = off
         return model.with_terms(**changes) if changes else model
 
     @property
@@ -206,7 +214,7 @@ def timing_stage(samples, model, *, period: float = CLOCK_PERIOD, motion=None, l
     indexes the likelihood comparisons are made on (module docstring; ``on_label`` says what they are), None: the
     whole recording.  Never raises for too little motion: the reason goes into the notes."""
     say = say or (lambda text: None)
-    out = TimingDiscovery(model, period=period)
+    out = TimingDiscovery(model, period=period, given=model)
     fit_on = samples
     if on is not None:
         out.on, out.on_label, fit_on = np.asarray(on), on_label, samples.select(on)
