@@ -49,7 +49,7 @@ def drop_stand_in_clocks(samples, fit_on, start: SensorModel, findings: list, cu
     clock is found again, or the refit without the stand-ins fails: then kept, and said in the timing notes)."""
     if timing is None or not timing.findings or not findings:
         return None, current, motion
-    say(f"timing: searching the {len(timing.findings)} sample clock(s) found again, given the {len(findings)} findings")
+    say(f"timing: searching again for the {len(timing.findings)} sample clock(s), given the {len(findings)} findings")
     gone = retest_clocks(samples, current, timing)
     if not gone:
         timing.notes.append(f"re-tested given the library findings ({len(findings)}): every clock found again")
