@@ -39,7 +39,7 @@ IMPLAUSIBLE = "implausible"
 #: how confirm's reason starts when the candidate trades with earlier findings (:mod:`.trading`)
 TRADES = "indistinguishable from"
 
-__all__ = ["confirm", "settle_ties", "tied", "both_found", "rejection", "only_imus", "update_finding", "COST_TOLERANCE",
+__all__ = ["confirm", "settle_ties", "tied", "both_found", "rejection", "only_imus", "update_finding", "refit", "COST_TOLERANCE",
            "IMPLAUSIBLE", "TRADES", "TIE_MAX"]
 
 #: at most this many candidates of one tie are confirmed exactly (the first-ranked included)
@@ -89,11 +89,13 @@ def _ticker(say, label: str):
     return tick
 
 
-def _refit(samples, current: SensorModel, pairs, motion, progress=None):
+def refit(samples, current: SensorModel, pairs, motion, *, cost_tolerance: float | None = None, progress=None):
+    """The exact joint fit of the findings [(term, IMU indexes)] from ``current`` with the motion (``motion`` its
+    start), each term free on its IMUs only; CRB std (no sandwich).  Raises CalibrationError when it fails."""
     only = only_imus(pairs)
     imus = sorted({k for ks in only.values() for k in ks})
     return fit_terms(samples, current, list(only), imus=imus, only=only, motion0=motion, max_iterations=30,
-                     sandwich=False, cost_tolerance=COST_TOLERANCE, progress=progress)  # CRB only: no sandwich
+                     sandwich=False, cost_tolerance=cost_tolerance, progress=progress)
 
 
 def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level: float, model: SensorModel,
@@ -114,8 +116,8 @@ def confirm(samples, current: SensorModel, accepted, c: Candidate, motion, level
     pairs = [(f.effect, f.imus) for key, f in accepted.items() if key != gone]
     start = carried(current, model, accepted[up[0]].effect, c.effect, c.k, up[1]) if up else current
     try:
-        fit = _refit(samples, start, pairs + [(c.effect, c.imus)], motion,
-                     _ticker(say, f"exact fit of {c.effect} on {c.sensor}"))
+        fit = refit(samples, start, pairs + [(c.effect, c.imus)], motion, cost_tolerance=COST_TOLERANCE,
+                     progress=_ticker(say, f"exact fit of {c.effect} on {c.sensor}"))
     except CalibrationError as err:
         return f"the exact fit failed: {err}"
     delta = fit.loglik_after - fit.loglik_before
@@ -193,8 +195,8 @@ def _widen(samples, current, pairs, c: Candidate, tie, motion, level, model, alp
         return None
     every = tuple(range(n))
     try:
-        fit_all = _refit(samples, current, pairs + [(term, every)], motion,
-                         _ticker(say, f"exact fit of {term} on every IMU"))
+        fit_all = refit(samples, current, pairs + [(term, every)], motion, cost_tolerance=COST_TOLERANCE,
+                         progress=_ticker(say, f"exact fit of {term} on every IMU"))
     except CalibrationError:
         return None
     free = _free(fit_all, term, every)
@@ -228,8 +230,8 @@ def _narrow(samples, current, pairs, c: Candidate, fit, delta: float, tie, motio
     tried = (f"narrowing to {', '.join(names)} (the fewest IMUs of the scope {how + ' ' if how else ''}the Wald test "
              f"at alpha = {alpha:g} accepts)")
     try:
-        fit_c = _refit(samples, current, pairs + [(term, sub)], motion,
-                       _ticker(say, f"exact fit of {term} narrowed to {', '.join(names)}"))
+        fit_c = refit(samples, current, pairs + [(term, sub)], motion, cost_tolerance=COST_TOLERANCE,
+                       progress=_ticker(say, f"exact fit of {term} narrowed to {', '.join(names)}"))
     except CalibrationError as err:
         c.note = f"{tried}: the exact refit failed ({err}); the scope stands"
         return None

@@ -23,12 +23,11 @@ import scipy.linalg
 import scipy.special
 import scipy.stats
 
-from imu_array_ros.discovery.confirm import only_imus, update_finding
+from imu_array_ros.discovery.confirm import refit, update_finding
 from imu_array_ros.discovery.nested import holds
 from imu_array_ros.discovery.scopes import tie_test
 from imu_array_ros.discovery.subset import gauge_basis, is_own, restricted, scope_label, term_indexes, wald
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.fitting.engine import fit_terms
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
@@ -95,11 +94,8 @@ def backward_eliminate(samples, start: SensorModel, findings: list, fit, motion,
         if not kept:
             fit, current = None, base
             break
-        only = only_imus([(g.effect, g.imus) for g in kept])
-        imus = sorted({k for ks in only.values() for k in ks})
         try:
-            fit = fit_terms(samples, base, list(only), imus=imus, only=only, motion0=motion, max_iterations=30,
-                            sandwich=False)
+            fit = refit(samples, base, [(g.effect, g.imus) for g in kept], motion)
         except CalibrationError as err:  # keep the forward result rather than fail the whole discovery
             kept.append(f)
             dropped.pop()
@@ -201,10 +197,8 @@ def simplest_adequate(samples, start: SensorModel, findings: list, fit, motion, 
             base = base.with_terms(**{inner: vi})
         pairs = [(g.effect, g.imus) for g in kept] + ([(f.effect, rest)] if rest else []) + (
             [(inner, (k,))] if inner else [])
-        only = only_imus(pairs)
         try:
-            new_fit = fit_terms(samples, base, list(only), imus=sorted({j for ks in only.values() for j in ks}),
-                                only=only, motion0=motion, max_iterations=30, sandwich=False)
+            new_fit = refit(samples, base, pairs, motion)
         except CalibrationError as err:  # keep what the search found rather than fail the whole discovery
             say(f"simplest adequate: could not refit with {what} in place of {f.effect}: {err}")
             break

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imu_array_ros.discovery.confirm import only_imus, update_finding
+from imu_array_ros.discovery.confirm import refit, update_finding
 from imu_array_ros.discovery.eliminate import backward_eliminate, dropped_notes, simplest_adequate
 from imu_array_ros.discovery.search import fill, residuals_only
 from imu_array_ros.discovery.timing import retest_clocks
 from imu_array_ros.errors import CalibrationError
-from imu_array_ros.fitting.engine import fit_motion, fit_terms
+from imu_array_ros.fitting.engine import fit_motion
 from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["Finished", "finish_search", "drop_stand_in_clocks"]
@@ -55,11 +55,8 @@ def drop_stand_in_clocks(samples, fit_on, start: SensorModel, findings: list, cu
         timing.notes.append(f"re-tested given the library findings ({len(findings)}): every clock found again")
         return None, current, motion
     base = timing.without(current, gone)
-    only = only_imus([(g.effect, g.imus) for g in findings])
-    imus = sorted({k for ks in only.values() for k in ks})
     try:
-        fit = fit_terms(fit_on, base, list(only), imus=imus, only=only, motion0=motion, max_iterations=30,
-                        sandwich=False)
+        fit = refit(fit_on, base, [(g.effect, g.imus) for g in findings], motion)
     except CalibrationError as err:
         timing.notes.append(f"the clocks of {_named(gone)} were not found again given the library findings, but the "
                             f"findings could not be refitted without them ({err}): kept")
