@@ -44,6 +44,7 @@ from imu_array_ros.calibration.timing import CLOCK_PERIOD
 from imu_array_ros.fitting.engine import fit_motion
 from imu_array_ros.fitting.reading_rates import RATES, keep_rates, reading_rates
 from imu_array_ros.fusion.model_fusion import ModelFusion
+from imu_array_ros.model.terms.time_offset import TimeOffset
 from imu_array_ros.timing.clocks import MIN_SNR, SENSOR_CLOCKS, find_sample_clocks
 from imu_array_ros.timing.delays import reading_delays
 from imu_array_ros.timing.sawtooth import sawtooth_delay
@@ -176,7 +177,7 @@ class TimingDiscovery:
             changes[term] = v
             if self.given is not None:
                 off = changes.get("time_offset", model.terms["time_offset"].values).copy()
-                col = 0 if f.sensor == "accelerometer" else 1
+                col = TimeOffset.column(f.sensor)
                 off[f.k, col] = self.given.terms["time_offset"].values[f.k, col]
                 changes["time_offset"] = off
         return model.with_terms(**changes) if changes else model

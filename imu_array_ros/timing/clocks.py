@@ -22,6 +22,7 @@ import numpy as np
 from imu_array_ros.fusion.model_fusion import ModelFusion
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
+from imu_array_ros.model.terms.time_offset import TimeOffset
 from imu_array_ros.timing.delays import reading_delays
 from imu_array_ros.timing.sawtooth import fit_phases, refine_rates, sawtooth_delay, search_rates, spectrum
 from imu_array_ros.timing.session import MIN_MOVING_S, session_weights
@@ -153,7 +154,7 @@ def find_sample_clocks(samples: ImuSamples, model: SensorModel, *, period: float
             clock[:, 2] = np.where(clock[:, 0] > 0, fit_phases(delays.t, d, w, clock[:, 0], clock[:, 1])[0], 0.0)
         _, _, const = fit_phases(delays.t, d, w, clock[:, 0], clock[:, 1], constants=True)
         offsets = current.terms["time_offset"].values.copy()
-        offsets[:, 0 if sensor == "accelerometer" else 1] += np.where(found, const - const[0], 0.0)
+        offsets[:, TimeOffset.column(sensor)] += np.where(found, const - const[0], 0.0)
         current = current.with_terms(time_offset=offsets, **{term: clock})
         fused = ModelFusion(current, t0_ns=t0).fuse(samples)[0]
         out.rms_after[sensor] = _unexplained(reading_delays(samples, current, fused, t0_ns=t0, sensor=sensor))

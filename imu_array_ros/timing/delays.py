@@ -25,6 +25,7 @@ from imu_array_ros.fusion.model_fusion import ModelFusion
 from imu_array_ros.model.trajectory import fused_timing_context
 from imu_array_ros.model.samples import FusedSamples, ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel, motion_context
+from imu_array_ros.model.terms.time_offset import TimeOffset
 
 __all__ = ["ReadingDelays", "reading_delays", "MOVING_RATE"]
 
@@ -100,6 +101,6 @@ def reading_delays(samples: ImuSamples, model: SensorModel, fused: FusedSamples 
     j = jac.params["time_offset"][..., col].sum(axis=3) * w
     info = np.sum(j * j, axis=2)
     correction = np.sum(j * r, axis=2) / np.where(info > 0, info, 1.0)
-    current = model.sample_delays(ctx)[..., 0 if sensor == "accelerometer" else 1]
+    current = model.sample_delays(ctx)[..., TimeOffset.column(sensor)]
     moving = np.linalg.norm(tc["trajectory"].derivative()[:, 0:3], axis=1) > moving_rate  # the gyroscopes' rate
     return ReadingDelays(fused.stamps, ctx.t, current + correction, info, moving, t0, current)

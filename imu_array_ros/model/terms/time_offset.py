@@ -28,13 +28,14 @@ class TimeOffset(TimingTerm):
               Field(("gyroscope", "time_offset"), (), "s", plausible=TIME_OFFSET_PLAUSIBLE))
 
     @staticmethod
-    def _column(sensor: str) -> int:
+    def column(sensor: str) -> int:
+        """The column of ``sensor``'s ("accelerometer" or "gyroscope") offset in the (K, 2) values."""
         return 0 if sensor == "accelerometer" else 1
 
     def delay(self, ctx: MotionContext, sensor: str) -> np.ndarray:
-        return np.broadcast_to(self.values[None, :, self._column(sensor)], (ctx.n, ctx.k))
+        return np.broadcast_to(self.values[None, :, self.column(sensor)], (ctx.n, ctx.k))
 
     def d_delay(self, ctx: MotionContext, sensor: str) -> np.ndarray:
         out = np.zeros((ctx.n, ctx.k, 2))
-        out[..., self._column(sensor)] = 1.0
+        out[..., self.column(sensor)] = 1.0
         return out
