@@ -274,13 +274,13 @@ def pipeline_verdict(r: dict) -> dict:
     return out
 
 
-def _cp(k: int, n: int) -> str:
-    from scipy.stats import beta
+def count_ci(k: int, n: int) -> str:
+    """``k/n (lo–hi %)``: the count with its exact binomial (Clopper-Pearson) 95 % interval; "—" when n is 0."""
+    from benchmarks.discovery_generalisation import clopper_pearson
 
     if n == 0:
         return "—"
-    lo = beta.ppf(0.025, k, n - k + 1) if k > 0 else 0.0
-    hi = beta.ppf(0.975, k + 1, n - k) if k < n else 1.0
+    lo, hi = clopper_pearson(k, n)
     return f"{k}/{n} ({100 * lo:.0f}–{100 * hi:.0f} %)"
 
 
@@ -301,9 +301,9 @@ def render(res: dict, path: str, seconds: float) -> None:
 
     def null_row(label, rows):
         return (f"| {label} | {len(rows)} | "
-                + " | ".join(_cp(sum(bool(r["modes" + _suffix(t)]) for r in rows), len(rows)) for t in tests)
+                + " | ".join(count_ci(sum(bool(r["modes" + _suffix(t)]) for r in rows), len(rows)) for t in tests)
                 + f" | {sum(r['motion_lines'] > 0 for r in rows)} | "
-                f"{_cp(sum(r['old_test_cells'] > 0 for r in rows), len(rows))} |\n")
+                f"{count_ci(sum(r['old_test_cells'] > 0 for r in rows), len(rows))} |\n")
 
     for kd in kinds:
         text += null_row(kd, [r for r in nulls if r["kind"].startswith(kd)])
@@ -320,8 +320,8 @@ def render(res: dict, path: str, seconds: float) -> None:
     for lo, hi in zip(EDGES[:-1], EDGES[1:]):
         sel = [r for r, e in zip(modes, ev) if lo <= e < hi]
         text += (f"| {lo:g}–{hi:g} | {len(sel)} | "
-                 + " | ".join(_cp(sum(r["detected" + _suffix(t)] for r in sel), len(sel)) for t in tests)
-                 + f" | {_cp(sum(r['old_test_detected'] for r in sel), len(sel))} |\n")
+                 + " | ".join(count_ci(sum(r["detected" + _suffix(t)] for r in sel), len(sel)) for t in tests)
+                 + f" | {count_ci(sum(r['old_test_detected'] for r in sel), len(sel))} |\n")
     strong = [r for r in modes if r["evidence"] >= 300]
     text += ("\n## Detection at evidence >= 300 by scenario trait\n\n| trait | "
              + " | ".join(f"detected, {names[t]}" for t in tests) + " |\n|---|" + "---|" * len(tests) + "\n")
@@ -333,7 +333,7 @@ def render(res: dict, path: str, seconds: float) -> None:
               ("f >= 3 Hz", lambda r: r["frequency_hz"] >= 3)]
     for name, fn in traits:
         sel = [r for r in strong if fn(r)]
-        text += f"| {name} | " + " | ".join(_cp(sum(r["detected" + _suffix(t)] for r in sel), len(sel))
+        text += f"| {name} | " + " | ".join(count_ci(sum(r["detected" + _suffix(t)] for r in sel), len(sel))
                                             for t in tests) + " |\n"
     for t in tests:
         x = _suffix(t)
@@ -351,10 +351,10 @@ def render(res: dict, path: str, seconds: float) -> None:
                  "left. A mode reported after the findings (an unexplained entry with a mode) is a false finding.\n\n"
                  "| recordings | with a mode after the findings | with an unexplained entry holding a mode | "
                  "with a mode in the localisation before the search | with a finding |\n|---|---|---|---|---|\n"
-                 f"| {len(pipe)} | {_cp(sum(bool(r['modes_after']) for r in pipe), len(pipe))} | "
-                 f"{_cp(sum(r['unexplained_with_mode'] > 0 for r in pipe), len(pipe))} | "
-                 f"{_cp(sum(bool(r['modes_before']) for r in pipe), len(pipe))} | "
-                 f"{_cp(sum(bool(r['findings']) for r in pipe), len(pipe))} |\n\n")
+                 f"| {len(pipe)} | {count_ci(sum(bool(r['modes_after']) for r in pipe), len(pipe))} | "
+                 f"{count_ci(sum(r['unexplained_with_mode'] > 0 for r in pipe), len(pipe))} | "
+                 f"{count_ci(sum(bool(r['modes_before']) for r in pipe), len(pipe))} | "
+                 f"{count_ci(sum(bool(r['findings']) for r in pipe), len(pipe))} |\n\n")
         for r in pipe:
             text += (f"- {r['seed']} {r['kind']} ({r['array']}, {r['rate_hz']:g} Hz, {r['samples']} samples): findings "
                      + (", ".join(f"{e} on {s}" for e, s in r["findings"]) or "none") + "; sample clocks kept: "

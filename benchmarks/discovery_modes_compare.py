@@ -15,7 +15,7 @@ import json
 
 import numpy as np
 
-from benchmarks.discovery_modes import EDGES, _cp, pipeline_verdict
+from benchmarks.discovery_modes import EDGES, count_ci, pipeline_verdict
 
 #: the whole-pipeline answers counted per tree (:func:`benchmarks.discovery_modes.pipeline_verdict`)
 VERDICTS = (("false_clock", "a false sample clock kept in the final model"), ("false_mode", "a false mode reported"),
@@ -44,7 +44,7 @@ def compare(base: dict, new: dict, labels: tuple[str, str]) -> str:
         rb = [r for r in base["nulls"] if kd == "all" or r["kind"].startswith(kd)]
         rn = [r for r in new["nulls"] if kd == "all" or r["kind"].startswith(kd)]
         nb, nn = sum(bool(r["modes"]) for r in rb), sum(bool(r["modes"]) for r in rn)
-        text += (f"| {kd} | {len(rb)} | {_cp(nb, len(rb))} | {_cp(nn, len(rn))} | {_ratio(nb, nn)} | "
+        text += (f"| {kd} | {len(rb)} | {count_ci(nb, len(rb))} | {count_ci(nn, len(rn))} | {_ratio(nb, nn)} | "
                  f"{sum(r['motion_lines'] for r in rb)} | {sum(r['motion_lines'] for r in rn)} |\n")
     diff = [(a, b) for a, b in zip(base["nulls"], new["nulls"]) if a["modes"] != b["modes"]]
     text += "\nNulls whose reported modes differ: " + ("none" if not diff else "") + "\n\n"
@@ -57,7 +57,7 @@ def compare(base: dict, new: dict, labels: tuple[str, str]) -> str:
         text += (f"\n## Whole pipeline (`discover`) on library nulls\n\n| recordings | with a mode after the findings, {lb} "
                  f"| {ln} | with a mode in the localisation before the search, {lb} | {ln} | with a finding, {lb} | "
                  f"{ln} |\n|---|---|---|---|---|---|---|\n| {len(pb)} | "
-                 + " | ".join(_cp(sum(bool(r[key]) for r in rows), len(rows)) for key in ("modes_after", "modes_before",
+                 + " | ".join(count_ci(sum(bool(r[key]) for r in rows), len(rows)) for key in ("modes_after", "modes_before",
                                                                                         "findings") for rows in (pb, pn))
                  + " |\n\n")
         vb, vn = [pipeline_verdict(r) for r in pb], [pipeline_verdict(r) for r in pn]
@@ -65,7 +65,7 @@ def compare(base: dict, new: dict, labels: tuple[str, str]) -> str:
             text += f"| recordings with | {lb} | {ln} |\n|---|---|---|\n"
             for key, name in VERDICTS:
                 text += f"| {name} | " + " | ".join(
-                    "n/a" if any(v[key] is None for v in vs) else _cp(sum(v[key] for v in vs), len(vs))
+                    "n/a" if any(v[key] is None for v in vs) else count_ci(sum(v[key] for v in vs), len(vs))
                     for vs in (vb, vn)) + " |\n"
             text += "\n"
         for a, b in zip(pb, pn):
@@ -86,8 +86,8 @@ def compare(base: dict, new: dict, labels: tuple[str, str]) -> str:
         for lo, hi in list(zip(EDGES[:-1], EDGES[1:])) + [(0, np.inf)]:
             sel = [i for i, e in enumerate(ev) if lo <= e < hi]
             db, dn = sum(mb[i]["detected"] for i in sel), sum(mn[i]["detected"] for i in sel)
-            text += (f"| {'all' if (lo, hi) == (0, np.inf) else f'{lo:g}–{hi:g}'} | {len(sel)} | {_cp(db, len(sel))} | "
-                     f"{_cp(dn, len(sel))} | {_ratio(db, dn)} |\n")
+            text += (f"| {'all' if (lo, hi) == (0, np.inf) else f'{lo:g}–{hi:g}'} | {len(sel)} | {count_ci(db, len(sel))} | "
+                     f"{count_ci(dn, len(sel))} | {_ratio(db, dn)} |\n")
         text += (f"\nThe injected mode in the motion lines (set aside as following the motion): {lb} "
                  f"{sum(r['in_motion_lines'] for r in mb)}, {ln} {sum(r['in_motion_lines'] for r in mn)}; modes reported "
                  f"away from the injected frequency: {lb} {sum(r['other_modes'] for r in mb)}, {ln} "

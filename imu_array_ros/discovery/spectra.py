@@ -11,12 +11,18 @@ band of a finding is the narrowest contiguous band holding >= 80 % of its (signe
 excess ``sum_f (P_rel - floor)``, reported as bin edges (centre +- half a bin).
 
 A cell is also significant when one frequency bin (DC and Nyquist left out)
-stands out of its floor: with L Welch segments (Hann, 50 % overlap) the
-relative PSD of white noise is floor x chi^2_nu / nu per bin, nu = 2 L / 1.056
-(Welch's equivalent degrees of freedom), tested at ``LINE_ALPHA`` Bonferroni-
-corrected over every bin of every cell: a narrowband mismatch (a board
-vibration) well below the noise in every sample is found there long before
-it shows in the broadband sum.
+stands out of its floor, tested at ``LINE_ALPHA`` Bonferroni-corrected over
+every bin of every cell: a narrowband mismatch (a board vibration) well below
+the noise in every sample is found there long before it shows in the
+broadband sum.  With L Welch segments (Hann, 50 % overlap) the relative PSD of
+white noise at an inner bin is floor x (1/L) sum_j mu_j E_j, E_j ~ Exp(1),
+mu_j = 1 + 2 rho cos(j pi / (L + 1)) the eigenvalues of the segments'
+correlation (rho = 1/6: neighbours overlap by half a Hann window); its tail
+at the Bonferroni level (~1e-6) is taken by the Lugannani-Rice saddlepoint
+approximation (:func:`welch_line_limit`).  Welch's equivalent degrees of freedom
+(chi^2_nu / nu, nu = 2 L / 1.056), used before, match its mean and variance
+but not that tail: the test fired on 1.5-1.7 % of null recordings at a
+nominal 1 % (benchmarks/results/discovery_nulls_703302.md).
 
 Narrowband lines shared across the array (board modes) are located, with their
 band and shape, by :mod:`~imu_array_ros.discovery.modes` against each channel's
@@ -26,11 +32,13 @@ band and shape, by :mod:`~imu_array_ros.discovery.modes` against each channel's
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage, stats
-from scipy.signal import welch
+from functools import lru_cache
+
+from scipy import ndimage, optimize, stats
+from scipy.signal import get_window, welch
 
 __all__ = ["LINE_ALPHA", "BAND_FRACTION", "MIN_SPECTRUM_SAMPLES", "FLOOR_GUARD", "FLOOR_HALF_WINDOW", "relative_psd",
-           "imu_spectra", "line_bins", "line_significant", "local_floor", "narrowest_band",
+           "imu_spectra", "welch_line_limit", "line_bins", "line_significant", "local_floor", "narrowest_band",
            "merge_windows"]
 
 #: family-wise level of the narrowband line test over every bin of every cell
@@ -107,20 +115,56 @@ def imu_spectra(r: np.ndarray, valid: np.ndarray, fs: float) -> tuple[np.ndarray
     return freqs, psd
 
 
+def _welch_eigenvalues(segments: int, nper: int) -> np.ndarray:
+    """(L,) eigenvalues of the correlation of L Welch segments' DFT values at an inner bin (Hann, 50 % overlap):
+    neighbours correlate by rho = sum w_n w_{n+D} / sum w_n^2, the rest not at all (tridiagonal Toeplitz)."""
+    if segments < 2:
+        return np.ones(max(segments, 1))
+    w = get_window("hann", nper)
+    d = nper - nper // 2
+    rho = float(w[:-d] @ w[d:] / (w @ w))
+    return 1.0 + 2.0 * rho * np.cos(np.arange(1, segments + 1) * np.pi / (segments + 1))
+
+
+def _welch_log_sf(x: float, mu: np.ndarray) -> float:
+    """ln P((1/L) sum_j mu_j E_j > x), E_j ~ Exp(1), x above the mean 1: Lugannani-Rice saddlepoint
+    approximation (cumulant generating function K(s) = -sum ln(1 - mu_j s), s < 1 / max mu)."""
+    t = x * len(mu)
+    s = optimize.brentq(lambda v: float(np.sum(mu / (1.0 - mu * v))) - t, 0.0, (1.0 - 1e-15) / float(mu.max()))
+    k = -float(np.sum(np.log1p(-mu * s)))
+    w = np.sqrt(2.0 * max(s * t - k, 0.0))
+    u = s * np.sqrt(float(np.sum((mu / (1.0 - mu * s)) ** 2)))
+    return float(np.log(stats.norm.sf(w) + stats.norm.pdf(w) * (1.0 / u - 1.0 / w)))
+
+
+@lru_cache(maxsize=256)
+def welch_line_limit(alpha: float, segments: int, nper: int) -> float:
+    """The level-``alpha`` upper limit (alpha <= 0.01) of a Welch bin's relative PSD over its white floor, with
+    ``segments`` Hann segments of ``nper`` samples at 50 % overlap (module docstring).  One segment: exactly
+    Exp(1), -ln alpha."""
+    if not 0.0 < alpha <= 0.01:
+        raise ValueError(f"welch_line_limit needs 0 < alpha <= 0.01, got {alpha}")
+    if segments < 2:
+        return float(-np.log(alpha))
+    mu = _welch_eigenvalues(segments, nper)
+    nu = 2.0 * segments / 1.056  # Welch's equivalent dof: brackets the limit from below and above
+    lo, hi = stats.chi2.isf(10.0 * alpha, nu) / nu, stats.chi2.isf(alpha / 100.0, nu) / nu
+    while _welch_log_sf(hi, mu) > np.log(alpha):
+        hi *= 2.0
+    return float(optimize.brentq(lambda x: _welch_log_sf(x, mu) - np.log(alpha), max(lo, 1.0 + 1e-6), hi))
+
+
 def line_bins(psd: np.ndarray, floor: np.ndarray, n: int, nperseg: int = 256) -> np.ndarray:
     """(K, 6, F) True at the bins (never DC nor Nyquist) where the relative PSD exceeds the floor beyond what
     white noise gives at LINE_ALPHA, Bonferroni over all bins and cells (module docstring)."""
-    from scipy.stats import chi2
-
     out = np.zeros(psd.shape, dtype=bool)
     if psd.shape[-1] < 3:
         return out
     nper = int(min(nperseg, n))
     segments = 1 + max(0, (n - nper) // (nper // 2))
-    nu = 2.0 * segments / 1.056
     inner = psd[..., 1:-1]
     tests = max(1, int(np.isfinite(floor).sum()) * inner.shape[-1])
-    limit = chi2.isf(LINE_ALPHA / tests, nu) / nu
+    limit = welch_line_limit(LINE_ALPHA / tests, segments, nper)
     with np.errstate(invalid="ignore"):
         out[..., 1:-1] = np.nan_to_num(inner / floor[..., None] > limit) & np.isfinite(floor)[..., None]
     return out
