@@ -275,7 +275,7 @@ class Problem:
         """Hold the timing context of ``motion`` (None: release it) until the next freeze: the timing
         terms then see one fixed trajectory, so the problem does not move under the optimiser (``frozen_motion``:
         the motion it was built from)."""
-        self.frozen, self.frozen_motion = None, None
+        self.frozen, self.frozen_motion, self.remainders = None, None, {}
         if motion is not None and self.needs_derivatives:
             self.frozen, self.frozen_motion = self.derivatives(motion), motion
 
@@ -300,10 +300,37 @@ class Problem:
         cut = lambda a: None if a is None else a[sel]  # noqa: E731
         x = self.expand(motion, sel)
         traj = None if derivs[3] is None else derivs[3].rows(sel)
-        return motion_context(self.stamps[sel], x[:, 0:3], x[:, 3:6], x[:, 6:9],
-                              model.rotations, t0_ns=self.t0_ns, omega_ddot=cut(derivs[0]),
-                              specific_force_dot=cut(derivs[1]), stamp_delays=cut(self.stamp_delays),
-                              omega_rate=cut(derivs[2]), trajectory=traj)
+        ctx = motion_context(self.stamps[sel], x[:, 0:3], x[:, 3:6], x[:, 6:9],
+                             model.rotations, t0_ns=self.t0_ns, omega_ddot=cut(derivs[0]),
+                             specific_force_dot=cut(derivs[1]), stamp_delays=cut(self.stamp_delays),
+                             omega_rate=cut(derivs[2]), trajectory=traj)
+        frozen = getattr(self, "frozen", None)
+        if traj is not None and frozen is not None and derivs[3] is frozen[3]:
+            # on the frozen trajectory the timing remainders do not depend on the motion: a chunk's kept until the
+            # next freeze (TimingStage.remainder checks the delays, positions and rotations they were made with);
+            # some samples' (residuals_at) are read from their chunks' (computed per sample: the same values)
+            ctx.remainders = self.remainders.setdefault((sel.start, sel.stop, sel.step), {}) \
+                if isinstance(sel, slice) else self.remainder_rows(sel)
+        return ctx
+
+    def remainder_rows(self, idx: np.ndarray) -> dict:
+        """The timing remainders kept for the chunks (:meth:`chunks`) of the sorted samples ``idx``, their rows
+        only, per sensor for which every chunk holds one made with the same positions and rotations (as
+        :meth:`~imu_array_ros.model.terms.timing.TimingStage.remainder` keeps them); a new dict."""
+        out, starts = {}, np.unique(idx // self.chunk) * self.chunk
+        entries = [self.remainders.get((int(lo), min(int(lo) + self.chunk, self.n), None), {}) for lo in starts]
+        for sensor in ("accelerometer", "gyroscope"):
+            parts = [e.get(sensor) for e in entries]
+            if any(p is None for p in parts) or not all(np.array_equal(p[1], parts[0][1])
+                                                        and np.array_equal(p[2], parts[0][2]) for p in parts):
+                continue
+            which = np.searchsorted(starts, idx, side="right") - 1  # each sample's chunk among ``starts``
+            delta, value = np.empty((len(idx),) + parts[0][0].shape[1:]), np.empty((len(idx),) + parts[0][3].shape[1:])
+            for j, (lo, p) in enumerate(zip(starts, parts)):
+                rows = which == j
+                delta[rows], value[rows] = p[0][idx[rows] - lo], p[3][idx[rows] - lo]
+            out[sensor] = (delta, parts[0][1], parts[0][2], value)
+        return out
 
     def residuals(self, model: SensorModel, motion: np.ndarray, derivs: tuple) -> np.ndarray:
         """(N, K, 6) normalised residuals w (y - h), 0 on masked axes, with the motion derivatives ``derivs``."""

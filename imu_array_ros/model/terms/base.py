@@ -112,6 +112,10 @@ class MotionContext:
     exactly (the simulator's dense truth, the fusion's interpolated estimate)
     instead of to first order.  omega_rate (N, 3): d omega / dt of the angular-rate
     estimates, the gyroscopes' rate of change for a first-order time shift (None: omega_dot).
+    remainders: a dict the timing stage may keep its remainders in
+    (:meth:`~imu_array_ros.model.terms.timing.TimingStage.remainder`), given by a caller whose contexts of these
+    samples share one trajectory object for as long as the dict lives (the fitting engine's frozen trajectory);
+    None: none kept.
     """
 
     stamps: np.ndarray
@@ -126,6 +130,7 @@ class MotionContext:
     stamp_delays: np.ndarray | None = None
     trajectory: object | None = field(default=None, repr=False)
     omega_rate: np.ndarray | None = None
+    remainders: dict | None = field(default=None, repr=False, compare=False)
 
     @property
     def n(self) -> int:

@@ -388,7 +388,25 @@ class TimingStage:
     def remainder(self, ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
         """(N, K, 3) what the trajectory says the first-order shift leaves out: the exact shift along it minus
         its own first-order shift (second and higher order in the delay; independent of the sample's motion).
-        The rates come from :meth:`_rate0` / :meth:`_rate`: kept for d_params_of by a memoised stage."""
+        The rates come from :meth:`_rate0` / :meth:`_rate`: kept for d_params_of by a memoised stage.
+
+        Along a trajectory with slopes it reads only the trajectory, the stamps, the delays, the positions and the
+        rotations, not the sample's motion: with ``ctx.remainders`` (a dict the caller keeps for contexts of the
+        same samples on the same trajectory, e.g. the fitting engine's motion steps on a frozen trajectory) the
+        last one computed per sensor is kept there and returned again, the same array, while the delays, the
+        positions and the rotations are equal to those it was computed with (compared in full: exact)."""
+        held = ctx.remainders
+        if held is None or not hasattr(ctx.trajectory, "slope_at"):
+            return self._remainder(ctx, sensor, delta)
+        entry = held.get(sensor)
+        if (entry is not None and entry[0].shape == np.shape(delta) and np.array_equal(entry[0], delta)
+                and np.array_equal(entry[1], ctx.positions) and np.array_equal(entry[2], ctx.rotations)):
+            return entry[3]
+        value = self._remainder(ctx, sensor, delta)
+        held[sensor] = (np.array(delta, dtype=float), np.array(ctx.positions), np.array(ctx.rotations), value)
+        return value
+
+    def _remainder(self, ctx: MotionContext, sensor: str, delta: np.ndarray) -> np.ndarray:
         if hasattr(ctx.trajectory, "slope_at"):
             rate0 = self._rate0(ctx, sensor, delta)
         else:  # a trajectory without slopes (the simulator's truth): the context's own rates
