@@ -103,11 +103,12 @@ if sys.argv[7] == "clocks":  # the whole capture's sample clocks (not timed)
     model = timing_stage(whole, model).model
 from contextlib import nullcontext
 from imu_array_ros.fitting.reading_rates import rates_scope
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 with rates_scope() if sys.argv[8] == "rates" else nullcontext():  # the reading rates' decision, as the CLI's
     d = discover(samples, model, options=DiscoveryOptions(max_findings=n),
                  progress=lambda text: print(f"{time.perf_counter() - t0:8.1f} s {text}", file=sys.stderr, flush=True))
-print(json.dumps({"wall_s": time.perf_counter() - t0, "samples": len(samples), "timings": d.timings,
+print(json.dumps({"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "samples": len(samples),
+                  "timings": d.timings,
                   "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "findings": [f"{f.effect}@{f.scope}:{','.join(f.candidate.sensors)}" for f in d.findings],
                   "values": {f"{f.effect}@{f.scope}": [[float(v) for v in f.values], [float(v) for v in f.std]]
@@ -122,6 +123,7 @@ def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_
     the whole capture's sample clocks; ``rates``: in the reading rates' scope, as ``imu-array discover`` runs it);
     its progress lines (seconds since its start) into ``log``."""
     env = dict(os.environ, PYTHONPATH=str(tree))
+    load_before = load_average()
     say(f"[{label}] discover on {window[1]:g} s from {window[0]:g} s, at most {max_findings} findings"
         + (", the whole capture's sample clocks" if clocks else ""))
     out = subprocess.run(["nice", sys.executable, "-c", CHUNK, str(capture), str(cal), str(window[0]), str(window[1]),
@@ -133,9 +135,14 @@ def measure_chunk(tree: Path, label: str, capture: Path, cal: Path, window, max_
     if out.returncode != 0:
         raise SystemExit(f"chunk discover failed: {out.stderr[-2000:]}")
     r = json.loads(out.stdout.strip().splitlines()[-1])
-    say(f"[{label}] {r['wall_s']:.1f} s")
+    say(f"[{label}] {r['wall_s']:.1f} s, {r['cpu_s']:.1f} CPU s")
     return {"label": label, "capture": capture.stem, "window_s": list(window), "max_findings": max_findings,
-            "clocks": clocks, "rates": rates, **r, "load_average": load_average()}
+            "clocks": clocks, "rates": rates, **r, "load_before": load_before, "load_average": load_average()}
+
+
+def _cpu(r: dict) -> str:
+    """CPU seconds of a window run (not recorded before 2026-11-29 14:45 UTC)."""
+    return f"{r['cpu_s']:.1f} s" if "cpu_s" in r else "—"
 
 
 def _table(entries: list[dict]) -> str:
@@ -174,19 +181,20 @@ def main() -> int:
                                                                                        PYTHONPATH=str(REPO)))
     if args.window:
         cal = work / "cal.yaml"
-        _run(REPO, ["calibrate", "all", str(capture), "--array", str(ARRAY), "--out", str(cal), "-q"],
-             work / "calibrate.log")
-        runs = [measure_chunk(t, lab, capture, cal, args.window, args.max_findings, args.clocks,
-                              work / f"{lab.replace(' ', '_').replace('/', '_')}_progress.log", args.rates)
-                for t, lab in zip(trees, labels)]
+        c = _run(REPO, ["calibrate", "all", str(capture), "--array", str(ARRAY), "--out", str(cal), "-q"],
+                 work / "calibrate.log")
+        say(f"calibrate all (this repository's code, whole capture): {c['wall_s']:.1f} s, {c['user_s']:.1f} user s")
+        runs = [dict(measure_chunk(t, lab, capture, cal, args.window, args.max_findings, args.clocks,
+                                   work / f"{lab.replace(' ', '_').replace('/', '_')}_progress.log", args.rates),
+                     calibrate=c) for t, lab in zip(trees, labels)]
         say(f"progress logs in {work}")
-        text = "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
-        text += "|---|---|---|---|---|---|---|---|---|\n" + "".join(
+        text = "| tree | capture | window (s) | max findings | samples | discover | CPU | max RSS | findings | load avg |\n"
+        text += "|---|---|---|---|---|---|---|---|---|---|\n" + "".join(
             f"| {r['label']} | {r['capture']}{' (clocks)' if r['clocks'] else ''}"
             f"{' (rates)' if r.get('rates') else ''} | {r['window_s'][0]:g}+{r['window_s'][1]:g} | "
             f"{r['max_findings']} | "
             f"{r['samples']} | "
-            f"{r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | {'; '.join(r['findings']) or '—'} | "
+            f"{r['wall_s']:.1f} s | {_cpu(r)} | {r['max_rss_mb']:.0f} MB | {'; '.join(r['findings']) or '—'} | "
             f"{r['load_average']} |\n" for r in runs)
         CHUNK_JSON.write_text(json.dumps((json.loads(CHUNK_JSON.read_text()) if CHUNK_JSON.exists() else []) + runs,
                                          indent=1) + "\n")
@@ -210,13 +218,13 @@ def _write_md() -> None:
     chunks = json.loads(CHUNK_JSON.read_text()) if CHUNK_JSON.exists() else []
     if chunks:
         text += ("\n## A window of the capture (`--window`), discover alone, trees in turn\n\n"
-                 "| tree | capture | window (s) | max findings | samples | discover | max RSS | findings | load avg |\n"
-                 "|---|---|---|---|---|---|---|---|---|\n" + "".join(
+                 "| tree | capture | window (s) | max findings | samples | discover | CPU | max RSS | findings | load avg |\n"
+                 "|---|---|---|---|---|---|---|---|---|---|\n" + "".join(
                      f"| {r['label']} | {r.get('capture', '?')}{' (clocks)' if r.get('clocks') else ''}"
                      f"{' (rates)' if r.get('rates') else ''} | "
                      f"{r['window_s'][0]:g}+{r['window_s'][1]:g} | "
                      f"{r['max_findings']} | "
-                     f"{r['samples']} | {r['wall_s']:.1f} s | {r['max_rss_mb']:.0f} MB | "
+                     f"{r['samples']} | {r['wall_s']:.1f} s | {_cpu(r)} | {r['max_rss_mb']:.0f} MB | "
                      f"{'; '.join(r['findings']) or '—'} | {r['load_average']} |\n" for r in chunks))
     write_results(OUT, text)
 
