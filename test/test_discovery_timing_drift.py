@@ -173,7 +173,7 @@ def _fake_fit(nominal, bias_z, drift_z, std=1e-4):
     sd["gyroscope_bias"][0], sd["bias_drift"][0] = std, std
     return SimpleNamespace(free=("gyroscope_bias", "bias_drift"), imus=("imu_1",), theta=theta,
                            covariance=np.eye(9) * std ** 2, model=nominal.with_terms(gyroscope_bias=gb, bias_drift=dr),
-                           std=sd, motion=np.zeros((4, 9)))
+                           std=sd, motion=np.zeros((4, 9)), gauge_directions=np.zeros((9, 0)))
 
 
 def _fake_finding(effect, step):

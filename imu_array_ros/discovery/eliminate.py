@@ -6,7 +6,9 @@ mean, which the bias had absorbed; with both in, the bias is no longer needed). 
 exact fit (every finding's parameters together with the motion), each finding is tested given all the
 others by the Wald test of its parameters' change from the model discovery started from, with the fit's
 Cramér-Rao bound: W = d^T C^-1 d, chi-square with the number of identified parameters -- asymptotically
-the likelihood ratio of the joint fit with and without it.  A pooled finding is tested on its shared
+the likelihood ratio of the joint fit with and without it -- up to the fit's gauge freedoms: a change a gauge
+freedom undoes (with the other free parameters) is no change (d = B c, c free; e.g. a time offset common to
+every sensor, which the fit fixes by holding one sensor's at whatever value it was given).  A pooled finding is tested on its shared
 value when the tie test accepts one (:func:`~.scopes.tie_test`), else on every IMU's values.
 
 The finding with the largest p-value among those no longer significant at the level they were admitted
@@ -36,7 +38,8 @@ __all__ = ["wald_given_others", "backward_eliminate", "dropped_notes", "simplest
 
 def wald_given_others(fit, f, base: SensorModel, alpha: float) -> tuple[float, int, float]:
     """(W, dof, p) of finding ``f`` (discover.Finding) given every other parameter of the joint ``fit``:
-    its parameters' change from ``base`` (the model discovery started from) against the fit's CRB."""
+    its parameters' change from ``base`` (the model discovery started from) against the fit's CRB, up to the fit's
+    gauge freedoms (a change the gauge can undo, with the other parameters, is no change)."""
     imus = list(f.imus)
     if f.scope != "imu" and not is_own(f.scope):
         tie = tie_test(fit, f.effect, imus, base.names, base.terms[f.effect].values[imus])
@@ -46,7 +49,10 @@ def wald_given_others(fit, f, base: SensorModel, alpha: float) -> tuple[float, i
             return wald(d, cov_phi if cov_phi is not None else np.diag(sd ** 2))
     idx = term_indexes(fit, f.effect, imus)
     d = fit.theta[idx] - np.asarray(base.terms[f.effect].values[imus], dtype=float).reshape(-1)
-    return wald(d, fit.covariance[np.ix_(idx, idx)])
+    # a gauge freedom's move is no change (the fit held one of the moved parameters at a value of its choosing:
+    # e.g. a common time offset of every sensor, held on the reference IMU): d = B c, c free
+    stat, dof = restricted(d, fit.covariance[np.ix_(idx, idx)], gauge_basis(fit, idx))
+    return stat, dof, _p(stat, dof)
 
 
 def _shared_covariance(fit, term: str, imus) -> np.ndarray | None:
