@@ -8,12 +8,14 @@ import numpy as np
 from imu_array_ros.calibration.guards import check_calibration
 from imu_array_ros.calibration.result import Calibration, provenance
 from imu_array_ros.calibration.scoring import WindowScorer
+from imu_array_ros.discovery.threads import on_one_blas_thread
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["findings_calibration"]
 
 
+@on_one_blas_thread
 def findings_calibration(discovery, samples: ImuSamples, source: str | None = None, *,
                          start: SensorModel | None = None) -> Calibration:
     """The description extended with the terms :func:`~imu_array_ros.discovery.discover.discover` found
@@ -21,7 +23,9 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
     ``samples`` (the recording it ran on).  With no findings the model is the input's.  ``start``: the model
     discovery started from; the result then passes the calibrations' checks
     (:func:`~imu_array_ros.calibration.guards.check_calibration`: plausible values, fits the recording at least
-    as well) or CalibrationError says why it is not installed."""
+    as well) or CalibrationError says why it is not installed.  The new model's score (a fit of the whole
+    recording's motion) is computed once, kept in ``score`` for the install, and on one BLAS thread as discover
+    itself runs (:mod:`~imu_array_ros.discovery.threads`)."""
     d = discovery
     std = {}
     for name in sorted({f.effect for f in d.findings}):
@@ -42,6 +46,7 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
     line = (f"{len(d.findings)} findings; log-likelihood {d.baseline.loglik:.8g} -> {d.after.loglik:.8g}")
     cal = Calibration(method="discover", model=d.model, std=std, record=record, scorer=WindowScorer(samples),
                       data="recording", summary_line=line, details=d)
+    cal.score = cal.score_of(cal.model)
     if start is not None:
         check_calibration(cal, start)
     return cal
