@@ -43,7 +43,7 @@ def _residual(rng, n: int, k: int, fit: bool) -> tuple[np.ndarray, float]:
 
 
 def run(seed: int, recordings: int) -> dict:
-    from imu_array_ros.discovery.spectra import LINE_ALPHA, imu_spectra, line_bins
+    from imu_array_ros.discovery.spectra import LINE_ALPHA, imu_spectra, line_bins, welch_dof, welch_segments
 
     rng = np.random.default_rng(seed)
     rows = []
@@ -56,9 +56,8 @@ def run(seed: int, recordings: int) -> dict:
         _, psd = imu_spectra(r, np.ones(r.shape, dtype=bool), 100.0)
         floor = np.full((k, 6), fl)
         new = bool(line_bins(psd, floor, n).any())
-        nper = min(256, n)
-        seg = 1 + max(0, (n - nper) // (nper // 2))
-        nu = 2.0 * seg / 1.056
+        seg = welch_segments(n)
+        nu = welch_dof(seg)
         inner = psd[..., 1:-1]
         old = bool((inner / fl > stats.chi2.isf(LINE_ALPHA / (k * 6 * inner.shape[-1]), nu) / nu).any())
         rows.append({"k": k, "n": n, "segments": seg, "fit": fit, "new": new, "old": old})

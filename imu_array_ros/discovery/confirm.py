@@ -39,8 +39,8 @@ IMPLAUSIBLE = "implausible"
 #: how confirm's reason starts when the candidate trades with earlier findings (:mod:`.trading`)
 TRADES = "indistinguishable from"
 
-__all__ = ["confirm", "settle_ties", "tied", "both_found", "rejection", "only_imus", "update_finding", "refit", "COST_TOLERANCE",
-           "IMPLAUSIBLE", "TRADES", "TIE_MAX"]
+__all__ = ["confirm", "settle_ties", "tied", "both_found", "rejection", "only_imus", "update_finding", "refit",
+           "COST_TOLERANCE", "IMPLAUSIBLE", "TRADES", "TIE_MAX"]
 
 #: at most this many candidates of one tie are confirmed exactly (the first-ranked included)
 TIE_MAX = 3

@@ -8,8 +8,9 @@ others by the Wald test of its parameters' change from the model discovery start
 Cramér-Rao bound: W = d^T C^-1 d, chi-square with the number of identified parameters -- asymptotically
 the likelihood ratio of the joint fit with and without it -- up to the fit's gauge freedoms: a change a gauge
 freedom undoes (with the other free parameters) is no change (d = B c, c free; e.g. a time offset common to
-every sensor, which the fit fixes by holding one sensor's at whatever value it was given).  A pooled finding is tested on its shared
-value when the tie test accepts one (:func:`~.scopes.tie_test`), else on every IMU's values.
+every sensor, which the fit fixes by holding one sensor's at whatever value it was given).  A pooled finding
+is tested on its shared value when the tie test accepts one (:func:`~.scopes.tie_test`), else on every IMU's
+values.
 
 The finding with the largest p-value among those no longer significant at the level they were admitted
 at (the Bonferroni level of their step) is dropped, the others refitted exactly without it, and the test

@@ -92,7 +92,8 @@ from imu_array_ros.discovery.coherent import coherent_scan, field_basis, field_c
 from imu_array_ros.discovery.matched import matched_scan
 from imu_array_ros.discovery.modeshape import bandpass, describe_shape, heldout_model, presence
 from imu_array_ros.discovery.motioncheck import motion_check
-from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor, relative_psd
+from imu_array_ros.discovery.spectra import FLOOR_GUARD, FLOOR_HALF_WINDOW, local_floor, relative_psd, welch_dof, \
+    welch_segments
 from imu_array_ros.fusion.residuals import AXES
 from imu_array_ros.util.jsontools import json_safe
 
@@ -244,8 +245,8 @@ def _runs(hit: np.ndarray, gap: int = 2) -> list[tuple[int, int]]:
 def _scan(x, chan_ok, fs, nper, alpha) -> dict | None:
     """One resolution: spectra, floors, both tests at alpha / 2 each, candidate runs (p, lo, hi, peak, test)."""
     n = len(x)
-    segments = 1 + (n - nper) // (nper // 2)
-    nu = 2.0 * segments / 1.056
+    segments = welch_segments(n, nper)
+    nu = welch_dof(segments)
     freqs, p = relative_psd(x[:, chan_ok], fs, nperseg=nper)        # (C, F)
     if len(freqs) < 2 * HALF_WINDOW:
         return None

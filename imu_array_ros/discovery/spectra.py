@@ -31,14 +31,14 @@ band and shape, by :mod:`~imu_array_ros.discovery.modes` against each channel's
 
 from __future__ import annotations
 
-import numpy as np
 from functools import lru_cache
 
+import numpy as np
 from scipy import ndimage, optimize, stats
 from scipy.signal import get_window, welch
 
 __all__ = ["LINE_ALPHA", "BAND_FRACTION", "MIN_SPECTRUM_SAMPLES", "FLOOR_GUARD", "FLOOR_HALF_WINDOW", "relative_psd",
-           "imu_spectra", "welch_line_limit", "line_bins", "line_significant", "local_floor", "narrowest_band",
+           "imu_spectra", "welch_segments", "welch_dof", "welch_line_limit", "line_bins", "line_significant", "local_floor", "narrowest_band",
            "merge_windows"]
 
 #: family-wise level of the narrowband line test over every bin of every cell
@@ -115,11 +115,21 @@ def imu_spectra(r: np.ndarray, valid: np.ndarray, fs: float) -> tuple[np.ndarray
     return freqs, psd
 
 
+def welch_segments(n: int, nperseg: int = 256) -> int:
+    """How many segments :func:`relative_psd` averages over ``n`` samples (min(nperseg, n) each, 50 % overlap)."""
+    nper = int(min(nperseg, n))
+    return 1 + max(0, (n - nper) // (nper // 2))
+
+
+def welch_dof(segments: int) -> float:
+    """Welch's equivalent degrees of freedom of ``segments`` Hann segments at 50 % overlap, 2 L / 1.056: a bin's
+    mean and variance as chi^2_nu / nu, not its far tail (:func:`welch_line_limit`)."""
+    return 2.0 * segments / 1.056
+
+
 def _welch_eigenvalues(segments: int, nper: int) -> np.ndarray:
-    """(L,) eigenvalues of the correlation of L Welch segments' DFT values at an inner bin (Hann, 50 % overlap):
-    neighbours correlate by rho = sum w_n w_{n+D} / sum w_n^2, the rest not at all (tridiagonal Toeplitz)."""
-    if segments < 2:
-        return np.ones(max(segments, 1))
+    """(L,) eigenvalues of the correlation of L >= 2 Welch segments' DFT values at an inner bin (Hann, 50 %
+    overlap): neighbours correlate by rho = sum w_n w_{n+D} / sum w_n^2, the rest not at all (tridiagonal Toeplitz)."""
     w = get_window("hann", nper)
     d = nper - nper // 2
     rho = float(w[:-d] @ w[d:] / (w @ w))
@@ -147,7 +157,7 @@ def welch_line_limit(alpha: float, segments: int, nper: int) -> float:
     if segments < 2:
         return float(-np.log(alpha))
     mu = _welch_eigenvalues(segments, nper)
-    nu = 2.0 * segments / 1.056  # Welch's equivalent dof: brackets the limit from below and above
+    nu = welch_dof(segments)  # its chi-square brackets the limit from below and above
     lo, hi = stats.chi2.isf(10.0 * alpha, nu) / nu, stats.chi2.isf(alpha / 100.0, nu) / nu
     while _welch_log_sf(hi, mu) > np.log(alpha):
         hi *= 2.0
@@ -160,11 +170,9 @@ def line_bins(psd: np.ndarray, floor: np.ndarray, n: int, nperseg: int = 256) ->
     out = np.zeros(psd.shape, dtype=bool)
     if psd.shape[-1] < 3:
         return out
-    nper = int(min(nperseg, n))
-    segments = 1 + max(0, (n - nper) // (nper // 2))
     inner = psd[..., 1:-1]
     tests = max(1, int(np.isfinite(floor).sum()) * inner.shape[-1])
-    limit = welch_line_limit(LINE_ALPHA / tests, segments, nper)
+    limit = welch_line_limit(LINE_ALPHA / tests, welch_segments(n, nperseg), int(min(nperseg, n)))
     with np.errstate(invalid="ignore"):
         out[..., 1:-1] = np.nan_to_num(inner / floor[..., None] > limit) & np.isfinite(floor)[..., None]
     return out
