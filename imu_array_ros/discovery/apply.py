@@ -5,14 +5,40 @@ from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import dataclass, field
+
+from imu_array_ros.calibration import scoring
 from imu_array_ros.calibration.guards import check_calibration
 from imu_array_ros.calibration.result import Calibration, provenance
-from imu_array_ros.calibration.scoring import WindowScorer
 from imu_array_ros.discovery.threads import on_one_blas_thread
+from imu_array_ros.fitting.engine import fit_motion
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["findings_calibration"]
+__all__ = ["findings_calibration", "StartedScorer"]
+
+
+@dataclass
+class StartedScorer:
+    """:class:`~imu_array_ros.calibration.scoring.WindowScorer` (the log-likelihood of ``samples`` with every
+    sample's motion at its ML estimate) whose motion fit of a model in ``starts`` [(model, motion (N, 9))] starts
+    from that motion instead of the fused one: discover's own ML motions of the model it started from and of the
+    model with the findings.  The same fit (``fit_motion`` to its criterion, in the caller's reading-rates state,
+    on the same samples) from a start at its optimum rather than a pass of the fusion away: the score is the same
+    maximum, to the fit's tolerance, in a few linearisations instead of a whole fit (whole exp_3: two of them,
+    ~30 s, were the --apply check).  A model not in ``starts`` (a calibration on file), one with only linear terms
+    (the fusion's motion is then exact) or a motion of another length: scored as WindowScorer does."""
+
+    samples: ImuSamples
+    starts: list = field(default_factory=list)
+
+    def __call__(self, model: SensorModel) -> float:
+        motion = next((m for known, m in self.starts if known is model), None)
+        if (motion is None or not model.nonlinear_terms or self.samples is None
+                or np.shape(motion) != (len(self.samples.stamps), 9)):
+            return scoring.window_loglik(self.samples, model)
+        start = np.where(np.isfinite(motion), motion, 0.0)  # as the fused start: zero where it has no motion
+        return float(fit_motion(self.samples, model, start).loglik)
 
 
 @on_one_blas_thread
@@ -44,7 +70,8 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
         "log_likelihood_after": float(d.after.loglik),
     }
     line = (f"{len(d.findings)} findings; log-likelihood {d.baseline.loglik:.8g} -> {d.after.loglik:.8g}")
-    cal = Calibration(method="discover", model=d.model, std=std, record=record, scorer=WindowScorer(samples),
+    starts = [(m, getattr(s, "motion", None)) for m, s in ((start, d.baseline), (d.model, d.after))]
+    cal = Calibration(method="discover", model=d.model, std=std, record=record, scorer=StartedScorer(samples, starts),
                       data="recording", summary_line=line, details=d)
     cal.score = cal.score_of(cal.model)
     if start is not None:

@@ -163,7 +163,8 @@ def _num(x):
 
 @dataclass
 class FitSummary:
-    """How well a model explains a recording at its ML motion: log-likelihood and NIS by regime, (K, 6) maps."""
+    """How well a model explains a recording at its ML motion: log-likelihood and NIS by regime, (K, 6) maps; the
+    motion (N, 9) (``--apply``'s scores start from it: :class:`~.apply.StartedScorer`)."""
 
     loglik: float
     nis_still: float
@@ -171,6 +172,7 @@ class FitSummary:
     observed: dict = field(repr=False)
     expected: dict = field(repr=False)
     samples: dict = field(default_factory=dict)
+    motion: np.ndarray | None = field(default=None, repr=False)
 
     def ratio(self, regime: str = "all") -> np.ndarray:
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -194,7 +196,7 @@ def _summarise(residuals, expected, motion, loglik, still_threshold) -> FitSumma
     def nis(regime):
         total = exp[regime].sum()
         return float(obs[regime].sum() / total) if total > 0 else float("nan")
-    return FitSummary(float(loglik), nis("still"), nis("moving"), obs, exp, counts)
+    return FitSummary(float(loglik), nis("still"), nis("moving"), obs, exp, counts, motion)
 
 
 def fit_summary(samples, model: SensorModel, *, still_threshold: float = 0.2, motion0=None):
