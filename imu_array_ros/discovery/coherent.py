@@ -41,10 +41,12 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+from scipy import stats
 
 from imu_array_ros.discovery.spectra import FLOOR_HALF_WINDOW, local_floor, merge_windows, side_medians
 
-__all__ = ["WIDTHS", "field_basis", "field_channels", "null_law", "coherent_scan", "mode_channels"]
+__all__ = ["WIDTHS", "LEAD_LEVEL", "field_basis", "field_channels", "null_law", "coherent_scan", "mode_channels",
+           "shape_estimate"]
 
 #: window widths (bins of the fine resolution): a line to a resonance ~2 Hz wide
 WIDTHS = (1, 2, 4, 8)
@@ -56,6 +58,8 @@ NULL_RUNS, NULL_NPER = 120, 256
 EXACT_V = 24
 #: power-iteration steps of the largest eigenvalue (block of PROBE vectors)
 ITERATIONS, PROBE = 40, 4
+#: one-sided level of :func:`shape_estimate`'s confidence set for the IMU of a mode's largest amplitude
+LEAD_LEVEL = 0.05
 
 
 def field_basis(positions: np.ndarray, rotations: np.ndarray, acc_std: np.ndarray | None = None, *,
@@ -248,7 +252,8 @@ def mode_channels(x: np.ndarray, basis: np.ndarray, fs: float, nper: int, lo: in
     leading eigenvector's combination of the field channels (basis (3K, V)) there; channel c (x (N, C),
     C = K x 6, NaN -> 0) is in the mode when its coherence with the reference built *without its own IMU*
     passes Beta(1, M - 1) at alpha / C (M: effective segments x bins).  Returns coherence (C,), p (C,),
-    phase (C,) rad, gain (C,) (the channel's coherent in-band RMS, noise stds) and significant (C,) bool."""
+    phase (C,) rad, gain (C,) (the channel's coherent in-band RMS, noise stds), significant (C,) bool and the
+    pooled shape estimate of :func:`shape_estimate` (``shape``, ``shape_axes``, ``lead_set``)."""
     x = np.nan_to_num(np.asarray(x, dtype=float))
     n, c = x.shape
     k = c // 6
@@ -275,4 +280,37 @@ def mode_channels(x: np.ndarray, basis: np.ndarray, fs: float, nper: int, lo: in
     band_var = pxx / (xs.shape[0] * np.sum(win ** 2)) * (hi - lo + 1) / (nper / 2)   # in-band variance / sample
     gain = np.sqrt(np.clip(np.nan_to_num(coh) - 1.0 / max(m, 1.0), 0.0, None) * band_var)
     return {"coherence": np.where(valid, coh, np.nan), "p": pv, "phase": np.angle(cross), "gain": gain,
-            "significant": valid & (pv < alpha / ntest)}
+            "significant": valid & (pv < alpha / ntest), **shape_estimate(fld, basis)}
+
+
+def shape_estimate(fld: np.ndarray, basis: np.ndarray, level: float = LEAD_LEVEL) -> dict:
+    """The mode's shape across the array from the field channels' spectra ``fld`` (L segments, W bins, V) in its
+    band: the leading eigenvector u of their cross-spectral matrix mapped back on the accelerometer channels,
+    w = basis u (3K,; the field basis is smooth over the array, so every IMU's estimate pools all of them -- a
+    mode too weak for any channel's own coherence test still has a shape).  Returns ``shape`` (K,) |w_k| over the
+    IMU's three axes, largest 1; ``shape_axes`` (K, 3) |w_ka|; ``lead_set`` (K,) bool: the IMUs whose shape is not
+    below the largest by more than z_level jackknife standard errors of the difference (delete-one Welch segment;
+    adjacent segments overlap 50 %, so the errors are a little small): a one-sided ``level`` confidence set for
+    the IMU with the largest amplitude."""
+    k = basis.shape[0] // 3
+    per_seg = np.einsum("lwa,lwb->lab", fld, np.conj(fld))              # (L, V, V)
+    g = per_seg.sum(axis=0)
+    loo = g[None] - per_seg if len(per_seg) > 2 else g[None]
+
+    def magnitudes(mats):
+        u = np.linalg.eigh(mats)[1][..., -1]                            # (B, V) unit leading eigenvectors
+        w = np.abs(np.einsum("av,bv->ba", basis, u)).reshape(len(mats), k, 3)
+        return np.sqrt(np.sum(w ** 2, axis=-1)), w
+
+    full, axes = (a[0] for a in magnitudes(g[None]))
+    lead = int(np.argmax(full))
+    diff = full[lead] - full
+    lead_set = np.zeros(k, dtype=bool)
+    lead_set[lead] = True
+    if len(loo) > 2:
+        d = magnitudes(loo)[0]
+        d = d[:, lead:lead + 1] - d                                      # (L, K)
+        se = np.sqrt((len(d) - 1) / len(d) * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
+        lead_set |= diff <= stats.norm.isf(level) * se
+    top = max(float(full[lead]), 1e-300)
+    return {"shape": full / top, "shape_axes": axes / top, "lead_set": lead_set}

@@ -59,7 +59,9 @@ excess (noise stds; m/s^2 or rad/s when the stds are given) and its phase
 relative to the strongest channel (Welch cross-spectrum over the band), the
 channels significant in the band (chi-square at ``alpha`` / channels; when the
 pooled test found it and no channel passes: those beyond 1 % each, else the
-strongest), a shape
+strongest; a mode an array-wide test found and no channel's coherence confirms
+alone: the IMUs its pooled shape estimate cannot tell from the one of largest
+amplitude, :func:`~imu_array_ros.discovery.coherent.shape_estimate`), a shape
 description (:func:`~imu_array_ros.discovery.modeshape.describe_shape`), when it
 is present (:func:`~imu_array_ros.discovery.modeshape.presence`) and the
 empirical model with its held-out gain
@@ -88,7 +90,7 @@ import numpy as np
 from scipy import signal, stats
 
 from imu_array_ros.discovery.bank import bank_scan
-from imu_array_ros.discovery.coherent import coherent_scan, field_basis, field_channels, mode_channels
+from imu_array_ros.discovery.coherent import LEAD_LEVEL, coherent_scan, field_basis, field_channels, mode_channels
 from imu_array_ros.discovery.matched import matched_scan
 from imu_array_ros.discovery.modeshape import bandpass, describe_shape, heldout_model, presence
 from imu_array_ros.discovery.motioncheck import motion_check
@@ -118,6 +120,8 @@ SMOOTH_SCALE = 0.25
 MODE_KIND = "narrowband excess (not explained by the fitted model)"
 #: at most this many modes per recording (the strongest)
 MAX_MODES = 8
+#: a weak mode's attribution by its shape estimate: an IMU's axes carrying at least this share of its largest
+SHAPE_AXIS_SHARE = 0.5
 
 
 def mode_segment(n: int, fs: float, resolution_hz: float = 0.25) -> int:
@@ -149,6 +153,7 @@ class Mode:
     presence: dict = field(default_factory=dict)
     model: dict = field(default_factory=dict)
     motion: dict = field(default_factory=dict)
+    attribution: str = "the channels significant alone"
 
     @property
     def follows_motion(self) -> bool:
@@ -181,7 +186,7 @@ class Mode:
         return json_safe({
             "kind": MODE_KIND, "frequency_hz": self.frequency_hz,
             "band_hz": list(self.band_hz), "p_value": self.p_value, "test": self.test,
-            "channels": [[str(names[k]), AXES[a]] for k, a in self.channels],
+            "channels": [[str(names[k]), AXES[a]] for k, a in self.channels], "attribution": self.attribution,
             "amplitude_noise_std": self.amplitude, "amplitude_si": self.amplitude_si, "phase_rad": self.phase,
             "coherence": self.coherence, "shape": self.shape, "presence": self.presence,
             "empirical_model": self.model, "motion": self.motion})
@@ -403,9 +408,18 @@ def _coherent_channels(mode: Mode, x, basis, fs, nper, lo, hi, alpha) -> None:
     mode.phase = np.where(np.isfinite(ch["coherence"]), ch["phase"], np.nan).reshape(shape)
     mode.coherence = ch["coherence"].reshape(shape)
     sig = ch["significant"]
-    if not sig.any():  # the strongest coherence
-        sig = np.arange(len(sig)) == int(np.nanargmax(np.nan_to_num(ch["coherence"], nan=-1.0)))
-    mode.channels = [(int(i) // 6, int(i) % 6) for i in np.argsort(-np.where(sig, ch["gain"], -1.0)) if sig[i]]
+    if sig.any():
+        mode.channels = [(int(i) // 6, int(i) % 6) for i in np.argsort(-np.where(sig, ch["gain"], -1.0)) if sig[i]]
+        return
+    # no channel's own coherence is significant (a weak mode spread over many IMUs): the IMUs the pooled shape
+    # estimate cannot tell from the one of largest amplitude, largest first, each on its accelerometer axes
+    # carrying at least half of its largest (not the one channel of largest coherence: its noise's pick)
+    shape, axes = ch["shape"], ch["shape_axes"]
+    lead = [int(i) for i in np.argsort(-shape, kind="stable") if ch["lead_set"][i]]
+    mode.channels = [(kk, a) for kk in lead for a in range(3) if axes[kk, a] >= SHAPE_AXIS_SHARE * axes[kk].max()]
+    mode.attribution = (f"no channel is significant alone: the IMUs the pooled shape estimate (field basis) "
+                        f"cannot tell from the one of largest amplitude ({1 - LEAD_LEVEL:.0%} one-sided, jackknife "
+                        f"over the Welch segments), largest first")
 
 
 def _finish(mode: Mode, x, valid, floor_pk, fs, positions, rotations, std, still, motion, heldout: bool) -> None:
