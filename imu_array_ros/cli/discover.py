@@ -23,7 +23,6 @@ from imu_array_ros.cli.window import add_window_options, time_window
 from imu_array_ros.cli.progress import Progress, info
 from imu_array_ros.discovery.blocks import LADDER_FROM, SEARCH_READINGS
 from imu_array_ros.discovery.report import PLOTS, write_report
-from imu_array_ros.discovery.threads import single_blas_thread
 from imu_array_ros.errors import CalibrationError, OutputError
 from imu_array_ros.io.outputs import check_output, check_report_directory, write_report_manifest
 from imu_array_ros.model.description import ArrayDescription
@@ -160,11 +159,12 @@ def run(recording: Path, *, array: Path, report: Path, calibration: Path | None 
             info(quiet, f"no findings: {apply} not written (the description already explains the recording)")
         else:
             info(quiet, f"--apply: checking the findings' calibration against the recording before writing "
-                        f"{apply} (a fit of the whole {'window' if windowed else 'recording'})")
+                        f"{apply} (its log-likelihood on the whole {'window' if windowed else 'recording'})")
             try:
+                from imu_array_ros.discovery.apply import install_findings
+
                 cal = workflows.findings_calibration(d, samples, source=source, start=workflows.as_model(desc))
-                with single_blas_thread():  # scoring a calibration already on file: a whole-recording fit
-                    installed = cal.install(desc, apply)
+                installed = install_findings(cal, desc, apply)  # one BLAS thread; scored only against a file
             except CalibrationError as err:
                 raise CalibrationError(f"{err} (the report is in {report})") from None
             if installed.backup is not None:

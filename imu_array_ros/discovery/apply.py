@@ -1,44 +1,67 @@
 """``discover --apply``: the findings of mismatch discovery as a calibration (the contract of
-:mod:`imu_array_ros.calibration.result`)."""
+:mod:`imu_array_ros.calibration.result`).
+
+Before anything is written the calibration passes the calibrations' checks
+(:func:`~imu_array_ros.calibration.guards.check_calibration`), among them (c): the new model scores the recording at
+least as well as the model discovery started from.  A score is the log-likelihood with every sample's motion at its
+maximum-likelihood estimate (:func:`~imu_array_ros.calibration.scoring.window_loglik`): for a model with
+non-linear terms a motion fit of the whole recording (on whole exp_3 ~14 CPU s, the --apply check's cost).  The
+log-likelihood at *any* motion is at most that maximum, so the new model at discover's own ML motion of it
+(:func:`motion_loglik`, one residual pass) is a lower bound of its score: when the bound already clears the start's
+score, (c) holds for the score too and the fit is not needed.  Otherwise the new model is fitted and (c) decided on
+its score, as before.  The start is always scored as before (the fusion's motion; a fit when it has non-linear
+terms): both sides are log-likelihoods of the same samples under the two models, the new one's bounded from below.
+"""
 
 from __future__ import annotations
 
-import numpy as np
-
 from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
 
 from imu_array_ros.calibration import scoring
 from imu_array_ros.calibration.guards import check_calibration
-from imu_array_ros.calibration.result import Calibration, provenance
-from imu_array_ros.discovery.threads import on_one_blas_thread
-from imu_array_ros.fitting.engine import fit_motion
+from imu_array_ros.calibration.result import LOGLIK_TOLERANCE, Calibration, Installed, check_install_target, \
+    install_description, provenance
+from imu_array_ros.discovery.threads import on_one_blas_thread, single_blas_thread
+from imu_array_ros.fitting.problem import Problem
+from imu_array_ros.model.description import ArrayDescription
 from imu_array_ros.model.samples import ImuSamples
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["findings_calibration", "StartedScorer"]
+__all__ = ["findings_calibration", "install_findings", "motion_loglik", "OnceScorer"]
+
+
+def motion_loglik(samples: ImuSamples, model: SensorModel, motion: np.ndarray) -> float:
+    """The log-likelihood of ``samples`` under ``model`` at one motion (N, 9) [omega, omega_dot, s] of every
+    sample, the timing terms reading that motion's own trajectory, in the caller's reading-rates state (with them,
+    each sample's rates at their least squares given the motion): the function of the motion whose maximum is the
+    model's score (``fit_motion`` reports its value at the motion it ends on: the same problem and sum), so a lower
+    bound of the score, in one residual pass.  Non-finite entries are taken as 0 (as the fused start does for a
+    sample without a fused motion)."""
+    prob = Problem(samples, model, ("position",), np.arange(model.n_imus))
+    z = prob.check_motion(np.where(np.isfinite(motion), motion, 0.0))
+    prob.freeze(z)
+    r = prob.residuals(model, z, prob.derivatives(z))
+    return prob.loglik(0.5 * float(np.sum(r * r)))
 
 
 @dataclass
-class StartedScorer:
-    """:class:`~imu_array_ros.calibration.scoring.WindowScorer` (the log-likelihood of ``samples`` with every
-    sample's motion at its ML estimate) whose motion fit of a model in ``starts`` [(model, motion (N, 9))] starts
-    from that motion instead of the fused one: discover's own ML motions of the model it started from and of the
-    model with the findings.  The same fit (``fit_motion`` to its criterion, in the caller's reading-rates state,
-    on the same samples) from a start at its optimum rather than a pass of the fusion away: the score is the same
-    maximum, to the fit's tolerance, in a few linearisations instead of a whole fit (whole exp_3: two of them,
-    ~30 s, were the --apply check).  A model not in ``starts`` (a calibration on file), one with only linear terms
-    (the fusion's motion is then exact) or a motion of another length: scored as WindowScorer does."""
+class OnceScorer:
+    """:class:`~imu_array_ros.calibration.scoring.WindowScorer` that scores each model (object) once (the
+    fits-better check asks for the start's score after the lower bound has)."""
 
     samples: ImuSamples
-    starts: list = field(default_factory=list)
+    done: list = field(default_factory=list, repr=False)
 
     def __call__(self, model: SensorModel) -> float:
-        motion = next((m for known, m in self.starts if known is model), None)
-        if (motion is None or not model.nonlinear_terms or self.samples is None
-                or np.shape(motion) != (len(self.samples.stamps), 9)):
-            return scoring.window_loglik(self.samples, model)
-        start = np.where(np.isfinite(motion), motion, 0.0)  # as the fused start: zero where it has no motion
-        return float(fit_motion(self.samples, model, start).loglik)
+        for known, value in self.done:
+            if known is model:
+                return value
+        value = float(scoring.window_loglik(self.samples, model))
+        self.done.append((model, value))
+        return value
 
 
 @on_one_blas_thread
@@ -50,8 +73,10 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
     discovery started from; the result then passes the calibrations' checks
     (:func:`~imu_array_ros.calibration.guards.check_calibration`: plausible values, fits the recording at least
     as well) or CalibrationError says why it is not installed.  The new model's score (a fit of the whole
-    recording's motion) is computed once, kept in ``score`` for the install, and on one BLAS thread as discover
-    itself runs (:mod:`~imu_array_ros.discovery.threads`)."""
+    recording's motion) is computed at most once, kept in ``score`` for the install, on one BLAS thread as discover
+    itself runs (:mod:`~imu_array_ros.discovery.threads`); not at all when its lower bound at discover's own ML
+    motion of it (``discovery.after.motion``, :func:`motion_loglik`) already clears the start's score (module
+    docstring): ``score`` is then None, and :func:`install_findings` computes it only to compare with a file."""
     d = discovery
     std = {}
     for name in sorted({f.effect for f in d.findings}):
@@ -70,10 +95,28 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
         "log_likelihood_after": float(d.after.loglik),
     }
     line = (f"{len(d.findings)} findings; log-likelihood {d.baseline.loglik:.8g} -> {d.after.loglik:.8g}")
-    starts = [(m, getattr(s, "motion", None)) for m, s in ((start, d.baseline), (d.model, d.after))]
-    cal = Calibration(method="discover", model=d.model, std=std, record=record, scorer=StartedScorer(samples, starts),
+    cal = Calibration(method="discover", model=d.model, std=std, record=record, scorer=OnceScorer(samples),
                       data="recording", summary_line=line, details=d)
+    motion = getattr(d.after, "motion", None)
+    if (start is not None and samples is not None and motion is not None and cal.model.nonlinear_terms
+            and np.shape(motion) == (len(samples.stamps), 9)):
+        bound = motion_loglik(samples, cal.model, motion)
+        if np.isfinite(bound) and bound + cal.allowance >= cal.score_of(start) - LOGLIK_TOLERANCE:
+            cal.score = bound  # check (c) on the bound: the score is at least that
+            check_calibration(cal, start)
+            cal.score = None  # a bound, not the score
+            return cal
     cal.score = cal.score_of(cal.model)
     if start is not None:
         check_calibration(cal, start)
     return cal
+
+
+def install_findings(cal: Calibration, desc: ArrayDescription, out: str | Path) -> Installed:
+    """``cal.install(desc, out)`` on one BLAS thread (scoring a calibration on file is a whole-recording fit); the
+    new model is scored only when a description on file is compared with it (with none there
+    :func:`~imu_array_ros.calibration.result.install_description` reads no score)."""
+    with single_blas_thread():
+        if cal.score is None and check_install_target(out, desc.names) is None:
+            return install_description(cal.apply(desc), out, data=cal.data)
+        return cal.install(desc, out)
