@@ -146,7 +146,9 @@ def _suffix(test: str) -> str:
     return "" if test == COHERENT_TESTS[0] else "_" + test.replace("+", "_")
 
 
-def null_case(seed: int, kind: str) -> dict:
+def null_recording(seed: int, kind: str) -> tuple:
+    """(kind as reported, array, rate, still poses, the model analysed with, the recording) of a null of the kind
+    "white", "broadband" or "library" (module docstring)."""
     rng = np.random.default_rng([seed, 1])
     array, rate, still, model, samples, term, _ = _session(rng, misfit=kind == "library")
     n, k = samples.accel.shape[:2]
@@ -162,6 +164,11 @@ def null_case(seed: int, kind: str) -> dict:
         samples = _add(samples, added)
     elif kind == "library":
         kind = f"library ({term})"
+    return kind, array, rate, still, model, samples
+
+
+def null_case(seed: int, kind: str) -> dict:
+    kind, array, rate, still, model, samples = null_recording(seed, kind)
     searches, fs, n, old = _analyse(samples, model)
     out = {"kind": kind, "seed": seed, "array": array, "rate_hz": rate, "still_poses": still, "samples": n,
            "old_test_cells": int(old.sum())}

@@ -37,20 +37,27 @@ Nyquist the side there shrinks; at least ``LEVEL_CENTRES`` in all), relative to 
 1 -- a misfit coherent over a broad band raises its neighbours as much as itself; a resonance raises itself.
 
 **Null law** (:func:`null_laws`): ``NULL_DRAWS`` white-noise recordings of the same length and accelerometer
-channels through the same whitening, basis and scan (fixed seed, cached); per width a Gumbel law fitted to the
-draws' maxima of the scan (its family-wise law: not a count of correlated templates).  Bonferroni over the
-widths.
+channels through the same whitening, basis and scan (fixed seed, cached).  Per width a gamma law matched to the
+mean and variance of the standardised statistic (statistic / local level) pooled over the draws' tested centres
+(a marginal law, not a tail fit) maps each centre to y = -ln P(gamma >= statistic); widths are then on one scale,
+and one Gumbel law fitted to the draws' largest y over all widths and centres is the family-wise law of the
+whole scan (joint over the widths: their templates at one centre overlap heavily).  Before (helper-66,
+benchmarks/results/matched_null_calibration.md) a Gumbel per width on the statistic's maxima, Bonferroni over the
+widths (``bonferroni=True``): 5x conservative on 3-field-channel arrays (0-0.2 % realised at 1 %), from the
+Bonferroni factor and a Gumbel on the raw maxima whose upper tail is heavier than theirs; the gamma's y lightens
+it.  Realised family-wise rates of both on fresh white draws and on the mode benchmark's nulls (motion fitted,
+Gauss-Markov noise, library misfit): benchmarks/results/matched_null_calibration_65808.md.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal, stats
+from scipy import signal, special, stats
 
 from imu_array_ros.discovery.spectra import merge_windows
 
 __all__ = ["WIDTHS_HZ", "NULL_DRAWS", "whitened_fields", "templates", "matched_statistic", "null_laws",
-           "matched_scan"]
+           "family_p", "matched_scan"]
 
 #: resonance widths searched (full width at half maximum, Hz)
 WIDTHS_HZ = (0.25, 0.5, 1.0, 2.0)
@@ -69,7 +76,7 @@ LEVEL_CENTRES = 8
 #: Tukey taper fraction of the full-length DFT
 TAPER = 0.1
 #: white-noise recordings simulated for the null law of the scan's maximum
-NULL_DRAWS = 40
+NULL_DRAWS = 50
 #: a line's band: its centre +- this many widths of its smallest-p template (56 % of a Lorentzian's power)
 BAND = 0.6
 
@@ -157,17 +164,45 @@ def _level(lam: np.ndarray, t: dict, null_median: float) -> tuple[np.ndarray, np
     idx = np.arange(m)
     lo_a, lo_b = np.maximum(idx - k1, 0), np.maximum(idx - k0 + 1, 0)        # [lo_a, lo_b) below
     hi_a, hi_b = np.minimum(idx + k0, m), np.minimum(idx + k1 + 1, m)         # [hi_a, hi_b) above
-    tested = (lo_b - lo_a) + (hi_b - hi_a) >= LEVEL_CENTRES
+    count = (lo_b - lo_a) + (hi_b - hi_a)
+    tested = count >= LEVEL_CENTRES
+    # every window at once: its centres' values (+inf beyond its ends), partitioned (full windows) or sorted
+    # (shrunk ones); the median from its own count
+    half = k1 - k0 + 1
+    full = count == 2 * half
     level = np.ones(m)
-    for i in np.flatnonzero(tested):
-        level[i] = np.median(np.concatenate([lam[lo_a[i]:lo_b[i]], lam[hi_a[i]:hi_b[i]]]))
+    if full.any():
+        i = np.flatnonzero(full)
+        win = lam[np.concatenate([i[:, None] - k1 + np.arange(half), i[:, None] + k0 + np.arange(half)], axis=1)]
+        level[i] = np.mean(np.partition(win, [half - 1, half], axis=1)[:, half - 1:half + 1], axis=1)
+    i = np.flatnonzero(tested & ~full)
+    if len(i):
+        j = np.arange(half)
+        below, above = i[:, None] - k1 + j, i[:, None] + k0 + j
+        ok = np.concatenate([below >= lo_a[i, None], above < hi_b[i, None]], axis=1)
+        vals = np.sort(np.where(ok, lam[np.clip(np.concatenate([below, above], axis=1), 0, m - 1)], np.inf), axis=1)
+        c = count[i]
+        level[i] = 0.5 * (vals[np.arange(len(i)), (c - 1) // 2] + vals[np.arange(len(i)), c // 2])
     return np.maximum(1.0, level / null_median), tested
 
 
+def _marginal_y(s: np.ndarray, law: dict) -> np.ndarray:
+    """-ln P(one centre's statistic >= s) under a width's marginal gamma law (:func:`null_laws`); where the sf
+    underflows, its leading asymptotic term."""
+    s = np.asarray(s, dtype=float)
+    a, x = law["shape"], s / law["theta"]
+    ls = stats.gamma.logsf(s, a, scale=law["theta"])
+    far = ~np.isfinite(ls) & (x > 0)
+    ls = np.where(far, (a - 1.0) * np.log(np.where(far, x, 1.0)) - x - special.gammaln(a), ls)
+    return -ls
+
+
 def null_laws(n: int, fs: float, basis: np.ndarray, min_hz: float, draws: int = NULL_DRAWS) -> dict:
-    """The templates and per width the null law of the scan's maximum on white accelerometer residuals of n
-    samples through the same whitening and basis (3K, V) (fixed seed, cached; module docstring): Gumbel (loc,
-    scale) of the scan's maxima and the null's median statistic."""
+    """The templates and the null law of the scan's maximum on white accelerometer residuals of n samples through
+    the same whitening and basis (3K, V) (fixed seed, cached; module docstring): per width ("laws") the null's
+    median statistic, the gamma (shape, theta) of its standardised statistic, the Gumbel (loc, scale) of its
+    draws' maxima (the Bonferroni law before the joint one); "joint": the Gumbel (loc, scale) of the draws'
+    largest y over widths and centres."""
     basis = np.ascontiguousarray(basis, dtype=float)
     key = (n, float(fs), float(min_hz), draws, basis.shape, hash(basis.tobytes()))
     if key in _LAWS:
@@ -176,31 +211,41 @@ def null_laws(n: int, fs: float, basis: np.ndarray, min_hz: float, draws: int = 
     rng = np.random.default_rng([n, basis.shape[0], basis.shape[1], 57])
     raw = [matched_statistic(whitened_fields(rng.normal(size=(n, basis.shape[0])), basis, fs, min_hz), tmpl)
            for _ in range(draws)]
-    laws = []
+    laws, joint = [], np.full(draws, -np.inf)
     for i, t in enumerate(tmpl):
         med = float(np.median(np.concatenate([r[i] for r in raw])))
-        maxima = []
+        std = []
         for r in raw:
             level, tested = _level(r[i], t, med)
-            maxima.append(float(np.max((r[i] / level)[tested])))
-        loc, scale = stats.gumbel_r.fit(np.array(maxima))
-        laws.append({"fwhm": t["fwhm"], "loc": float(loc), "scale": float(scale), "median": med})
+            std.append((r[i] / level)[tested])
+        pooled = np.concatenate(std)
+        mean, var = float(np.mean(pooled)), float(np.var(pooled))
+        law = {"fwhm": t["fwhm"], "median": med, "shape": mean * mean / var, "theta": var / mean}
+        law["loc"], law["scale"] = (float(v) for v in stats.gumbel_r.fit(np.array([np.max(x) for x in std])))
+        joint = np.maximum(joint, [float(np.max(_marginal_y(x, law))) for x in std])
+        laws.append(law)
+    loc, scale = stats.gumbel_r.fit(joint) if tmpl else (np.nan, np.nan)
     if len(_LAWS) > 32:
         _LAWS.clear()
-    _LAWS[key] = {"templates": tmpl, "laws": laws}
+    _LAWS[key] = {"templates": tmpl, "laws": laws, "joint": {"loc": float(loc), "scale": float(scale)}}
     return _LAWS[key]
 
 
-def _family_sf(t: np.ndarray, law: dict) -> np.ndarray:
-    """P(the scan's maximum >= t) for one width's null law (:func:`null_laws`)."""
-    return stats.gumbel_r.sf(t, law["loc"], law["scale"])
+def family_p(s: np.ndarray, law: dict, joint: dict | None, widths: int) -> np.ndarray:
+    """Family-wise p of standardised statistics s of one width (:func:`null_laws`' "laws" entry): P(the scan's
+    largest y over all widths >= y(s)) under the joint law; joint None: the law before it, the width's own
+    Gumbel, Bonferroni over the ``widths`` widths."""
+    if joint is None:
+        return np.minimum(1.0, widths * stats.gumbel_r.sf(s, law["loc"], law["scale"]))
+    return stats.gumbel_r.sf(_marginal_y(s, law), joint["loc"], joint["scale"])
 
 
 def matched_scan(acc: np.ndarray, basis: np.ndarray, fs: float, alpha: float, *, min_hz: float = 0.5,
-                 draws: int = NULL_DRAWS) -> dict | None:
+                 draws: int = NULL_DRAWS, bonferroni: bool = False) -> dict | None:
     """The matched test (module docstring) on the accelerometer residuals acc (N, 3K) sampled at fs Hz, field
-    basis (3K, V), family-wise level alpha.  Returns freqs (F,) of the full-length DFT, per width ("widths":
-    fwhm -> {"centres", "stat", "level", "p"}; p = 1 where not tested) and cands: [(p, band lo Hz, band hi Hz,
+    basis (3K, V), family-wise level alpha (bonferroni: the law before the joint one, :func:`family_p`).  Returns
+    freqs (F,) of the full-length DFT, per width ("widths": fwhm -> {"centres", "stat", "level", "p"}; p = 1 where
+    not tested) and cands: [(p, band lo Hz, band hi Hz,
     peak Hz, fwhm Hz)] significant at alpha (overlapping or touching templates are one line, with the centre
     +- ``BAND`` x the width of its smallest-p template), sorted by p; None when too short or fewer than 2 field
     channels."""
@@ -218,7 +263,7 @@ def matched_scan(acc: np.ndarray, basis: np.ndarray, fs: float, alpha: float, *,
     raw = []
     for t, lam, lw in zip(law["templates"], matched_statistic(z, law["templates"]), law["laws"]):
         level, tested = _level(lam, t, lw["median"])
-        p = np.where(tested, np.minimum(1.0, nw * _family_sf(lam / level, lw)), 1.0)
+        p = np.where(tested, family_p(lam / level, lw, None if bonferroni else law["joint"], nw), 1.0)
         out["widths"][t["fwhm"]] = {"centres": t["centres"], "stat": lam, "level": level, "p": p}
         hw = int(round(0.5 * t["fwhm"] / df))
         for i in np.flatnonzero(p < alpha):
