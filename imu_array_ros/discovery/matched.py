@@ -37,16 +37,20 @@ Nyquist the side there shrinks; at least ``LEVEL_CENTRES`` in all), relative to 
 1 -- a misfit coherent over a broad band raises its neighbours as much as itself; a resonance raises itself.
 
 **Null law** (:func:`null_laws`): ``NULL_DRAWS`` white-noise recordings of the same length and accelerometer
-channels through the same whitening, basis and scan (fixed seed, cached).  Per width a gamma law matched to the
-mean and variance of the standardised statistic (statistic / local level) pooled over the draws' tested centres
-(a marginal law, not a tail fit) maps each centre to y = -ln P(gamma >= statistic); widths are then on one scale,
-and one Gumbel law fitted to the draws' largest y over all widths and centres is the family-wise law of the
-whole scan (joint over the widths: their templates at one centre overlap heavily).  Before (helper-66,
-benchmarks/results/matched_null_calibration.md) a Gumbel per width on the statistic's maxima, Bonferroni over the
-widths (``bonferroni=True``): 5x conservative on 3-field-channel arrays (0-0.2 % realised at 1 %), from the
-Bonferroni factor and a Gumbel on the raw maxima whose upper tail is heavier than theirs; the gamma's y lightens
-it.  Realised family-wise rates of both on fresh white draws and on the mode benchmark's nulls (motion fitted,
-Gauss-Markov noise, library misfit): benchmarks/results/matched_null_calibration_65808.md.
+channels through the same whitening, basis and scan (fixed seed, cached).  Two laws from the same draws
+(:func:`family_p`).  *Bonferroni* (discover's, ``JOINT_LAW`` False): per width a Gumbel law fitted to the draws'
+maxima of the scan (its family-wise law: not a count of correlated templates), Bonferroni over the widths; ~5x
+conservative on white residuals of 3-field-channel arrays (0-0.25 % realised at 1 %: benchmarks/results/
+matched_null_calibration.md, matched_null_calibration_65808.md), from the Bonferroni factor over heavily
+overlapping templates and a Gumbel on the raw maxima whose upper tail is heavier than theirs.  *Joint*
+(``bonferroni=False``): per width a gamma law matched to the mean and variance of the standardised statistic
+(statistic / local level) pooled over the draws' tested centres maps each centre to y = -ln P(gamma >= it),
+which puts the widths on one scale and lightens that tail; one Gumbel law fitted to the draws' largest y over all
+widths and centres is the family-wise law of the whole scan.  On fresh white draws of 4500 samples it is at
+nominal (4, 8 and 32 IMUs: 0.9-1.3 % at 1 %, 0.25-0.5 % at 0.25 %), but on the short nulls of benchmarks/
+discovery_modes (motion fitted, 635 and 854 samples) it gave p 0.0015 and 0.0018 (2 of 30 white and broadband
+nulls below discover's share 0.0025, the Bonferroni law 0 of 30): liberal on short recordings (a Gumbel from 50
+draws of few centres), so not discover's law yet (matched_null_calibration_65808.md).
 """
 
 from __future__ import annotations
@@ -56,7 +60,7 @@ from scipy import signal, special, stats
 
 from imu_array_ros.discovery.spectra import merge_windows
 
-__all__ = ["WIDTHS_HZ", "NULL_DRAWS", "whitened_fields", "templates", "matched_statistic", "null_laws",
+__all__ = ["WIDTHS_HZ", "NULL_DRAWS", "JOINT_LAW", "whitened_fields", "templates", "matched_statistic", "null_laws",
            "family_p", "matched_scan"]
 
 #: resonance widths searched (full width at half maximum, Hz)
@@ -77,6 +81,9 @@ LEVEL_CENTRES = 8
 TAPER = 0.1
 #: white-noise recordings simulated for the null law of the scan's maximum
 NULL_DRAWS = 50
+#: discover's law: False the Bonferroni law over widths, True the joint one (module docstring: liberal on short
+#: recordings, not the default)
+JOINT_LAW = False
 #: a line's band: its centre +- this many widths of its smallest-p template (56 % of a Lorentzian's power)
 BAND = 0.6
 
@@ -201,7 +208,7 @@ def null_laws(n: int, fs: float, basis: np.ndarray, min_hz: float, draws: int = 
     """The templates and the null law of the scan's maximum on white accelerometer residuals of n samples through
     the same whitening and basis (3K, V) (fixed seed, cached; module docstring): per width ("laws") the null's
     median statistic, the gamma (shape, theta) of its standardised statistic, the Gumbel (loc, scale) of its
-    draws' maxima (the Bonferroni law before the joint one); "joint": the Gumbel (loc, scale) of the draws'
+    draws' maxima (the Bonferroni law); "joint": the Gumbel (loc, scale) of the draws'
     largest y over widths and centres."""
     basis = np.ascontiguousarray(basis, dtype=float)
     key = (n, float(fs), float(min_hz), draws, basis.shape, hash(basis.tobytes()))
@@ -233,7 +240,7 @@ def null_laws(n: int, fs: float, basis: np.ndarray, min_hz: float, draws: int = 
 
 def family_p(s: np.ndarray, law: dict, joint: dict | None, widths: int) -> np.ndarray:
     """Family-wise p of standardised statistics s of one width (:func:`null_laws`' "laws" entry): P(the scan's
-    largest y over all widths >= y(s)) under the joint law; joint None: the law before it, the width's own
+    largest y over all widths >= y(s)) under the joint law; joint None: the Bonferroni law, the width's own
     Gumbel, Bonferroni over the ``widths`` widths."""
     if joint is None:
         return np.minimum(1.0, widths * stats.gumbel_r.sf(s, law["loc"], law["scale"]))
@@ -241,9 +248,9 @@ def family_p(s: np.ndarray, law: dict, joint: dict | None, widths: int) -> np.nd
 
 
 def matched_scan(acc: np.ndarray, basis: np.ndarray, fs: float, alpha: float, *, min_hz: float = 0.5,
-                 draws: int = NULL_DRAWS, bonferroni: bool = False) -> dict | None:
+                 draws: int = NULL_DRAWS, bonferroni: bool | None = None) -> dict | None:
     """The matched test (module docstring) on the accelerometer residuals acc (N, 3K) sampled at fs Hz, field
-    basis (3K, V), family-wise level alpha (bonferroni: the law before the joint one, :func:`family_p`).  Returns
+    basis (3K, V), family-wise level alpha (bonferroni: the law, :func:`family_p`; None: not ``JOINT_LAW``).  Returns
     freqs (F,) of the full-length DFT, per width ("widths": fwhm -> {"centres", "stat", "level", "p"}; p = 1 where
     not tested) and cands: [(p, band lo Hz, band hi Hz,
     peak Hz, fwhm Hz)] significant at alpha (overlapping or touching templates are one line, with the centre
@@ -251,6 +258,7 @@ def matched_scan(acc: np.ndarray, basis: np.ndarray, fs: float, alpha: float, *,
     channels."""
     acc = np.asarray(acc, dtype=float)
     n = len(acc)
+    bonferroni = not JOINT_LAW if bonferroni is None else bonferroni
     if basis.shape[1] < 2 or n < 256 or not np.isfinite(fs) or fs <= 0:
         return None
     law = null_laws(n, float(fs), basis, float(min_hz), draws)
