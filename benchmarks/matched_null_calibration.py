@@ -1,10 +1,10 @@
 """Is the matched mode test's family-wise p calibrated?  Its realised false-alarm rate on white residuals.
 
 :func:`imu_array_ros.discovery.matched.matched_scan` turns its statistic into a family-wise p with a law fitted to
-``matched.NULL_DRAWS`` white recordings: the joint law over widths (since helper-68), or (``bonferroni=True``, the
-law before it) per template width a Gumbel law of the scan maxima, Bonferroni over the widths; both are measured
-in the same run, on the same recordings.  This benchmark draws ``--draws`` further white-noise recordings (unit
-normalised accelerometer
+``matched.NULL_DRAWS`` white recordings: the joint law over widths (``bonferroni=False``, helper-68), or (the one
+discover uses, ``matched.JOINT_LAW``) per template width a Gumbel law of the scan maxima, Bonferroni over the
+widths; both measured in the same run, on the same recordings.  This benchmark draws ``--draws`` further
+white-noise recordings (unit normalised accelerometer
 residuals: exactly the null the law is fitted to) per suite array (:data:`imu_array_ros.simulation.suites.ARRAYS`),
 at ``--rate`` Hz for ``--seconds`` s, with the field basis discover's mode search uses
 (:func:`imu_array_ros.discovery.coherent.field_basis`, ``min_scale`` = ``modes.SMOOTH_SCALE``), and counts the
@@ -47,9 +47,9 @@ OUT = RESULTS / "matched_null_calibration"
 #: drawn with secrets.randbelow(10**6) when the benchmark was written; no code was tuned on it
 SEED = 748673
 LEVELS = (0.001, 0.0025, 0.01, 0.05, 0.1, 0.2)
-#: the laws compared: key in the json -> matched_scan's bonferroni flag
+#: the laws compared: key in the json -> matched_scan's bonferroni flag (discover: matched.JOINT_LAW)
 LAWS = {"p": False, "p_bonferroni": True}
-LAW_NAMES = {"p": "joint law over widths", "p_bonferroni": "Bonferroni over widths (before)"}
+LAW_NAMES = {"p": "joint law over widths", "p_bonferroni": "Bonferroni over widths (discover's)"}
 
 
 def smallest_p(acc: np.ndarray, basis: np.ndarray, fs: float, bonferroni: bool = False) -> float:
@@ -98,8 +98,8 @@ def vibration(seed: int, index: int, evidence: tuple[float, float]) -> dict:
     n, k = r.shape[:2]
     basis = field_basis(m.positions, m.rotations, np.asarray(m.std, dtype=float)[:, :3], min_scale=SMOOTH_SCALE)
     half = max(vib.bandwidth_hz, 0.25)
-    row = {"scenario": sc.name.replace(" | ", ", "), "array": sc.array, "rate_hz": fs, "samples": n, "frequency_hz": vib.frequency_hz,
-           "bandwidth_hz": vib.bandwidth_hz, "evidence": float(b.oracle[-1])}
+    row = {"scenario": sc.name.replace(" | ", ", "), "array": sc.array, "rate_hz": fs, "samples": n,
+           "frequency_hz": vib.frequency_hz, "bandwidth_hz": vib.bandwidth_hz, "evidence": float(b.oracle[-1])}
     for key, bonf in LAWS.items():
         out = matched_scan(np.where(np.isfinite(r), r, np.nan)[:, :, :3].reshape(n, 3 * k), basis, fs, 1.0,
                            bonferroni=bonf) if basis.shape[1] >= 2 else None
