@@ -14,7 +14,9 @@ After the forward search (:mod:`.search`) :func:`finish_search`
 3. re-tests each IMU of a finding for a simpler hypothesis (:func:`~.eliminate.simplest_adequate`), and when it
    narrowed or replaced one, every finding again as in 2 (a finding narrowed to the one IMU it keeps is tested
    there: the narrowing keeps at least one);
-4. fits the whole recording's motion under the final model when the search ended on a subsample.
+4. names, for each finding holding one value on some of the IMUs, the opposite value on the others when it fits
+   as well up to the fit's gauge (:func:`~.complement.complement_ties`; "indistinguishable", the finding kept);
+5. fits the whole recording's motion under the final model when the search ended on a subsample.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from imu_array_ros.discovery.complement import complement_ties
 from imu_array_ros.discovery.confirm import confirm, refit, update_finding
 from imu_array_ros.discovery.eliminate import backward_eliminate, dropped_notes, simplest_adequate, wald_given_others
 from imu_array_ros.discovery.search import fill, residuals_only
@@ -144,7 +147,7 @@ def _named(clocks) -> str:
 
 def finish_search(samples, model: SensorModel, data, whole, state, start_motion, scores, whole_scores, *, terms,
                   alpha: float, groups, timing, notes: list, say=lambda text: None) -> Finished:
-    """Steps 0-4 of the module docstring.  samples: the whole recording; model: the input model (the findings are
+    """Steps 0-5 of the module docstring.  samples: the whole recording; model: the input model (the findings are
     changes from it); data: the SearchData the search ended on, whole: the whole recording's; state: the
     SearchState (its rejected and notes extended here); start_motion: the motion the search started from (filled
     in where a subsample left samples out); scores / whole_scores: residuals_only of ``data`` under the search's
@@ -175,6 +178,7 @@ def finish_search(samples, model: SensorModel, data, whole, state, start_motion,
         notes += dropped_notes(again)
         dropped += again
     state.rejected += dropped + simpler
+    complement_ties(data.samples, model, findings, motion, alpha, state.indist, say)  # 4
     if dropped or simpler or clock_fit is not None:
         motion, _, _ = fit_motion(data.samples, current, motion)
         scores, whole_scores = residuals_only(data.samples, current, motion, data.blocks), None
