@@ -4,10 +4,11 @@ Generator: :func:`imu_array_ros.simulation.suites.draw_suite` from ``--seed`` (a
 per class ``--per-class`` scenarios, random array (4 planar, 8 corner, 32), rate (62.5-1000 Hz), session
 (icosahedron rests + twisting, or twisting only; tens of seconds), placement and scope; effect classes single,
 shared (every IMU one value), group, pair (strong + weak partner), drift (slow drift or constant bias),
+both (a constant bias and a drift of the same sensor of one IMU: the harder one's evidence bins it),
 vibration (out-of-library board mode growing with distance from the centre), and ``--nulls`` null recordings.
 Every effect is sized by oracle evidence (2 delta log-likelihood of the true effect's refit along its true
 shape after motion absorption; target log-uniform in ``--evidence``) and binned by its realised evidence on the
-noisy recording (a pair: its weak partner's).  Every recording is analysed with the nominal model by
+noisy recording (a pair: its weak partner's; both: the smaller).  Every recording is analysed with the nominal model by
 :func:`imu_array_ros.discovery.discover.discover` with its defaults except the held-out refit of the findings
 (``heldout=False``, a report figure that does not change the findings).
 
@@ -49,7 +50,7 @@ OUT = RESULTS / "discovery_generalisation"
 #: before any discovery code was scored on it
 SEED = 621165
 BINS = (0.0, 10.0, 30.0, 100.0, 300.0, 1000.0, np.inf)
-LIBRARY = ("single", "shared", "group", "pair", "drift")
+LIBRARY = ("single", "shared", "group", "pair", "drift", "both")
 
 
 def run_job(job: tuple[int, str, int, tuple[float, float]]) -> dict:

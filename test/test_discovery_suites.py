@@ -39,6 +39,12 @@ def test_draws_respect_the_ranges():
             assert len(s.effects) == 2 and s.effects[0].term != s.effects[1].term
             assert s.effects[0].imus != s.effects[1].imus
             assert 3.0 <= targets[0] / targets[1] <= 10.0 and lo <= targets[1] <= hi
+        elif s.cls == "both":  # a constant bias and a drift of the same sensor of one IMU
+            bias, drift = s.effects
+            assert bias.term == f"{s.variant}_bias" and drift.term == "bias_drift" and bias.imus == drift.imus
+            cols = slice(0, 3) if s.variant == "accelerometer" else slice(3, 6)
+            assert np.any(drift.direction[cols]) and not np.any(np.delete(drift.direction, np.r_[cols]))
+            assert 1 / 3 <= targets[0] / targets[1] <= 3.0 and lo <= targets[1] <= hi
         elif s.cls == "null":
             assert not targets
         else:
@@ -52,6 +58,18 @@ def test_draws_respect_the_ranges():
     assert {s.array for s in scs} == set(suites.ARRAYS)
     assert {s.still_poses for s in scs} == {True, False}
     assert {s.variant for s in scs if s.cls == "drift"} == {"drift", "constant"}
+    assert {s.variant for s in scs if s.cls == "both"} == {"accelerometer", "gyroscope"}
+
+
+def test_a_class_added_later_changes_no_earlier_draw():
+    """Each class draws from its own stream id (suites._STREAM): the vibration and null draws are those of the
+    suite before the class 'both' was added (its ids 5 and 6 then were their places in CLASSES)."""
+    ids = {"vibration": 5, "null": 6}
+    for cls, sid in ids.items():
+        for index in range(4):
+            session = suites._session(np.random.default_rng([99, sid, index, 23]), cls)
+            sc = draw_scenario(99, cls, index)
+            assert {key: getattr(sc, key) for key in session} == session
 
 
 def _small(cls, effects=(), vibration=None, seed=5):

@@ -15,7 +15,8 @@
   value on a group of IMUs: a side, a half, the outer ring, or a random set),
   ``pair`` (two terms on two IMUs, a strong and a weak partner 3-10x apart in
   evidence), ``drift`` (a slow linear bias drift of one sensor, or a constant
-  bias: which one it is), ``vibration`` (outside the library: a narrowband board
+  bias: which one it is), ``both`` (a constant bias and a slow drift of the same
+  sensor of one IMU, each sized on its own: both must be named), ``vibration`` (outside the library: a narrowband board
   mode anywhere up to 0.4 x the sample rate whose amplitude grows with distance
   from the centre, a random mix of the quadratic mode shapes r^2, xy, x^2 - y^2,
   mostly out of plane) and ``null`` (nothing; shorter sessions).
@@ -63,7 +64,9 @@ from imu_array_ros.simulation.suite_score import score
 __all__ = ["CLASSES", "ARRAYS", "RATES", "LIBRARY_TERMS", "SHARED_TERMS", "Effect", "Vibration", "SuiteScenario",
            "BuiltScenario", "draw_suite", "draw_scenario", "build", "score", "array_description", "UnsizableEffect"]
 
-CLASSES = ("single", "shared", "group", "pair", "drift", "vibration", "null")
+CLASSES = ("single", "shared", "group", "pair", "drift", "both", "vibration", "null")
+#: each class's random stream id (a class added later gets a new id, so no earlier draw changes)
+_STREAM = {"single": 0, "shared": 1, "group": 2, "pair": 3, "drift": 4, "vibration": 5, "null": 6, "both": 7}
 ARRAYS = ("planar4", "corners8", "grid32")
 IMUS = {"planar4": 4, "corners8": 8, "grid32": 32}
 RATES = (62.5, 100.0, 200.0, 500.0, 1000.0)
@@ -116,7 +119,8 @@ class Vibration:
 class SuiteScenario:
     """name; cls (one of CLASSES); array (one of ARRAYS); rate_hz; still_poses (20 icosahedron rests of still_s
     joined by transition_s, then twist_s of twisting; else twist_s of twisting only); effects; vibration;
-    seed (of the recording's motion and noise); variant: class detail (drift: 'drift' or 'constant')."""
+    seed (of the recording's motion and noise); variant: class detail (drift: 'drift' or 'constant'; both: the
+    sensor)."""
 
     name: str
     cls: str
@@ -212,7 +216,7 @@ def draw_scenario(seed: int, cls: str, index: int, *, evidence=(10.0, 1000.0)) -
     evidence (log-uniform; the pair's weak partner, its strong one 3-10x above)."""
     if cls not in CLASSES:
         raise ValueError(f"unknown class {cls!r} (known: {', '.join(CLASSES)})")
-    rng = np.random.default_rng([int(seed), CLASSES.index(cls), int(index), 23])
+    rng = np.random.default_rng([int(seed), _STREAM[cls], int(index), 23])
     s = _session(rng, cls)
     k = IMUS[s["array"]]
     positions = array_description(s["array"]).positions
@@ -245,6 +249,11 @@ def draw_scenario(seed: int, cls: str, index: int, *, evidence=(10.0, 1000.0)) -
         sensor = str(rng.choice(["accelerometer", "gyroscope"]))
         term = "bias_drift" if variant == "drift" else f"{sensor}_bias"
         effects = [Effect(term, (int(rng.integers(k)),), _direction(rng, term, sensor), e)]
+    elif cls == "both":  # the drift at the drawn evidence, the constant bias at 1/3-3x it
+        variant = sensor = str(rng.choice(["accelerometer", "gyroscope"]))
+        imu = (int(rng.integers(k)),)
+        effects = [Effect(f"{sensor}_bias", imu, _direction(rng, f"{sensor}_bias"), e * _log_uniform(rng, 1 / 3, 3)),
+                   Effect("bias_drift", imu, _direction(rng, "bias_drift", sensor), e)]
     elif cls == "vibration":
         d = np.array([0.0, 0.0, 1.0]) + rng.normal(0.0, 0.3, 3)
         vib = Vibration(_log_uniform(rng, 3.0, 0.4 * s["rate_hz"]), float(rng.uniform(0.2, 2.0)),
