@@ -65,7 +65,9 @@ def test_motion_fit_keeps_the_remainders_and_the_answer(case, monkeypatch, chunk
         with reading_rates():  # from a perturbed start: several rounds, steps halved on some samples
             return fit_motion(samples, clocked, motion * (1 + 0.02 * np.cos(np.arange(len(motion))))[:, None])
     (long, n_long), (short, n_short) = _both(monkeypatch, run)
-    assert n_short < n_long / 2  # the kept remainders were read
+    # the kept remainders were read (one Gauss-Newton step per round since rounds.MOTION_ROUND_STEPS: fewer passes
+    # per held trajectory to read them, 12 computed against 20 in one chunk; without the cache the counts are equal)
+    assert n_short < n_long
     assert np.array_equal(short.motion, long.motion, equal_nan=True)  # bit for bit
     assert np.array_equal(short.residuals, long.residuals, equal_nan=True)
     assert short.loglik == long.loglik and short.rounds == long.rounds and short.converged == long.converged

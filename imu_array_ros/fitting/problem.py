@@ -444,15 +444,17 @@ class Problem:
         return np.concatenate([z, np.zeros((len(z), RATES))], axis=1) if self.clock else z
 
     def fit_motion(self, model: SensorModel, motion: np.ndarray, tolerance: float = 1e-4,
-                   lin: Linearization | None = None):
+                   lin: Linearization | None = None, *, iterations: int = MOTION_ITERATIONS,
+                   last_lin: bool = True):
         """Motion-only Gauss-Newton for fixed parameters (batched 9x9 steps), step halving per sample, until the
         mean squared whitened step of the samples whose step is exact (:attr:`Linearization.exact`) is below
-        ``tolerance`` squared, at most ``MOTION_ITERATIONS`` steps; ``lin``: the motion-only linearisation at
+        ``tolerance`` squared, at most ``iterations`` steps; ``lin``: the motion-only linearisation at
         ``motion`` when the caller has it.
 
         Returns the motion and the motion-only linearisation at it (whose ``ok`` flags the samples that
-        identify their motion)."""
-        for i in range(MOTION_ITERATIONS):
+        identify their motion); ``last_lin`` False: None in its place when the steps ran out (a caller that
+        linearises at the motion anyway, on another trajectory: one pass over every sample less)."""
+        for i in range(iterations):
             lin = self.linearize(model, motion, free=False) if i or lin is None else lin
             if not lin.exact.any() or np.mean(np.sum(lin.h[lin.exact] ** 2, axis=1)) < tolerance ** 2:
                 return motion, lin
@@ -475,4 +477,4 @@ class Problem:
                     break
                 t *= 0.5
             motion = new
-        return motion, self.linearize(model, motion, free=False)
+        return motion, self.linearize(model, motion, free=False) if last_lin else None

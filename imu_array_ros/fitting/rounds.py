@@ -21,7 +21,8 @@ says so (``converged`` False), and the result is always the linearisation on the
 log-likelihood, its Cramer-Rao bound).  Measured: benchmarks/results/timing_rounds.md.
 
 :func:`motion_rounds` is the same fixed point for the motion alone (every term held: ``fit_motion``, and the start
-of ``fit_terms``): rounds of (hold the motion's trajectory, Gauss-Newton on the motion) until one Gauss-Newton step
+of ``fit_terms``): rounds of (hold the motion's trajectory, ``MOTION_ROUND_STEPS`` Gauss-Newton step on the motion:
+solving the held trajectory's problem further bought nothing, the next round re-freezes) until one Gauss-Newton step
 of the motion-only problem at the motion's own trajectory moves no sample's motion by ROUND_STD of its standard
 deviation (the norm of the sample's whitened step bounds every coordinate's) and would gain less than ROUND_GAIN
 log-likelihood over the recording (:func:`motion_gap`); at most TIMING_ROUNDS rounds.  The loop before stopped
@@ -40,8 +41,8 @@ from imu_array_ros.fitting.optimiser import inverse, levenberg_marquardt
 from imu_array_ros.fitting.problem import Linearization, Problem
 from imu_array_ros.model.sensor_model import SensorModel
 
-__all__ = ["TIMING_ROUNDS", "ROUND_STD", "ROUND_GAIN", "ANDERSON_DEPTH", "RoundLog", "timing_rounds",
-           "fixed_point_gap", "motion_gap", "motion_rounds"]
+__all__ = ["TIMING_ROUNDS", "ROUND_STD", "ROUND_GAIN", "ANDERSON_DEPTH", "MOTION_ROUND_STEPS", "RoundLog",
+           "timing_rounds", "fixed_point_gap", "motion_gap", "motion_rounds"]
 
 #: at most this many trajectory rounds (re-freeze and optimise again) after the first optimisation
 TIMING_ROUNDS = 60
@@ -49,6 +50,9 @@ TIMING_ROUNDS = 60
 ROUND_STD = 0.05
 #: ... and gains less than this log-likelihood (or the caller's cost_tolerance when larger)
 ROUND_GAIN = 0.05
+#: Gauss-Newton steps of the motion on each held trajectory in :func:`motion_rounds` (before 2026-11-29: to the
+#: optimiser's tolerance; benchmarks/results/discovery_speed.md: the same rounds, a third of the passes)
+MOTION_ROUND_STEPS = 1
 #: a round whose self-consistent step exceeds this many std is far from the fixed point: FAR_ITERATIONS steps
 NEAR_STD = 1.0
 FAR_ITERATIONS = 3
@@ -122,9 +126,10 @@ def motion_rounds(prob: Problem, model: SensorModel, motion: np.ndarray, *, roun
             break
         if k == rounds:
             break
-        motion, lin = prob.fit_motion(model, motion, lin=lin)
+        # the next round re-freezes at the motion found: a held trajectory's own fit is not worth solving further
+        motion, lin = prob.fit_motion(model, motion, lin=lin, iterations=MOTION_ROUND_STEPS, last_lin=False)
         if log is not None:
-            log.cost.append(lin.cost)
+            log.cost.append(np.nan if lin is None else lin.cost)
     return motion, lin, converged, k
 
 
