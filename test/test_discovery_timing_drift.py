@@ -211,6 +211,26 @@ def test_backward_elimination_drops_a_finding_the_others_make_redundant(nominal,
     assert len(kept) == 2 and not dropped and len(calls) == 1
 
 
+def test_backward_elimination_retests_at_alpha_over_the_findings(nominal, monkeypatch):
+    """A bias admitted at a strict step level (1e-5: alpha over that step's candidates), given the drift found
+    after it 2.5 std per axis from the start (W 18.75 on 3 dof, p 3.1e-4): a real effect the drift took most of
+    the information of.  Re-tested at the larger of its admission level and alpha / 2 findings (0.005) it is kept;
+    at p above alpha / 2 it is dropped, and the reason names both levels."""
+    from imu_array_ros.discovery import confirm, eliminate
+
+    monkeypatch.setattr(confirm, "fit_terms", lambda *a, **k: _fake_fit(nominal, 0.0, 20.0))
+    assert eliminate.backward_level(1e-5, 0.01, 2) == 0.005 and eliminate.backward_level(0.01, 0.01, 4) == 0.01
+    found = [_fake_finding("gyroscope_bias", 1), _fake_finding("bias_drift", 2)]
+    kept, dropped, _, _, _ = eliminate.backward_eliminate(None, nominal, found, _fake_fit(nominal, 2.5, 20.0),
+                                                          np.zeros((4, 9)), [1e-5, 1e-5], 0.01)
+    assert len(kept) == 2 and not dropped
+    found = [_fake_finding("gyroscope_bias", 1), _fake_finding("bias_drift", 2)]
+    kept, dropped, _, _, _ = eliminate.backward_eliminate(None, nominal, found, _fake_fit(nominal, 1.9, 20.0),
+                                                          np.zeros((4, 9)), [1e-5, 1e-5], 0.01)
+    assert [r["effect"] for r in dropped] == ["gyroscope_bias"] and 0.005 < dropped[0]["p"] < 0.05
+    assert "admitted at, 1e-05, and alpha / 2 findings" in dropped[0]["reason"]
+
+
 def test_exact_fits_say_their_progress_and_the_cap_is_noted(nominal, monkeypatch):
     """The exact refits say their iterations (throttled; here every one) and a search ended by max_findings
     says so in the notes; a search that ends by itself does not."""

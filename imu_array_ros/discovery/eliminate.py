@@ -12,9 +12,15 @@ every sensor, which the fit fixes by holding one sensor's at whatever value it w
 is tested on its shared value when the tie test accepts one (:func:`~.scopes.tie_test`), else on every IMU's
 values.
 
-The finding with the largest p-value among those no longer significant at the level they were admitted
-at (the Bonferroni level of their step) is dropped, the others refitted exactly without it, and the test
-repeated until every finding left passes.  Each drop is reported (``rejected``, reason given).
+The finding with the largest p-value among those no longer significant is dropped, the others refitted
+exactly without it, and the test repeated until every finding left passes.  Each drop is reported
+(``rejected``, reason given).  A finding is still significant at :func:`backward_level`: the larger of the
+level it was admitted at (the Bonferroni level of its step, alpha over that step's candidates) and alpha over
+the findings re-tested.  The re-test is of m hypotheses chosen before it, not a choice among the step's
+candidates again: a finding the others make redundant has a p-value about uniform given them and is kept
+with probability about alpha / m; at the admission level alone a true constant bias found before a true
+drift of the same sensor, which takes three quarters of its information (their columns correlate 0.87), was
+dropped at p = 8.6e-5 against 7.5e-5 (planar4, 40 s; both at oracle evidence >= 100).
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from imu_array_ros.errors import CalibrationError
 from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.model.terms import REGISTRY
 
-__all__ = ["wald_given_others", "backward_eliminate", "dropped_notes", "simplest_adequate"]
+__all__ = ["wald_given_others", "backward_eliminate", "backward_level", "dropped_notes", "simplest_adequate"]
 
 
 def wald_given_others(fit, f, base: SensorModel, alpha: float) -> tuple[float, int, float]:
@@ -69,6 +75,12 @@ def _shared_covariance(fit, term: str, imus) -> np.ndarray | None:
     return np.linalg.pinv(t.T @ w @ t, hermitian=True)
 
 
+def backward_level(admitted: float, alpha: float, retested: int) -> float:
+    """The level a finding admitted at ``admitted`` is re-tested at among ``retested`` findings (module
+    docstring): the larger of ``admitted`` and alpha / retested."""
+    return max(float(admitted), float(alpha) / max(int(retested), 1))
+
+
 def backward_eliminate(samples, start: SensorModel, findings: list, fit, motion, levels, alpha: float,
                        say=lambda text: None):
     """Drop, one at a time, the findings no longer significant given all the others (module docstring).
@@ -80,14 +92,16 @@ def backward_eliminate(samples, start: SensorModel, findings: list, fit, motion,
     kept, dropped, current = list(findings), [], fit.model if fit is not None else start
     while kept and fit is not None:
         tests = [(f, *wald_given_others(fit, f, start, alpha)) for f in kept]
-        weak = [(p, f, stat, dof) for f, stat, dof, p in tests if not p < levels[f.step - 1]]
+        weak = [(p, f, stat, dof) for f, stat, dof, p in tests
+                if not p < backward_level(levels[f.step - 1], alpha, len(kept))]
         if not weak:
             break
         p, f, stat, dof = max(weak, key=lambda x: x[0])
-        level = levels[f.step - 1]
+        level = backward_level(levels[f.step - 1], alpha, len(kept))
         reason = (f"dropped after the forward search: given the other findings its parameters' Wald test "
-                  f"(joint exact fit, CRB) gives {stat:.3g} on {dof} dof, p = {p:.3g} >= {level:.2g}, the level "
-                  f"it was admitted at")
+                  f"(joint exact fit, CRB) gives {stat:.3g} on {dof} dof, p = {p:.3g} >= {level:.2g} (the larger "
+                  f"of the level it was admitted at, {levels[f.step - 1]:.2g}, and alpha / {len(kept)} findings "
+                  f"re-tested)")
         say(f"backward: {f.effect} on {f.sensor} no longer needed given the others (p {p:.2g}); dropped")
         dropped.append({"effect": f.effect, "sensors": list(f.candidate.sensors), "scope": f.scope,
                         "step": f.step, "reason": reason, "statistic": stat, "dof": dof, "p": p})
