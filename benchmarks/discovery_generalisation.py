@@ -6,6 +6,8 @@ per class ``--per-class`` scenarios, random array (4 planar, 8 corner, 32), rate
 shared (every IMU one value), group, pair (strong + weak partner), drift (slow drift or constant bias),
 both (a constant bias and a drift of the same sensor of one IMU: the harder one's evidence bins it),
 vibration (out-of-library board mode growing with distance from the centre), and ``--nulls`` null recordings.
+``--unseen``: every scenario on an array and at a rate the suite never draws (5-16 IMUs at random 3D positions
+and orientations, 80-400 Hz): what a suite made elsewhere may use.
 Every effect is sized by oracle evidence (2 delta log-likelihood of the true effect's refit along its true
 shape after motion absorption; target log-uniform in ``--evidence``) and binned by its realised evidence on the
 noisy recording (a pair: its weak partner's; both: the smaller).  Every recording is analysed with the nominal model by
@@ -53,13 +55,13 @@ BINS = (0.0, 10.0, 30.0, 100.0, 300.0, 1000.0, np.inf)
 LIBRARY = ("single", "shared", "group", "pair", "drift", "both")
 
 
-def run_job(job: tuple[int, str, int, tuple[float, float]]) -> dict:
+def run_job(job: tuple[int, str, int, tuple[float, float], bool]) -> dict:
     from imu_array_ros.discovery.discover import DiscoveryOptions, discover
     from imu_array_ros.simulation.suites import build, draw_scenario, score
 
-    seed, cls, index, evidence = job
+    seed, cls, index, evidence, unseen = job
     t0 = time.perf_counter()
-    sc = draw_scenario(seed, cls, index, evidence=evidence)
+    sc = draw_scenario(seed, cls, index, evidence=evidence, unseen=unseen)
     try:
         built = build(sc)
     except ValueError as err:  # UnsizableEffect: reported, not scored
@@ -101,6 +103,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
                     help="effect classes to draw (default every class but null; the nulls: --nulls)")
+    ap.add_argument("--unseen", action="store_true",
+                    help="arrays and rates the suite never draws: 5-16 IMUs at random 3D positions and orientations, "
+                         "80-400 Hz (simulation.suites.UNSEEN_RATES)")
     ap.add_argument("--quick", action="store_true", help="1 per class, 3 nulls, written to /tmp")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--render", action="store_true", help="only re-write the .md and .png from the saved .json")
@@ -133,10 +138,10 @@ def main(argv: list[str] | None = None) -> int:
         f"load average at the start: {load_average()}"])
     ev = tuple(args.evidence)
     # index-major, the nulls spread through: a run stopped early (--render) still covers every class evenly
-    jobs = [(args.seed, c, i, ev) for i in range(args.per_class) for c in classes]
+    jobs = [(args.seed, c, i, ev, args.unseen) for i in range(args.per_class) for c in classes]
     step = max(1, len(jobs) // max(args.nulls, 1))
     for i in range(args.nulls):
-        jobs.insert(min(len(jobs), (i + 1) * (step + 1) - 1), (args.seed, "null", i, ev))
+        jobs.insert(min(len(jobs), (i + 1) * (step + 1) - 1), (args.seed, "null", i, ev, args.unseen))
     settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()
                 if k not in ("out", "render", "baseline")}
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from imu_array_ros.fitting.engine import fit_terms
+from imu_array_ros.model.sensor_model import SensorModel
 from imu_array_ros.simulation import suites
 from imu_array_ros.simulation.suites import (CLASSES, BuiltScenario, Effect, SuiteScenario, Vibration, build,
                                              draw_scenario, draw_suite, score)
@@ -233,3 +234,24 @@ def test_magnitudes_of_a_pooled_gain_are_its_change_from_nominal():
     own = SimpleNamespace(effect="accelerometer_gain", k=1, sensor="imu_02", values=np.array([1.0023, 0.999, 1.001]),
                           std=std, to_dict=lambda: {"sensors": ["imu_02"]})
     assert abs(score(b, _discovery([own]))["max_abs_z"]["accelerometer_gain@imu_02"] - 3.0) < 1e-6
+
+
+def test_unseen_draws_use_arrays_and_rates_the_suite_never_draws():
+    """unseen=True: a random array (5-16 IMUs, 3D positions within 4 cm, orientations off the identity) at a rate
+    outside suites.RATES, deterministic per (seed, class, index), its own stream: the default draw is unchanged."""
+    scs = draw_suite(31, 3, nulls=3, unseen=True)
+    assert scs == draw_suite(31, 3, nulls=3, unseen=True)
+    for s in scs:
+        assert s.array.startswith("random-") and s.rate_hz in suites.UNSEEN_RATES and s.rate_hz not in suites.RATES
+        d = suites.array_description(s.array)
+        k = suites.imu_count(s.array)
+        assert 5 <= k <= 16 and len(d.imus) == k
+        rot = SensorModel.from_description(d).rotations
+        assert np.all(np.abs(np.trace(rot, axis1=1, axis2=2) - 3.0) > 1e-6)  # every IMU rotated
+        assert np.ptp(d.positions, axis=0).min() > 1e-3 and np.abs(d.positions).max() <= 0.02
+        assert s.duration_s * s.rate_hz * k <= suites.READINGS_CAP * 1.001
+        for e in s.effects:
+            assert all(0 <= i < k for i in e.imus)
+    assert len({s.array for s in scs}) == len(scs)
+    assert draw_scenario(31, "pair", 1) != draw_scenario(31, "pair", 1, unseen=True)
+    assert draw_scenario(31, "pair", 1).array in suites.ARRAYS

@@ -6,6 +6,8 @@
 * an **array**: 4 planar IMUs (:func:`~imu_array_ros.model.layouts.planar_square4`),
   the 8 corner IMUs of the MIMU4444BT (``config/mimu4444bt_corners.yaml``) or 32
   (:func:`~imu_array_ros.model.layouts.grid_array32`);
+  -- or, with ``unseen=True``, an array none of them is (:data:`UNSEEN`: 5-16 IMUs at random 3D positions
+  within 4 cm, each at a random orientation) at a rate none of them uses (:data:`UNSEEN_RATES`);
 * a **rate** from :data:`RATES` (62.5-1000 Hz) and a **session**: 20 icosahedron
   rests then hand twisting, or hand twisting only; durations of a few tens of
   seconds, shortened (then lower rates only) so that samples x IMUs stays under
@@ -62,7 +64,8 @@ from imu_array_ros.simulation.perturb import TERM_TEST_SIZES
 from imu_array_ros.simulation.suite_score import score
 
 __all__ = ["CLASSES", "ARRAYS", "RATES", "LIBRARY_TERMS", "SHARED_TERMS", "Effect", "Vibration", "SuiteScenario",
-           "BuiltScenario", "draw_suite", "draw_scenario", "build", "score", "array_description", "UnsizableEffect"]
+           "BuiltScenario", "draw_suite", "draw_scenario", "build", "score", "array_description", "imu_count",
+           "UnsizableEffect", "UNSEEN", "UNSEEN_RATES"]
 
 CLASSES = ("single", "shared", "group", "pair", "drift", "both", "vibration", "null")
 #: each class's random stream id (a class added later gets a new id, so no earlier draw changes)
@@ -70,6 +73,9 @@ _STREAM = {"single": 0, "shared": 1, "group": 2, "pair": 3, "drift": 4, "vibrati
 ARRAYS = ("planar4", "corners8", "grid32")
 IMUS = {"planar4": 4, "corners8": 8, "grid32": 32}
 RATES = (62.5, 100.0, 200.0, 500.0, 1000.0)
+#: the arrays of ``unseen`` draws: "random-<seed>" (:func:`array_description`), at these rates
+UNSEEN = "random"
+UNSEEN_RATES = (80.0, 125.0, 250.0, 400.0)
 #: samples x IMUs of one recording at most (CPU): longer sessions are shortened, then lower rates drawn
 READINGS_CAP = 120_000
 #: the library terms drawn (the candidates of discovery when the suite was written; fixed, so the suite does
@@ -143,10 +149,17 @@ class SuiteScenario:
 # --------------------------------------------------------------------------------------------- drawing
 
 def array_description(array: str):
-    """The ArrayDescription of an ARRAYS key."""
+    """The ArrayDescription of an ARRAYS key, or of "random-<seed>": 5-16 IMUs at random positions in a 4 cm
+    cube, each at a random orientation (uniform on SO(3)), drawn from the seed."""
     from imu_array_ros.model.description import load_description
-    from imu_array_ros.model.layouts import grid_array32, planar_square4
+    from imu_array_ros.model.layouts import grid_array32, make_description, planar_square4
 
+    if array.startswith(UNSEEN + "-") and array[len(UNSEEN) + 1:].isdigit():
+        from scipy.spatial.transform import Rotation
+
+        rng = np.random.default_rng([int(array[len(UNSEEN) + 1:]), 5])
+        k = int(rng.integers(5, 17))
+        return make_description(rng.uniform(-0.02, 0.02, (k, 3)), Rotation.random(k, random_state=rng).as_matrix())
     if array == "planar4":
         return planar_square4()
     if array == "grid32":
@@ -160,9 +173,14 @@ def _log_uniform(rng, lo: float, hi: float) -> float:
     return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
 
-def _session(rng, cls: str) -> dict:
-    array = str(rng.choice(ARRAYS))
-    k = IMUS[array]
+def imu_count(array: str) -> int:
+    """The number of IMUs of an array key (:func:`array_description`)."""
+    return IMUS[array] if array in IMUS else len(array_description(array).imus)
+
+
+def _session(rng, cls: str, unseen: bool = False) -> dict:
+    array = f"{UNSEEN}-{int(rng.integers(2**31))}" if unseen else str(rng.choice(ARRAYS))
+    k = imu_count(array)
     still = bool(rng.random() < 0.5)
     short = cls == "null"
     if still:
@@ -173,7 +191,7 @@ def _session(rng, cls: str) -> dict:
         still_s = transition_s = 0.0
         twist = rng.uniform(8.0, 15.0) if short else rng.uniform(15.0, 40.0)
         fixed, least = 0.0, 8.0
-    rates = [r for r in RATES if (fixed + least) * r * k <= READINGS_CAP]
+    rates = [r for r in (UNSEEN_RATES if unseen else RATES) if (fixed + least) * r * k <= READINGS_CAP]
     rate = float(rng.choice(rates))
     twist = float(min(twist, READINGS_CAP / (rate * k) - fixed))
     return dict(array=array, rate_hz=rate, still_poses=still, still_s=float(still_s),
@@ -211,14 +229,15 @@ def _mode_shape(rng, positions: np.ndarray) -> tuple[float, ...]:
     return tuple(float(v) for v in shape / np.abs(shape).max())
 
 
-def draw_scenario(seed: int, cls: str, index: int, *, evidence=(10.0, 1000.0)) -> SuiteScenario:
+def draw_scenario(seed: int, cls: str, index: int, *, evidence=(10.0, 1000.0), unseen: bool = False) -> SuiteScenario:
     """Scenario ``index`` of class ``cls`` of the suite of ``seed``; evidence: (lo, hi) of the target oracle
-    evidence (log-uniform; the pair's weak partner, its strong one 3-10x above)."""
+    evidence (log-uniform; the pair's weak partner, its strong one 3-10x above); unseen: on a random array at a
+    rate the suite's arrays are not drawn at (module docstring; its own streams)."""
     if cls not in CLASSES:
         raise ValueError(f"unknown class {cls!r} (known: {', '.join(CLASSES)})")
-    rng = np.random.default_rng([int(seed), _STREAM[cls], int(index), 23])
-    s = _session(rng, cls)
-    k = IMUS[s["array"]]
+    rng = np.random.default_rng([int(seed), _STREAM[cls], int(index), 23] + ([int(unseen)] if unseen else []))
+    s = _session(rng, cls, unseen)
+    k = imu_count(s["array"])
     positions = array_description(s["array"]).positions
     lo, hi = evidence
     e = _log_uniform(rng, lo, hi)
@@ -267,10 +286,10 @@ def draw_scenario(seed: int, cls: str, index: int, *, evidence=(10.0, 1000.0)) -
 
 
 def draw_suite(seed: int, per_class: int, *, nulls: int = 50, classes=CLASSES[:-1],
-               evidence=(10.0, 1000.0)) -> list[SuiteScenario]:
+               evidence=(10.0, 1000.0), unseen: bool = False) -> list[SuiteScenario]:
     """``per_class`` scenarios of every class in ``classes`` and ``nulls`` null recordings, drawn from ``seed``."""
-    out = [draw_scenario(seed, c, i, evidence=evidence) for c in classes for i in range(per_class)]
-    return out + [draw_scenario(seed, "null", i, evidence=evidence) for i in range(nulls)]
+    out = [draw_scenario(seed, c, i, evidence=evidence, unseen=unseen) for c in classes for i in range(per_class)]
+    return out + [draw_scenario(seed, "null", i, evidence=evidence, unseen=unseen) for i in range(nulls)]
 
 
 # --------------------------------------------------------------------------------------------- building
