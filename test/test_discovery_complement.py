@@ -43,7 +43,7 @@ def _finding(imus, scope="imu_00,imu_01,imu_02 shared", shared=True):
 def _ties(monkeypatch, model, fit, finding):
     monkeypatch.setattr(complement, "refit", lambda *a, **k: fit)
     out = []
-    n = complement.complement_ties(None, model, [finding], None, 0.01, out)
+    n = complement.complement_ties(None, model, model, [finding], None, 0.01, out)
     assert n == len(out)
     return out
 
@@ -80,5 +80,21 @@ def test_a_complement_already_named_is_not_named_twice(monkeypatch, corners):
                               {"effect": "time_offset", "sensors": [corners.names[k] for k in range(3, 8)]}]}
     monkeypatch.setattr(complement, "refit", lambda *a, **k: _fit(corners, change))
     out = [named]
-    assert complement.complement_ties(None, corners, [_finding((0, 1, 2))], None, 0.01, out) == 0
+    assert complement.complement_ties(None, corners, corners, [_finding((0, 1, 2))], None, 0.01, out) == 0
     assert out == [named]
+
+
+def test_the_refit_starts_from_the_current_model_with_the_term_reset(monkeypatch, corners):
+    """What the search kept beside the findings (the timing stage's clocks; here a changed gyroscope bias) stays
+    in the refit's model; the finding's term starts from the input model's values on every IMU."""
+    change = np.zeros((8, 2))
+    change[:3] = 300e-6
+    kept = corners.terms["gyroscope_bias"].values + 0.01
+    current = corners.with_terms(gyroscope_bias=kept, time_offset=corners.terms["time_offset"].values + change)
+    seen = []
+    monkeypatch.setattr(complement, "refit", lambda samples, model, pairs, motion: seen.append(model) or
+                        _fit(corners, change))
+    complement.complement_ties(None, corners, current, [_finding((0, 1, 2))], None, 0.01, [])
+    (model,) = seen
+    assert np.array_equal(model.terms["gyroscope_bias"].values, kept)
+    assert np.array_equal(model.terms["time_offset"].values, corners.terms["time_offset"].values)

@@ -34,7 +34,7 @@ from __future__ import annotations
 import datetime
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, Sequence
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -158,11 +158,11 @@ class Calibration:
 
     def install(self, desc: ArrayDescription, out: str | Path) -> Installed:
         """Write :meth:`apply` of ``desc`` to ``out`` unless the file there fits better (module docstring)."""
-        new_score = None
-        if self.scorer is not None:
-            new_score = (self.score_of(self.model) if self.score is None else self.score) + self.allowance
+        def new_score() -> float:  # only when a description on file is compared with it
+            return (self.score_of(self.model) if self.score is None else self.score) + self.allowance
+
         return install_description(self.apply(desc), out, score=self.score_of if self.scorer else None,
-                                   new_score=new_score, data=self.data)
+                                   new_score=new_score if self.scorer else None, data=self.data)
 
 
 def check_install_target(out: str | Path, names) -> ArrayDescription | None:
@@ -185,13 +185,15 @@ def check_install_target(out: str | Path, names) -> ArrayDescription | None:
 
 
 def install_description(new: ArrayDescription, out: str | Path, *, score=None,
-                        new_score: float | None = None, data: str = "window") -> Installed:
+                        new_score: float | Callable[[], float] | None = None, data: str = "window") -> Installed:
     """Write ``new`` to ``out`` unless the description already there scores higher than ``new_score``
-    under ``score(description)`` (module docstring); ``data`` names what was scored, for the message."""
+    under ``score(description)`` (module docstring); ``new_score`` may be a function, called only when there is a
+    description to compare with; ``data`` names what was scored, for the message."""
     out = Path(out)
     previous = check_install_target(out, new.names)
     previous_score = None
     if previous is not None and score is not None and new_score is not None:
+        new_score = float(new_score() if callable(new_score) else new_score)
         previous_score = float(score(previous))
         if np.isfinite(previous_score) and previous_score > new_score + LOGLIK_TOLERANCE:
             raise CalibrationError(

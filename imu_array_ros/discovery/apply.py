@@ -22,8 +22,7 @@ import numpy as np
 
 from imu_array_ros.calibration import scoring
 from imu_array_ros.calibration.guards import check_calibration
-from imu_array_ros.calibration.result import LOGLIK_TOLERANCE, Calibration, Installed, check_install_target, \
-    install_description, provenance
+from imu_array_ros.calibration.result import LOGLIK_TOLERANCE, Calibration, Installed, provenance
 from imu_array_ros.discovery.threads import on_one_blas_thread, single_blas_thread
 from imu_array_ros.fitting.problem import Problem
 from imu_array_ros.model.description import ArrayDescription
@@ -114,9 +113,6 @@ def findings_calibration(discovery, samples: ImuSamples, source: str | None = No
 
 def install_findings(cal: Calibration, desc: ArrayDescription, out: str | Path) -> Installed:
     """``cal.install(desc, out)`` on one BLAS thread (scoring a calibration on file is a whole-recording fit); the
-    new model is scored only when a description on file is compared with it (with none there
-    :func:`~imu_array_ros.calibration.result.install_description` reads no score)."""
+    new model is scored only when a description on file is compared with it (``Calibration.install``)."""
     with single_blas_thread():
-        if cal.score is None and check_install_target(out, desc.names) is None:
-            return install_description(cal.apply(desc), out, data=cal.data)
         return cal.install(desc, out)

@@ -295,7 +295,6 @@ def shape_estimate(fld: np.ndarray, basis: np.ndarray, level: float = LEAD_LEVEL
     k = basis.shape[0] // 3
     per_seg = np.einsum("lwa,lwb->lab", fld, np.conj(fld))              # (L, V, V)
     g = per_seg.sum(axis=0)
-    loo = g[None] - per_seg if len(per_seg) > 2 else g[None]
 
     def magnitudes(mats):
         u = np.linalg.eigh(mats)[1][..., -1]                            # (B, V) unit leading eigenvectors
@@ -307,8 +306,8 @@ def shape_estimate(fld: np.ndarray, basis: np.ndarray, level: float = LEAD_LEVEL
     diff = full[lead] - full
     lead_set = np.zeros(k, dtype=bool)
     lead_set[lead] = True
-    if len(loo) > 2:
-        d = magnitudes(loo)[0]
+    if len(per_seg) > 2:
+        d = magnitudes(g[None] - per_seg)[0]                              # each Welch segment left out
         d = d[:, lead:lead + 1] - d                                      # (L, K)
         se = np.sqrt((len(d) - 1) / len(d) * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
         lead_set |= diff <= stats.norm.isf(level) * se

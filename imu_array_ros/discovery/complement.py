@@ -27,16 +27,18 @@ from imu_array_ros.model.terms import REGISTRY
 __all__ = ["complement_ties"]
 
 
-def complement_ties(samples, start, findings: list, motion, alpha: float, indist: list, say=lambda text: None) -> int:
+def complement_ties(samples, start, current, findings: list, motion, alpha: float, indist: list,
+                    say=lambda text: None) -> int:
     """Append to ``indist`` an entry for each finding of ``findings`` (discover.Finding, changes from ``start``,
-    fitted on ``samples`` with ``motion``) whose complement fits as well up to the gauge (module docstring).
-    Returns the number of entries added."""
+    fitted on ``samples`` with ``motion``; ``current`` the model with them and whatever else the search kept, the
+    timing stage's clocks) whose complement fits as well up to the gauge (module docstring).  Returns the number
+    of entries added."""
     k_all = start.n_imus
     names = list(start.names)
     added = 0
     for f in findings:
         imus = tuple(int(k) for k in f.imus)
-        if f.scope == "imu" or not getattr(f, "shared", False) or not 2 <= len(imus) <= k_all - 2:
+        if f.scope == "imu" or not f.shared or not 2 <= len(imus) <= k_all - 2:
             continue
         if any(g is not f and g.effect == f.effect for g in findings):
             continue  # another finding of the term: "nothing elsewhere" would not hold
@@ -45,9 +47,10 @@ def complement_ties(samples, start, findings: list, motion, alpha: float, indist
         if any({"effect": f.effect, "sensors": other} in (e.get("alternatives") or []) for e in indist):
             continue  # already named (the narrowing tried every subset of a small scope)
         say(f"complement: {f.effect} on {len(imus)} IMUs against its complement ({len(comp)}), the term free on all")
+        base = np.asarray(start.terms[f.effect].values, dtype=float)
         pairs = [(g.effect, g.imus) for g in findings if g is not f] + [(f.effect, tuple(range(k_all)))]
-        try:
-            full = refit(samples, start, pairs, motion)
+        try:  # from the current model, the clocks kept, the term back at its start on every IMU (.eliminate)
+            full = refit(samples, current.with_terms(**{f.effect: base}), pairs, motion)
         except CalibrationError:
             continue
         idx = term_indexes(full, f.effect, range(k_all))
@@ -55,8 +58,7 @@ def complement_ties(samples, start, findings: list, motion, alpha: float, indist
         if basis.shape[1] == 0:
             continue  # no gauge freedom moves the term: the complement is another model
         p = REGISTRY[f.effect].dim()
-        base = np.asarray(start.terms[f.effect].values, dtype=float).reshape(-1) if f.effect in start.terms else 0.0
-        d = full.theta[idx] - base
+        d = full.theta[idx] - base.reshape(-1)
         sets = np.zeros((2, k_all), dtype=bool)
         sets[0, list(imus)] = True
         sets[1, list(comp)] = True

@@ -178,7 +178,7 @@ def finish_search(samples, model: SensorModel, data, whole, state, start_motion,
         notes += dropped_notes(again)
         dropped += again
     state.rejected += dropped + simpler
-    complement_ties(data.samples, model, findings, motion, alpha, state.indist, say)  # 4
+    complement_ties(data.samples, model, current, findings, motion, alpha, state.indist, say)  # 4
     if dropped or simpler or clock_fit is not None:
         motion, _, _ = fit_motion(data.samples, current, motion)
         scores, whole_scores = residuals_only(data.samples, current, motion, data.blocks), None
