@@ -56,8 +56,8 @@ import scipy.stats
 from imu_array_ros.discovery.drift import GIVEN, candidate_blocks
 from imu_array_ros.discovery.scopes import Scope, scoped_blocks
 
-__all__ = ["Candidate", "evaluate_candidates", "evaluate_scopes", "confounded", "added_given", "block_tests", "BIC_GAP",
-           "EIG_RTOL"]
+__all__ = ["Candidate", "evaluate_candidates", "evaluate_scopes", "confounded", "added_given", "block_tests",
+           "increment_test", "BIC_GAP", "EIG_RTOL"]
 
 #: BIC difference (2 ln Bayes factor) below which two candidates count as explaining equally well (Kass & Raftery:
 #: >= 10 is "very strong" evidence for the better one)
@@ -242,7 +242,7 @@ def block_tests(gb: np.ndarray, Sb: np.ndarray, folds: np.ndarray, fold_ids: np.
     return stat, q, lrt_p, log_p, robust_p, heldout, theta
 
 
-def _robust_p(gr: np.ndarray, Sr: np.ndarray, z: np.ndarray, dispersion: bool) -> float:
+def _robust_p(gr: np.ndarray, Sr: np.ndarray, z: np.ndarray, dispersion: bool, tested: int = 0) -> float:
     """Block-robust p-value of the score g = sum_b gr_b (B blocks, q reduced dof, information Sr (B, q, q),
     z = S^-1 g); nan when it cannot be formed.  Blocks are the clusters of a cluster-robust test.
 
@@ -261,40 +261,86 @@ def _robust_p(gr: np.ndarray, Sr: np.ndarray, z: np.ndarray, dispersion: bool) -
       directions, not when only some are.  With ``dispersion`` (asked for by extend.py) nu is the nominal
       q (B - 1) as before: slightly liberal when a few blocks hold the information (2.3 % below 1 % on
       test_block_tests_null's draws, ad hoc), but extend's power was measured with it.
+    ``tested`` > 0: only the last ``tested`` whitened coordinates J are tested, the others nuisance (Cholesky
+    whitening with them first: g_w,J is the efficient score of J given the rest), every sum above restricted to
+    J (V_JJ, Phi_bc,JJ, |w_b,J|^2, (M_b M_c)_JJ) with q -> |J| in the references (:func:`increment_test`).
     The choice depends on the design (Sr) only, never on the scores, so each branch's level is the test's."""
     b, q = gr.shape
+    r = tested or q
+    J = slice(q - r, q)
     Li = np.linalg.inv(np.linalg.cholesky(Sr.sum(axis=0)))
     M = Li @ Sr @ Li.T
     M = 0.5 * (M + np.swapaxes(M, 1, 2))
     w = (gr - Sr @ z) @ Li.T
-    gw = Li @ gr.sum(axis=0)
+    gw = (Li @ gr.sum(axis=0))[J]
     if not dispersion:
         lam, vec = np.linalg.eigh(M)
         if lam.min() < -PSD_TOL or lam.max() > 1.0 + PSD_TOL:  # some S_b is no covariance: Hotelling's, as before
-            t = float(gw @ np.linalg.lstsq(w.T @ w, gw, rcond=None)[0])
-            return float(scipy.stats.f.sf(t * (b - q) / (q * (b - 1)), q, b - q)) if b > q + 1 else float("nan")
+            t = float(gw @ np.linalg.lstsq((w.T @ w)[J, J], gw, rcond=None)[0])
+            return float(scipy.stats.f.sf(t * (b - r) / (r * (b - 1)), r, b - r)) if b > r + 1 else float("nan")
         lam = np.clip(lam, 0.0, 1.0)
         a = np.where(1.0 - lam > 1e-9, 1.0 / np.sqrt(np.maximum(1.0 - lam, 1e-300)), 0.0)  # pseudo-inverse root
         d, p = lam * a * a, lam * a  # eigenvalues of D_b = M_b (I - M_b)^-1 and P_b = M_b (I - M_b)^-1/2
-        P = np.einsum("bij,bj,bkj->bik", vec, p, vec).reshape(b, q * q)
-        R = np.einsum("bij,bj,bkj->ik", vec, p * p, vec)  # sum_b P_b^2
-        G = P @ P.T  # tr(P_b P_c); Phi_bc = delta_bc D_b - P_b P_c
-        trd, trp = d.sum(axis=1), (p * p).sum(axis=1)
-        var = float(np.sum(trd ** 2) - 2 * np.sum(trd * trp) + np.sum(G * G)
-                    + np.sum(d * d) - 2 * np.sum(d * p * p) + np.sum(R * R))
-        eta = q * (q + 1) / var if var > 0 else 0.0
-        if eta - q + 1 >= HTZ_MIN_DOF:
-            wt = np.einsum("bij,bj->bi", vec, a * np.einsum("bji,bj->bi", vec, w))
+        P = np.einsum("bij,bj,bkj->bik", vec, p, vec)
+        D = np.einsum("bij,bj,bkj->bik", vec, d, vec)[:, J, J]
+        PJ = P[:, J, :]
+        R = np.einsum("bji,bjk->ik", PJ, PJ)  # sum_b P_b,.J P_b,J.
+        G = PJ.reshape(b, -1) @ PJ.reshape(b, -1).T  # tr(P_b,J. P_c,.J); Phi_bc = delta_bc D_b - P_b P_c
+        trd, trp = np.trace(D, axis1=1, axis2=2), np.diag(G)
+        var = float(np.sum(trd ** 2) - 2 * np.sum(trd * trp) + np.sum(G * G) + np.sum(D * D)
+                    - 2 * np.einsum("bij,bik,bkj->", D, PJ, np.swapaxes(PJ, 1, 2)) + np.sum(R * R))
+        eta = r * (r + 1) / var if var > 0 else 0.0
+        if eta - r + 1 >= HTZ_MIN_DOF:
+            wt = np.einsum("bij,bj->bi", vec, a * np.einsum("bji,bj->bi", vec, w))[:, J]
             t = float(gw @ np.linalg.lstsq(wt.T @ wt, gw, rcond=None)[0])
-            return float(scipy.stats.f.sf(t * (eta - q + 1) / (eta * q), q, eta - q + 1))
-    M2 = M @ M
-    den = q - float(np.trace(M2, axis1=1, axis2=2).sum())
-    var = 2 * (float(np.sum(M * M)) - 2 * float(np.einsum("bij,bji->", M2, M)) + float(np.sum(M2.sum(axis=0) ** 2)))
+            return float(scipy.stats.f.sf(t * (eta - r + 1) / (eta * r), r, eta - r + 1))
+    MJ, MJJ = M[:, J, :], M[:, J, J]
+    M2 = MJ @ np.swapaxes(MJ, 1, 2)  # (M_b^2)_JJ
+    den = r - float(np.trace(M2, axis1=1, axis2=2).sum())
+    R = np.einsum("bji,bjk->ik", MJ, MJ)  # sum_b M_b,.J M_b,J.
+    var = 2 * (float(np.sum(MJJ * MJJ)) - 2 * float(np.einsum("bij,bji->", M2, MJJ)) + float(np.sum(R * R)))
     if den <= 0 or var <= 0:
         return float("nan")
-    phi = float(np.sum(w * w)) / den
-    nu = 2 * den * den / var if not dispersion else q * (b - 1)  # asked for: the nominal dof, as extend.py measured
-    return float(scipy.stats.f.sf(float(gw @ gw) / (q * phi), q, nu)) if phi > 0 else float("nan")
+    phi = float(np.sum(w[:, J] ** 2)) / den
+    nu = 2 * den * den / var if not dispersion else r * (b - 1)  # asked for: the nominal dof, as extend.py measured
+    return float(scipy.stats.f.sf(float(gw @ gw) / (r * phi), r, nu)) if phi > 0 else float("nan")
+
+
+def increment_test(gb: np.ndarray, Sb: np.ndarray, nuisance: int):
+    """(statistic, dof, robust_p) of what the last coordinates of block scores gb (B, n) and informations
+    Sb (B, n, n) add to the first ``nuisance`` ones, or None when the recording identifies no direction of
+    theirs beyond those.  The identified directions of the whole (as every candidate's, :func:`_reduced`) are
+    made orthonormal in the information metric, the nuisance's identified directions first (their span in
+    those), so the whole information is I and block-diagonal; the rest is the increment (the efficient score
+    g_eta - S_eta,theta S_theta,theta^-1 g_theta in whitened coordinates).  statistic: its score statistic
+    (T_joint - T_nuisance, chi-square on dof under no increment); robust_p: :func:`_robust_p` of the joint fit
+    with only the increment tested (CR2 + HTZ, else the dispersion form with Satterthwaite dof; Hotelling's where
+    some S_b is no covariance; nan when not formed): the residuals are the joint fit's, whose covariance the
+    small-sample corrections are exact for, so the nuisance's estimation is accounted for."""
+    S = Sb.sum(axis=0)
+    Q = _reduced(S)
+    if Q is None:
+        return None
+    W = Q / np.sqrt(np.einsum("ij,ik,kj->j", Q, S, Q))  # W^T S W = I
+    Qs = _reduced(S[:nuisance, :nuisance]) if nuisance else None
+    q_s = 0
+    if Qs is not None:  # the nuisance's identified directions, unit-scaled, in W's coordinates
+        Qs = Qs / np.sqrt(np.einsum("ij,ik,kj->j", Qs, S[:nuisance, :nuisance], Qs))
+        u, sv, _ = np.linalg.svd(W.T @ S[:, :nuisance] @ Qs)
+        q_s = int(np.sum(sv > 1e-6))
+        W = W @ u
+    r = W.shape[1] - q_s
+    if r <= 0:
+        return None
+    gr, Sr = gb @ W, W.T @ Sb @ W
+    Sr = 0.5 * (Sr + np.swapaxes(Sr, 1, 2))
+    g_, S_ = gr.sum(axis=0), Sr.sum(axis=0)
+    stat = float(g_[q_s:] @ np.linalg.solve(S_[q_s:, q_s:], g_[q_s:]))
+    try:
+        p = _robust_p(gr, Sr, np.linalg.solve(S_, g_), False, tested=r) if len(gb) > 1 else float("nan")
+    except np.linalg.LinAlgError:  # not formed: an increment no robust test establishes
+        p = float("nan")
+    return stat, r, p
 
 
 def confounded(sb, best: Candidate, others: list[Candidate], level: float) -> list[dict]:

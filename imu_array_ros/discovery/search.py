@@ -20,6 +20,7 @@ from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, reject
 from imu_array_ros.discovery.drift import drift_confounded
 from imu_array_ros.discovery.explain import added_given, confounded, evaluate_candidates, evaluate_scopes
 from imu_array_ros.discovery.extend import extension_candidates, extension_directions
+from imu_array_ros.discovery.increment import increment_gate
 from imu_array_ros.discovery.scopes import score_given
 from imu_array_ros.discovery.subset import is_own
 from imu_array_ros.fitting.engine import fit_motion, score_blocks
@@ -133,7 +134,8 @@ def robust_gate(sb, cands: list, passing: list, level: float, tied=()) -> tuple:
     out when, given the most likely one, it adds nothing at the step's level (the joint score test of
     :func:`~.explain.confounded`, without its BIC gap: the better one is not taken, so no later step tells them
     apart); where ``sb`` holds no joint information of the two (:func:`~.explain.added_given`), when it puts its
-    term on an IMU it does (an extension: on an IMU beyond the finding it grows).  Runners-up that add something given it are kept."""
+    term on an IMU it does (an extension: on an IMU beyond the finding it grows).  Runners-up that add something
+    given it are kept."""
     likely = [c for c in cands if c.lrt_p < level and c.heldout > 0.0]
     if not likely:
         return passing, None, []
@@ -168,12 +170,21 @@ def _not_established(best, left: list, level: float, step: int, label: str) -> s
     return out
 
 
+def _increment_not_robust(c, simpler, inc, level: float, step: int, label: str) -> str:
+    stat, dof, p = inc
+    p = f"{p:.2g}" if np.isfinite(p) else "not formed"
+    return (f"step {step}: {c.effect} on {c.sensor} left out on {label}: it holds {simpler.effect} on "
+            f"{simpler.sensor}, and what it adds over it (score {stat:.4g} on {dof} dof) fails the block-robust "
+            f"test (robust p = {p}, level {level:.2g}); the simpler one may be taken, the rest tested again given it")
+
+
 def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, say) -> tuple:
     """Forward steps on ``data`` from its score blocks ``sb`` (given the findings in ``state``) until no candidate
     passes, none is confirmed, the cap is reached or the best is implausible.  ``state`` and ``data.motion`` are
     updated in place; returns (score blocks of the last model (residuals only at the cap), why it ended).  Each
     step tests at alpha x ``data.share`` / (its number of candidates); a step that adds no finding leaves
-    ``state.step`` as it was (a later look on more data re-runs it)."""
+    ``state.step`` as it was (a later look on more data re-runs it).  A passing pooled candidate whose increment
+    over a passing simpler one it holds is not block-robust is left out of the step (:mod:`.increment`)."""
     model, terms, scopes, alpha = space.model, space.terms, space.scopes, space.alpha
     names = model.names
     while state.step < space.max_findings:
@@ -201,6 +212,12 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
             likely.note = _not_established(likely, left, level, step, data.label)
             state.notes.append(likely.note)
             say(likely.note)
+        passing, pooled = increment_gate(sb, passing, level, {key: v for key, _, v in extension_directions(
+            state.accepted, state.current, model, terms)})
+        for c, simpler, inc in pooled:
+            c.note = _increment_not_robust(c, simpler, inc, level, step, data.label)
+            state.notes.append(c.note)
+            say(c.note)
         if not passing:
             say(f"step {step}: no candidate passes on {data.label} (level {level:.2g})")
             return sb, NONE_PASS
