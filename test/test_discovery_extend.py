@@ -33,8 +33,8 @@ def grid():
     return nominal, dict(geometry_groups(nominal.positions, nominal.rotations))["back"]
 
 
-def _discover(nominal, imus, seed: int):
-    s = icosahedron_recording(nominal, with_change(nominal, TERM, VALUE, imus), seed, twist_s=4.0, still_s=0.3,
+def _discover(nominal, imus, seed: int, twist_s: float = 4.0):
+    s = icosahedron_recording(nominal, with_change(nominal, TERM, VALUE, imus), seed, twist_s=twist_s, still_s=0.3,
                               transition_s=0.3)
     return discover(s, nominal, options=OPTIONS)
 
@@ -42,10 +42,12 @@ def _discover(nominal, imus, seed: int):
 def test_a_carrier_outside_the_group_joins_its_shared_finding(grid):
     """Back half + imu_02 (front): one finding on exactly those 17 IMUs, one shared value within 3 std of the
     truth, its note saying it was put on imu_02 along the found value; before the extension (683064b) imu_02
-    was a second finding with its own value."""
+    was a second finding with its own value.  6 s of twisting: on the 4 s the test had until the block-robust
+    test was calibrated, the one-dof extension (score 19) passed only the old test, which over-counted the blocks
+    (robust p 4e-6 old, 1.4e-4 calibrated, level 1.2e-4); there it is now not established."""
     nominal, back = grid
     imus = tuple(sorted(set(back) | {2}))
-    d = _discover(nominal, imus, 5)
+    d = _discover(nominal, imus, 5, twist_s=6.0)
     assert [(f.effect, f.imus) for f in d.findings] == [(TERM, imus)]
     f = d.findings[0]
     assert f.shared and f.scope == f"{','.join(nominal.names[k] for k in imus)} shared"
@@ -76,10 +78,13 @@ def _offsets(nominal, imus, value, seed: int):
 
 
 def test_weak_carriers_of_a_found_value_are_found_together(grid):
-    """The first carriers are found alone (imu_09, then imu_00); the pooled test of the value on every other IMU
-    passes (score ~140 on 30 dof) where no carrier's one-dof test does, and the narrowing keeps the six others:
-    the findings cover exactly the 8 carriers, within 3 std of the truth.  Before the pooled test (22ad2ac):
-    imu_09 and imu_00 only."""
+    """The first carrier is found alone (imu_09); the pooled test of the value on every other IMU passes (score
+    ~160 on 31 dof) where no carrier's one-dof test does, and the narrowing keeps the seven others: the findings
+    cover exactly the 8 carriers, within 3 std of the truth.  Before the pooled test (22ad2ac): imu_09 and imu_00
+    only.  Until the block-robust test was calibrated imu_00 was found alone at step 2 too, after a step-1 tie
+    with imu_09 (it passed only the old test, which over-counted the blocks: robust p 5e-5 old, 1.8e-4
+    calibrated, level 8e-5), and the test asserted the note that drops such a tie once both are found
+    (confirm.both_found, now tested on its own in test_discovery_robust_gate)."""
     nominal, _ = grid
     d = _offsets(nominal, SCATTERED, OFFSET, 5)
     covered = sorted(k for f in d.findings for k in f.imus)
@@ -87,9 +92,9 @@ def test_weak_carriers_of_a_found_value_are_found_together(grid):
     assert any("grown to" in n and "c_k times" in n for n in d.notes), d.notes
     for f in d.findings:
         assert abs(f.values[1] - OFFSET[1]) < 3 * f.std[1], (f.sensor, f.values, f.std)
-    # step 1 could not tell imu_09 from imu_00; both were found, so the report does not call them alternatives
-    assert not any(set(e["sensors"]) == {"imu_09", "imu_00"} for e in d.indistinguishable), d.indistinguishable
-    assert any("both were found" in n for n in d.notes), d.notes
+    # every carrier was found: the report calls none of them an alternative of another
+    assert not any(set(e["sensors"]) <= {nominal.names[k] for k in SCATTERED} for e in d.indistinguishable), \
+        d.indistinguishable
 
 
 def test_one_carrier_is_not_grown(grid):

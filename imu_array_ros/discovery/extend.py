@@ -35,7 +35,10 @@ from imu_array_ros.discovery.explain import Candidate, block_tests
 from imu_array_ros.discovery.scopes import Scope, scoped_blocks
 from imu_array_ros.discovery.subset import scope_label
 
-__all__ = ["extension_candidates", "extension_directions", "shared_change"]
+__all__ = ["extension_candidates", "extension_directions", "shared_change", "OWN_EXTENSION"]
+
+#: how an "every other IMU its own value" extension says so in its sensor label (:mod:`.increment` reads it)
+OWN_EXTENSION = "each its own value"
 
 
 def shared_change(f, current, start) -> np.ndarray | None:
@@ -85,7 +88,7 @@ def _own(sb, names, folds, fold_ids, have, n_obs, key, f, outside, step):
     gb, Sb = scoped_blocks(sb, f.effect, Scope("outside", "own", tuple(out)))
     r = block_tests(gb[have], Sb[have], folds[have], fold_ids)  # (K - 1) p dof: Hotelling, as the own scope
     return None if r is None else _every_other(
-        r, names, n_obs, key, f, out, step, "each its own value", lambda theta: theta,
+        r, names, n_obs, key, f, out, step, OWN_EXTENSION, lambda theta: theta,
         f"{f.effect} on {f.sensor}, then each of the {len(out)} other IMUs its own value", "block-robust")
 
 

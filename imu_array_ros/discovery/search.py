@@ -14,18 +14,20 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+import scipy.stats
 
 from imu_array_ros.discovery.confirm import IMPLAUSIBLE, TRADES, confirm, rejection, settle_ties, update_finding
 from imu_array_ros.discovery.drift import drift_confounded
-from imu_array_ros.discovery.explain import confounded, evaluate_candidates, evaluate_scopes
+from imu_array_ros.discovery.explain import added_given, confounded, evaluate_candidates, evaluate_scopes
 from imu_array_ros.discovery.extend import extension_candidates, extension_directions
+from imu_array_ros.discovery.increment import increment_gate
 from imu_array_ros.discovery.scopes import score_given
 from imu_array_ros.discovery.subset import is_own
 from imu_array_ros.fitting.engine import fit_motion, score_blocks
 from imu_array_ros.model.sensor_model import SensorModel
 
 __all__ = ["SearchData", "SearchState", "SearchSpace", "greedy_search", "ladder_search", "residuals_only", "fill",
-           "rescore",
+           "rescore", "robust_gate",
            "NONE_PASS", "UNCONFIRMED", "CAP", "STOPPED"]
 
 #: why a search ended: no candidate passed the step's level (or none was left to test)
@@ -121,12 +123,68 @@ def rescore(data: SearchData, state: SearchState, space: SearchSpace):
                        state.found(), own_terms=space.own, directions=dirs)
 
 
+def robust_gate(sb, cands: list, passing: list, level: float, tied=()) -> tuple:
+    """(the passing candidates a step may take, the most likely candidate when it failed only the block-robust
+    test else None, the passing ones left out as confounded with it).
+
+    The most likely candidate is the best by BIC among those passing the score test and gaining on held-out
+    blocks.  When it fails only the block-robust test, the effect it stands for is there but not established
+    across the recording's blocks; a runner-up that owes its evidence to the same signature would pass for it
+    (another scope of the same term, a correlated term on the same IMU: a wrong finding).  A runner-up is left
+    out when, given the most likely one, it adds nothing at the step's level (the joint score test of
+    :func:`~.explain.confounded`, without its BIC gap: the better one is not taken, so no later step tells them
+    apart); where ``sb`` holds no joint information of the two (:func:`~.explain.added_given`), when it puts its
+    term on an IMU it does (an extension: on an IMU beyond the finding it grows).  Runners-up that add something
+    given it are kept."""
+    likely = [c for c in cands if c.lrt_p < level and c.heldout > 0.0]
+    if not likely:
+        return passing, None, []
+    best = min(likely, key=lambda c: c.delta_bic)
+    if best.robust_p < level:
+        return passing, None, []
+    kept, left = [], []
+    for c in passing:
+        a = added_given(sb, best, c, tied)
+        if a is None:
+            same = bool(_adds(c) & _adds(best))
+        else:
+            same = a["added_dof"] <= 0 or scipy.stats.chi2.sf(max(a["added_statistic"], 0.0), a["added_dof"]) >= level
+        (left if same else kept).append(c)
+    return kept, best, left
+
+
+def _adds(c) -> set:
+    """The IMUs a candidate puts its term on: an extension's beyond the finding it grows (:mod:`.extend`)."""
+    return set(c.imus) - set(c.extends[2]) if c.extends else set(c.imus)
+
+
+def _not_established(best, left: list, level: float, step: int, label: str) -> str:
+    p = f"{best.robust_p:.2g}" if np.isfinite(best.robust_p) else "not formed (too few blocks)"
+    out = (f"step {step}: not established on {label}: the most likely candidate, {best.effect} on {best.sensor} "
+           f"(score {best.statistic:.4g} on {best.dof} dof, p = {best.lrt_p:.2g}, held-out gain {best.heldout:.3g}), "
+           f"fails only the block-robust test (robust p = {p}, level {level:.2g}): the evidence is there but not "
+           f"robust across the recording's blocks")
+    if left:
+        out += "; not taken in its place, as they add nothing given it: " + ", ".join(
+            f"{c.effect} on {c.sensor} (robust p = {c.robust_p:.2g})" for c in left)
+    return out
+
+
+def _increment_not_robust(c, simpler, inc, level: float, step: int, label: str) -> str:
+    stat, dof, p = inc
+    p = f"{p:.2g}" if np.isfinite(p) else "not formed"
+    return (f"step {step}: {c.effect} on {c.sensor} left out on {label}: it holds {simpler.effect} on "
+            f"{simpler.sensor}, and what it adds over it (score {stat:.4g} on {dof} dof) fails the block-robust "
+            f"test (robust p = {p}, level {level:.2g}); the simpler one may be taken, the rest tested again given it")
+
+
 def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, say) -> tuple:
     """Forward steps on ``data`` from its score blocks ``sb`` (given the findings in ``state``) until no candidate
     passes, none is confirmed, the cap is reached or the best is implausible.  ``state`` and ``data.motion`` are
     updated in place; returns (score blocks of the last model (residuals only at the cap), why it ended).  Each
     step tests at alpha x ``data.share`` / (its number of candidates); a step that adds no finding leaves
-    ``state.step`` as it was (a later look on more data re-runs it)."""
+    ``state.step`` as it was (a later look on more data re-runs it).  A passing pooled candidate whose increment
+    over a passing simpler one it holds is not block-robust is left out of the step (:mod:`.increment`)."""
     model, terms, scopes, alpha = space.model, space.terms, space.scopes, space.alpha
     names = model.names
     while state.step < space.max_findings:
@@ -149,6 +207,17 @@ def greedy_search(data: SearchData, sb, state: SearchState, space: SearchSpace, 
         state.set_level(step, level, len(cands))
         passing = sorted((c for c in cands if c.passes(level)), key=lambda c: c.delta_bic)
         state.candidates += cands if not state.candidates else passing  # every candidate once, then the passing
+        passing, likely, left = robust_gate(sb, cands, passing, level, space.tied)
+        if likely is not None:
+            likely.note = _not_established(likely, left, level, step, data.label)
+            state.notes.append(likely.note)
+            say(likely.note)
+        passing, pooled = increment_gate(sb, passing, level, {key: v for key, _, v in extension_directions(
+            state.accepted, state.current, model, terms)})
+        for c, simpler, inc in pooled:
+            c.note = _increment_not_robust(c, simpler, inc, level, step, data.label)
+            state.notes.append(c.note)
+            say(c.note)
         if not passing:
             say(f"step {step}: no candidate passes on {data.label} (level {level:.2g})")
             return sb, NONE_PASS
