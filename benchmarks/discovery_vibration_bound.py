@@ -92,21 +92,30 @@ def _lorentz_snr(freqs: np.ndarray, f0: float, width: float, energy: float, n: i
     return shape / shape.sum() * energy
 
 
+def built_vibration(seed: int, index: int, evidence: tuple[float, float]):
+    """(scenario, BuiltScenario, sample rate Hz, None) of the suite's vibration scenario ``index``, or (scenario,
+    None, nan, the row an unsizable one reports)."""
+    from imu_array_ros.simulation.suites import build, draw_scenario
+
+    sc = draw_scenario(seed, "vibration", index, evidence=evidence)
+    try:
+        b = build(sc)
+    except ValueError as err:
+        return sc, None, float("nan"), {"scenario": sc.name, "error": str(err)}
+    return sc, b, 1e9 / float(np.median(np.diff(b.samples.stamps))), None
+
+
 def analyse(seed: int, index: int, evidence: tuple[float, float]) -> dict:
     from imu_array_ros.discovery.coherent import field_basis, field_channels
     from imu_array_ros.discovery.modes import detect_modes
     from imu_array_ros.fitting.engine import fit_motion
     from imu_array_ros.model.samples import ImuSamples
-    from imu_array_ros.simulation.suites import build, draw_scenario
 
     t0 = time.perf_counter()
-    sc = draw_scenario(seed, "vibration", index, evidence=evidence)
-    try:
-        b = build(sc)
-    except ValueError as err:
-        return {"scenario": sc.name, "error": str(err)}
+    sc, b, fs, unsizable = built_vibration(seed, index, evidence)
+    if unsizable:
+        return unsizable
     s, m, vib = b.samples, b.nominal, b.scenario.vibration
-    fs = 1e9 / float(np.median(np.diff(s.stamps)))
     motion, _, r = fit_motion(s, m)
     added = b.added
     clean = ImuSamples(s.stamps, s.accel - added[..., :3], s.gyro - added[..., 3:], s.names)

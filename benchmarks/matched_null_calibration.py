@@ -84,16 +84,13 @@ def vibration(seed: int, index: int, evidence: tuple[float, float]) -> dict:
     from imu_array_ros.discovery.coherent import field_basis
     from imu_array_ros.discovery.matched import matched_scan
     from imu_array_ros.discovery.modes import SMOOTH_SCALE
+    from benchmarks.discovery_vibration_bound import built_vibration
     from imu_array_ros.fitting.engine import fit_motion
-    from imu_array_ros.simulation.suites import build, draw_scenario
 
-    sc = draw_scenario(seed, "vibration", index, evidence=evidence)
-    try:
-        b = build(sc)
-    except ValueError as err:
-        return {"scenario": sc.name, "error": str(err)}
+    sc, b, fs, unsizable = built_vibration(seed, index, evidence)
+    if unsizable:
+        return unsizable
     s, m, vib = b.samples, b.nominal, b.scenario.vibration
-    fs = 1e9 / float(np.median(np.diff(s.stamps)))
     _, _, r = fit_motion(s, m)
     n, k = r.shape[:2]
     basis = field_basis(m.positions, m.rotations, np.asarray(m.std, dtype=float)[:, :3], min_scale=SMOOTH_SCALE)
