@@ -237,8 +237,8 @@ def draw_scenario(seed: int, cls: str, index: int, *, evidence=(10.0, 1000.0), u
         raise ValueError(f"unknown class {cls!r} (known: {', '.join(CLASSES)})")
     rng = np.random.default_rng([int(seed), _STREAM[cls], int(index), 23] + ([int(unseen)] if unseen else []))
     s = _session(rng, cls, unseen)
-    k = imu_count(s["array"])
-    positions = array_description(s["array"]).positions
+    desc = array_description(s["array"])
+    k, positions = len(desc.imus), desc.positions
     lo, hi = evidence
     e = _log_uniform(rng, lo, hi)
     effects, vib, variant = [], None, ""
