@@ -118,6 +118,11 @@ class Candidate:
         self.sensors = tuple(self.sensors) or (self.sensor,)
 
     @property
+    def added(self) -> set:
+        """The IMUs the candidate puts its term on: an extension's beyond the finding it grows (:mod:`.extend`)."""
+        return set(self.imus) - set(self.extends[2]) if self.extends else set(self.imus)
+
+    @property
     def key(self) -> tuple:
         """(effect, scope, imus): identifies the hypothesis across steps."""
         return self.effect, self.scope, self.imus
@@ -385,7 +390,7 @@ def added_given(sb, best: Candidate, other: Candidate, tied=()) -> dict | None:
     beyond the finding's include the other's, at least as many dof: the difference of their statistics).  Not:
     other extensions, terms tested given others (drift.GIVEN)."""
     if best.extends and best.extends == other.extends:
-        nb, no = set(best.imus) - set(best.extends[2]), set(other.imus) - set(best.extends[2])
+        nb, no = best.added, other.added  # the same finding grown: beyond its IMUs
         if nb <= no and other.dof >= best.dof or no <= nb and other.dof <= best.dof:
             return {"added_statistic": max(other.statistic - best.statistic, 0.0),
                     "added_dof": max(other.dof - best.dof, 0), "correlation": float("nan")}

@@ -60,8 +60,7 @@ def increment(sb, small, big, directions: dict | None = None):
     p = cols.stop - cols.start
     if big.extends:
         v = (directions or {}).get(big.extends)
-        out = sorted(set(big.imus) - set(big.extends[2]))
-        k = sorted(set(small.imus) - set(big.extends[2]))
+        out, k = sorted(big.added), sorted(small.added)  # beyond the finding both grow (_holds)
         if v is None or len(k) != 1 or small.dof != 1:
             return None
         if OWN_EXTENSION in big.sensor:

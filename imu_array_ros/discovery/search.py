@@ -146,16 +146,11 @@ def robust_gate(sb, cands: list, passing: list, level: float, tied=()) -> tuple:
     for c in passing:
         a = added_given(sb, best, c, tied)
         if a is None:
-            same = bool(_adds(c) & _adds(best))
+            same = bool(c.added & best.added)
         else:
             same = a["added_dof"] <= 0 or scipy.stats.chi2.sf(max(a["added_statistic"], 0.0), a["added_dof"]) >= level
         (left if same else kept).append(c)
     return kept, best, left
-
-
-def _adds(c) -> set:
-    """The IMUs a candidate puts its term on: an extension's beyond the finding it grows (:mod:`.extend`)."""
-    return set(c.imus) - set(c.extends[2]) if c.extends else set(c.imus)
 
 
 def _not_established(best, left: list, level: float, step: int, label: str) -> str:
