@@ -56,8 +56,8 @@ import scipy.stats
 from imu_array_ros.discovery.drift import GIVEN, candidate_blocks
 from imu_array_ros.discovery.scopes import Scope, scoped_blocks
 
-__all__ = ["Candidate", "evaluate_candidates", "evaluate_scopes", "confounded", "added_given", "block_tests",
-           "increment_test", "BIC_GAP", "EIG_RTOL"]
+__all__ = ["Candidate", "evaluate_candidates", "evaluate_scopes", "confounded", "added_given", "scope_design",
+           "block_tests", "increment_test", "BIC_GAP", "EIG_RTOL"]
 
 #: BIC difference (2 ln Bayes factor) below which two candidates count as explaining equally well (Kass & Raftery:
 #: >= 10 is "very strong" evidence for the better one)
@@ -379,6 +379,16 @@ def confounded(sb, best: Candidate, others: list[Candidate], level: float) -> li
     return out
 
 
+def scope_design(c: Candidate, imus: list, p: int) -> np.ndarray:
+    """(len(imus) p, d): a candidate's d parameters -> the values of its term (p each) on ``imus`` (which hold
+    its IMUs): each IMU of it its own value (scope "imu" or an own scope), or one value shared by them."""
+    own = [[k] for k in c.imus] if c.scope == "imu" or c.scope.endswith(" own") else [list(c.imus)]
+    a = np.zeros((len(imus), len(own), p, p))
+    for j, ks in enumerate(own):
+        a[[imus.index(k) for k in ks], j] = np.eye(p)
+    return a.transpose(0, 2, 1, 3).reshape(len(imus) * p, len(own) * p)
+
+
 def added_given(sb, best: Candidate, other: Candidate, tied=()) -> dict | None:
     """What ``other`` adds to ``best`` in the score test: {added_statistic, added_dof, correlation (largest
     canonical correlation of the two projected signatures)}, from the joint score and information of both in
@@ -402,13 +412,7 @@ def added_given(sb, best: Candidate, other: Candidate, tied=()) -> dict | None:
         g, S = sb.g[:, best.k, idx].sum(axis=0), sb.S[:, best.k][:, idx][:, :, idx].sum(axis=0)
     elif best.effect == other.effect and sb.S_cross.get(best.effect) is not None:
         kk, p = sb.g.shape[1], cb.stop - cb.start
-        design = []
-        for c in (best, other):  # each candidate's parameters -> every IMU's values of the term (K p)
-            cols = [[k] for k in c.imus] if c.scope == "imu" or c.scope.endswith(" own") else [list(c.imus)]
-            a = np.zeros((kk, len(cols), p, p))
-            for j, ks in enumerate(cols):
-                a[ks, j] = np.eye(p)
-            design.append(a.transpose(0, 2, 1, 3).reshape(kk * p, len(cols) * p))
+        design = [scope_design(c, list(range(kk)), p) for c in (best, other)]  # -> every IMU's values (K p)
         a = np.hstack(design)
         full = sb.S_cross[best.effect].sum(axis=0).transpose(0, 2, 1, 3).reshape(kk * p, kk * p)
         g, S = a.T @ sb.g[:, :, cb].sum(axis=0).reshape(-1), a.T @ full @ a

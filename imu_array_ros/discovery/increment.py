@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imu_array_ros.discovery.explain import increment_test
+from imu_array_ros.discovery.explain import increment_test, scope_design
 from imu_array_ros.discovery.extend import OWN_EXTENSION
 from imu_array_ros.discovery.scopes import Scope, scoped_blocks
 
@@ -37,17 +37,6 @@ def _holds(big, small) -> bool:
     one kind (extensions of the same finding, or neither an extension)."""
     return (small is not big and small.effect == big.effect and small.dof < big.dof
             and set(small.imus) <= set(big.imus) and small.extends == big.extends)
-
-
-def _columns(c, imus: list, p: int) -> np.ndarray:
-    """A candidate's design in the space of ``imus``' values of its term (len(imus) p, d): each IMU its own
-    value, or one value on all of them (a shared scope)."""
-    shared = not (c.scope == "imu" or c.scope.endswith(" own"))
-    own = [[k] for k in c.imus] if not shared else [list(c.imus)]
-    a = np.zeros((len(imus), len(own), p, p))
-    for j, ks in enumerate(own):
-        a[[imus.index(k) for k in ks], j] = np.eye(p)
-    return a.transpose(0, 2, 1, 3).reshape(len(imus) * p, len(own) * p)
 
 
 def increment(sb, small, big, directions: dict | None = None):
@@ -81,7 +70,7 @@ def increment(sb, small, big, directions: dict | None = None):
             return None
         imus = list(big.imus)
         gb, Sb = scoped_blocks(sb, big.effect, Scope("union", "own", tuple(imus)))
-        a_small, a_big = _columns(small, imus, p), _columns(big, imus, p)
+        a_small, a_big = scope_design(small, imus, p), scope_design(big, imus, p)
     X = _extend_basis(a_small, a_big)
     if X is None:
         return None
